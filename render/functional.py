@@ -1,0 +1,173 @@
+"""Functional form of the shadowed Blinn-Phong renderer.
+
+Image model (``../shared/scene-format.md``), per pixel point ``X`` and light ``i``::
+
+    I = kd * L_a + sum_i S_i * I_i * f(d_i) * (kd * max(0, n.l_i) + ks * max(0, n.h_i)^alpha)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from render.geometry import fit_intrinsics
+from render.shading import Falloff, blinn_phong_lobe, falloff_factor, light_geometry
+from render.shadows import ShadowMethod, shadow_visibility
+from render.types import GBuffer, Material, PointLights, check_ambient
+
+__all__ = ["RenderOutput", "render", "render_image"]
+
+
+@dataclass(frozen=True)
+class RenderOutput:
+    """The rendered image and its parts.
+
+    Attributes:
+        image: ``(B, 3, H, W)``, the sum of the terms below; 0 on invalid pixels.
+        ambient: ``(B, 3, H, W)``, ``kd * L_a``.
+        diffuse: ``(B, 3, H, W)``, shadowed diffuse light summed over lights.
+        specular: ``(B, 3, H, W)`` or None when the specular term was skipped.
+        visibility: ``(B, L, H, W)`` per-light shadow term ``S_i`` in [0, 1]: cast
+            shadows times the attached shadow ``n . l > 0``; None when shadows are off.
+    """
+
+    image: Tensor
+    ambient: Tensor
+    diffuse: Tensor
+    specular: Tensor | None
+    visibility: Tensor | None
+
+
+def _wants_specular(material: Material, specular: bool | str) -> bool:
+    if specular == "auto":
+        if material.ks is None:
+            return False
+        if torch.compiler.is_compiling():
+            return True
+        return bool((material.ks != 0).any())
+    if not isinstance(specular, bool):
+        raise ValueError(f"specular must be True, False or 'auto', got {specular!r}")
+    return specular and material.ks is not None
+
+
+def render(
+    gbuffer: GBuffer,
+    material: Material,
+    lights: PointLights,
+    ambient: Tensor | None = None,
+    *,
+    falloff: Falloff | str = Falloff.INVERSE_SQUARE,
+    shadows: ShadowMethod | str = ShadowMethod.EPIPOLAR,
+    shadow_options=None,
+    diffuse: bool = True,
+    specular: bool | str = "auto",
+    check_finite: bool = True,
+) -> RenderOutput:
+    """Render the G-buffer under point lights with Blinn-Phong shading and cast shadows.
+
+    Args:
+        gbuffer: geometry, ``points/normals (B, H, W, 3)``, ``mask (B, H, W)``.
+        material: ``kd (B|1, H, W, 3)``, ``ks (B|1, H, W, 1|3)`` or None, shininess.
+        lights: ``position (B, L, 3)``, ``intensity (B, L, 3)``; L may be 0.
+        ambient: ambient illumination ``L_a``, ``(B, 3)`` or ``(3,)``; None for none.
+        falloff: ``"inverse_square"`` (1/d^2) or ``"none"``.
+        shadows: ``"epipolar"`` (default), ``"paper"`` or ``"none"``. Cost:
+            ``none`` is free; ``epipolar`` sweeps about 3-12 samples per pixel and
+            light; ``paper`` scatters (2r+1)^2 splats per pixel and light, 7 times
+            when the light position needs a gradient.
+        shadow_options: the method's options dataclass (see :mod:`render.shadows`).
+        diffuse: compute the diffuse term (False renders ambient + specular only).
+        specular: True, False or ``"auto"`` (default: skip when ``ks`` is None or
+            zero everywhere; the check costs one device sync per call).
+        check_finite: raise ValueError on NaN/inf in valid inputs (one device sync);
+            set False inside hot loops whose inputs are known to be finite.
+
+    Returns:
+        :class:`RenderOutput`. Everything is linear in the light intensities and the
+        ambient; costs grow linearly with the number of lights.
+
+    Example:
+        >>> depth = torch.full((1, 8, 8), 2.0)
+        >>> K = torch.tensor([[[8.0, 0, 3.5], [0, 8.0, 3.5], [0, 0, 1]]])
+        >>> g = GBuffer.from_depth(depth, K)
+        >>> lights = PointLights(position=torch.tensor([[[0.0, -1.0, 0.0]]]), intensity=torch.ones(1, 1, 3))
+        >>> out = render(g, Material(kd=torch.full((1, 8, 8, 3), 0.5)), lights)
+        >>> out.image.shape
+        torch.Size([1, 3, 8, 8])
+    """
+    B, H, W = gbuffer.mask.shape
+    if material.kd.shape[0] not in (1, B) or material.kd.shape[1:3] != (H, W):
+        raise ValueError(
+            f"material kd must have shape ({B} or 1, {H}, {W}, 3) to match the G-buffer, "
+            f"got {tuple(material.kd.shape)}"
+        )
+    if lights.position.shape[0] != B:
+        raise ValueError(f"lights must have batch size {B}, got {lights.position.shape[0]}")
+    la = check_ambient(ambient, B, gbuffer.points)
+    if check_finite and not torch.compiler.is_compiling():
+        gbuffer.check_finite()
+        material.check_finite()
+        lights.check_finite()
+        if not bool(torch.isfinite(la).all()):
+            raise ValueError("ambient holds non-finite values")
+    falloff = Falloff(falloff)
+    shadows = ShadowMethod(shadows)
+
+    mask = gbuffer.mask[..., None].to(gbuffer.points.dtype)  # (B, H, W, 1)
+    kd = material.kd
+    ambient_term = kd * la[:, None, None, :] * mask
+    with_specular = _wants_specular(material, specular)
+    visibility = None
+    diffuse_term = torch.zeros_like(ambient_term)
+    specular_term = torch.zeros_like(ambient_term) if with_specular else None
+
+    if lights.num_lights > 0 and (diffuse or with_specular):
+        # Shapes: points/normals (B, 1, H, W, 3), lights (B, L, 1, 1, 3).
+        points = gbuffer.points[:, None]
+        normals = gbuffer.normals[:, None]
+        light_position = lights.position[:, :, None, None, :]
+        to_light, distance, to_viewer = light_geometry(points, light_position)
+        radiance = lights.intensity[:, :, None, None, :] * falloff_factor(distance, falloff)[..., None]
+        n_dot_l = (normals * to_light).sum(-1)  # (B, L, H, W)
+        if shadows is not ShadowMethod.NONE:
+            intrinsics = gbuffer.intrinsics
+            if shadows is ShadowMethod.EPIPOLAR and intrinsics is None:
+                intrinsics = fit_intrinsics(gbuffer.points.detach(), gbuffer.mask)
+            visibility = shadow_visibility(
+                shadows, gbuffer.points, gbuffer.mask, intrinsics, lights.position, shadow_options
+            )
+            # A surface facing away from the light cannot see it (attached shadow):
+            # with shadows on, S_i includes that, as an exact shadow ray would. The
+            # diffuse term is already 0 there; this gates the specular lobe.
+            visibility = visibility * (n_dot_l > 0).to(visibility.dtype)
+            radiance = radiance * visibility[..., None]  # (B, L, H, W, 3)
+        if diffuse:
+            diffuse_term = kd * (n_dot_l.clamp_min(0)[..., None] * radiance).sum(1) * mask
+        if with_specular:
+            shininess = material.shininess_map()
+            shininess = shininess[:, None] if shininess.dim() == 3 else shininess  # (B|1, 1, H|1, W|1)
+            lobe = blinn_phong_lobe(normals, to_light, to_viewer, shininess)
+            specular_term = material.ks * (lobe[..., None] * radiance).sum(1) * mask
+
+    image = ambient_term + diffuse_term
+    if specular_term is not None:
+        image = image + specular_term
+
+    # The one place where channel-last geometry becomes channel-first images.
+    def to_chw(t: Tensor | None) -> Tensor | None:
+        return None if t is None else t.permute(0, 3, 1, 2)
+
+    return RenderOutput(
+        image=to_chw(image),
+        ambient=to_chw(ambient_term),
+        diffuse=to_chw(diffuse_term),
+        specular=to_chw(specular_term),
+        visibility=visibility,
+    )
+
+
+def render_image(*args, **kwargs) -> Tensor:
+    """Like :func:`render`, returning only the image ``(B, 3, H, W)``."""
+    return render(*args, **kwargs).image

@@ -1,0 +1,112 @@
+"""Blinn-Phong lighting math as plain functions, channel-last, batched over lights.
+
+Shapes use B batch, L lights, H, W image. Every function broadcasts its inputs
+with torch rules; the shapes below are the ones the renderer passes.
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+__all__ = ["Falloff", "LightGeometry", "light_geometry", "falloff_factor", "lambert", "blinn_phong_lobe"]
+
+
+class Falloff(str, Enum):
+    """Distance attenuation ``f(d)`` of a point light (``meta.falloff`` of scene files)."""
+
+    INVERSE_SQUARE = "inverse_square"  # f = 1/d^2, physical; the default
+    NONE = "none"  # f = 1, as written in the Blinn-Phong light-estimation paper
+
+
+class LightGeometry(NamedTuple):
+    """See :func:`light_geometry`."""
+
+    to_light: Tensor  # (B, L, H, W, 3) unit, surface to light
+    distance: Tensor  # (B, L, H, W)
+    to_viewer: Tensor  # (B, 1, H, W, 3) unit, surface to camera centre
+
+
+def _safe_normalize(v: Tensor, length: Tensor, eps: Tensor) -> Tensor:
+    # Guard: a zero vector (light on the point, point at the camera) would give
+    # 0/0; dividing by max(length, eps) keeps values and gradients finite.
+    return v / torch.maximum(length, eps)[..., None]
+
+
+def light_geometry(points: Tensor, light_position: Tensor) -> LightGeometry:
+    """Unit vectors and distances between surface points, lights and the camera.
+
+    Args:
+        points: ``(B, 1, H, W, 3)`` camera-frame points.
+        light_position: ``(B, L, 1, 1, 3)``.
+
+    Returns:
+        ``to_light`` ``(B, L, H, W, 3)`` unit vector from surface to light,
+        ``distance`` ``(B, L, H, W)``, ``to_viewer`` ``(B, 1, H, W, 3)`` unit vector
+        from surface to camera centre.
+
+    Example:
+        >>> g = light_geometry(torch.tensor([[[[[0.0, 0, 1]]]]]), torch.tensor([[[[[0.0, 0, 3]]]]]))
+        >>> g.to_light[0, 0, 0, 0], g.distance[0, 0, 0, 0]
+        (tensor([0., 0., 1.]), tensor(2.))
+    """
+    offset = light_position - points
+    # Square-root guard: sqrt'(0) is infinite; the clamp keeps the gradient finite
+    # for a light exactly on the surface. The scale-aware floor (1e-6 of the
+    # point's distance to the camera) works for millimetre and kilometre scenes.
+    eps = 1e-6 * points.norm(dim=-1).clamp_min(torch.finfo(points.dtype).tiny ** 0.25)
+    distance = (offset * offset).sum(-1).clamp_min(torch.finfo(points.dtype).tiny).sqrt()
+    to_light = _safe_normalize(offset, distance, eps)
+    depth = points.norm(dim=-1)
+    to_viewer = _safe_normalize(-points, depth, eps)
+    return LightGeometry(to_light, torch.maximum(distance, eps), to_viewer)
+
+
+def falloff_factor(distance: Tensor, falloff: Falloff | str) -> Tensor:
+    """``f(d)``: ``1/d^2`` (inverse_square) or 1 (none); same shape as ``distance``."""
+    falloff = Falloff(falloff)
+    if falloff is Falloff.NONE:
+        return torch.ones_like(distance)
+    return 1.0 / (distance * distance)
+
+
+def lambert(normals: Tensor, to_light: Tensor) -> Tensor:
+    """``max(0, n . l)``, ``(B, L, H, W)`` for normals ``(B, 1, H, W, 3)``, to_light ``(B, L, H, W, 3)``.
+
+    Example:
+        >>> n = torch.tensor([0.0, 0, -1]); l = torch.tensor([0.0, 2 ** -0.5, -2 ** -0.5])
+        >>> round(lambert(n, l).item(), 6)
+        0.707107
+    """
+    return (normals * to_light).sum(-1).clamp_min(0)
+
+
+def blinn_phong_lobe(normals: Tensor, to_light: Tensor, to_viewer: Tensor, shininess: Tensor) -> Tensor:
+    """``max(0, n . h)^alpha`` with ``h = normalize(l + v)``, ``(B, L, H, W)``.
+
+    Args:
+        normals: ``(B, 1, H, W, 3)``.
+        to_light: ``(B, L, H, W, 3)`` unit vectors.
+        to_viewer: ``(B, 1, H, W, 3)`` unit vectors.
+        shininess: alpha, broadcastable to ``(B, L, H, W)`` (e.g. ``(B, 1, H, W)``).
+
+    Example:
+        >>> n = torch.tensor([0.0, 0, -1])
+        >>> blinn_phong_lobe(n, n, n, torch.tensor(1000.0)).item()
+        1.0
+    """
+    half = to_light + to_viewer
+    length = half.norm(dim=-1)
+    # Guard: h is undefined when the light is exactly opposite the viewer (l = -v);
+    # the lobe is then taken as 0 (n.h has no preferred value) with a zero gradient.
+    ok = length > 1e-6
+    half = half / torch.where(ok, length, torch.ones_like(length))[..., None]
+    n_dot_h = (normals * half).sum(-1)
+    lit = ok & (n_dot_h > 1e-12)
+    # Pow guard: for alpha < 1 the derivative of x^alpha is infinite at 0; the
+    # masked branch gets a safe base of 1 so its (discarded) gradient stays finite.
+    safe = torch.where(lit, n_dot_h, torch.ones_like(n_dot_h))
+    return torch.where(lit, safe.pow(shininess), torch.zeros_like(n_dot_h))

@@ -1,0 +1,274 @@
+"""Containers for what the renderer consumes: geometry, material and lights.
+
+All containers are frozen dataclasses of tensors. They check shapes when built
+(cheap, no device synchronisation) and offer :meth:`check_finite` for the value
+checks that need one. Axis letters: B batch, L lights, H, W image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = ["GBuffer", "Material", "PointLights", "check_ambient"]
+
+
+def _shape(t: Tensor) -> str:
+    return "(" + ", ".join(str(s) for s in t.shape) + ")"
+
+
+def _require_tensor(name: str, value: object) -> Tensor:
+    if not isinstance(value, Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    if not value.is_floating_point() and name not in ("mask",):
+        raise TypeError(f"{name} must be a floating point tensor, got dtype {value.dtype}")
+    return value
+
+
+def _require_finite(name: str, value: Tensor, where: Tensor | None = None) -> None:
+    bad = ~torch.isfinite(value)
+    if where is not None:
+        bad = bad & where
+    if bool(bad.any()):
+        count = int(bad.sum())
+        raise ValueError(f"{name} holds {count} non-finite value(s) (NaN or inf)")
+
+
+@dataclass(frozen=True)
+class GBuffer:
+    """Per-pixel geometry of one camera view: an oriented point cloud in image layout.
+
+    Attributes:
+        points: camera-frame 3D point of each pixel, ``(B, H, W, 3)``, metres.
+        normals: unit normal of each pixel facing the camera, ``(B, H, W, 3)``.
+        mask: ``(B, H, W)`` bool, True where the pixel has valid geometry. Points and
+            normals of invalid pixels are replaced by zeros on construction, so that
+            NaNs in holes can never leak into renders or gradients.
+        intrinsics: pinhole matrix ``K``, ``(B, 3, 3)``, or None. Screen-space
+            shadows need it; when None it is fitted to the points on first use.
+
+    Example:
+        >>> depth = torch.full((1, 4, 5), 2.0)
+        >>> K = torch.tensor([[[4.0, 0, 2], [0, 4.0, 1.5], [0, 0, 1]]])
+        >>> g = GBuffer.from_depth(depth, K)
+        >>> g.points.shape, g.mask.all().item()
+        (torch.Size([1, 4, 5, 3]), True)
+    """
+
+    points: Tensor
+    normals: Tensor
+    mask: Tensor
+    intrinsics: Tensor | None = None
+
+    def __post_init__(self) -> None:
+        points = _require_tensor("points", self.points)
+        normals = _require_tensor("normals", self.normals)
+        mask = _require_tensor("mask", self.mask)
+        if points.dim() != 4 or points.shape[-1] != 3:
+            raise ValueError(f"points must have shape (B, H, W, 3), got {_shape(points)}")
+        if normals.shape != points.shape:
+            raise ValueError(
+                f"normals must have the shape of points {_shape(points)}, got {_shape(normals)}"
+            )
+        if mask.shape != points.shape[:3]:
+            raise ValueError(f"mask must have shape {_shape(points[..., 0])}, got {_shape(mask)}")
+        if mask.dtype != torch.bool:
+            raise TypeError(f"mask must be a bool tensor, got dtype {mask.dtype}")
+        if self.intrinsics is not None:
+            K = _require_tensor("intrinsics", self.intrinsics)
+            if K.shape != (points.shape[0], 3, 3):
+                raise ValueError(
+                    f"intrinsics must have shape ({points.shape[0]}, 3, 3), got {_shape(K)}"
+                )
+        # Invalid pixels get zeros (safe values in both branches: where() keeps the
+        # NaN of a hole out of the forward pass and out of the gradient).
+        keep = mask[..., None]
+        object.__setattr__(self, "points", torch.where(keep, points, torch.zeros_like(points)))
+        object.__setattr__(self, "normals", torch.where(keep, normals, torch.zeros_like(normals)))
+
+    @property
+    def batch_size(self) -> int:
+        return self.points.shape[0]
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        """``(H, W)``."""
+        return self.points.shape[1], self.points.shape[2]
+
+    @classmethod
+    def from_depth(
+        cls,
+        depth: Tensor,
+        K: Tensor,
+        normals: Tensor | None = None,
+        *,
+        max_relative_step: float = 0.1,
+    ) -> "GBuffer":
+        """Build the G-buffer of a z-depth map.
+
+        Args:
+            depth: z-depth along the optical axis, ``(B, H, W)``; 0 or non-finite
+                marks a missing pixel.
+            K: pinhole intrinsics, ``(B, 3, 3)`` or ``(3, 3)`` (broadcast to the batch).
+            normals: optional unit normals ``(B, H, W, 3)``; all-zero or non-finite
+                marks a missing normal. When None they are estimated from the depth
+                without crossing depth discontinuities (see
+                :func:`render.geometry.normals_from_points`).
+            max_relative_step: depth jump between neighbours, relative to depth,
+                above which two pixels are taken to lie on different surfaces.
+
+        Returns:
+            The G-buffer; pixels with missing depth or normal are masked out.
+        """
+        from render.geometry import normals_from_points, unproject_depth
+
+        depth = _require_tensor("depth", depth)
+        if depth.dim() != 3:
+            raise ValueError(f"depth must have shape (B, H, W), got {_shape(depth)}")
+        K = _require_tensor("K", K).to(dtype=depth.dtype, device=depth.device)
+        if K.shape == (3, 3):
+            K = K.expand(depth.shape[0], 3, 3)
+        if K.shape != (depth.shape[0], 3, 3):
+            raise ValueError(f"K must have shape ({depth.shape[0]}, 3, 3) or (3, 3), got {_shape(K)}")
+        _require_finite("K", K)
+        mask = torch.isfinite(depth) & (depth > 0)
+        points = unproject_depth(torch.where(mask, depth, torch.zeros_like(depth)), K)
+        if normals is None:
+            normals, has_normal = normals_from_points(points, mask, max_relative_step=max_relative_step)
+        else:
+            normals = _require_tensor("normals", normals)
+            if normals.shape != points.shape:
+                raise ValueError(f"normals must have shape {_shape(points)}, got {_shape(normals)}")
+            normals = normals.to(dtype=depth.dtype)
+            finite = torch.isfinite(normals).all(-1)
+            normals = torch.where(finite[..., None], normals, torch.zeros_like(normals))
+            length = normals.norm(dim=-1)
+            has_normal = length > 1e-6
+            # Normalise the given normals (guard: missing ones have zero length).
+            normals = normals / length.clamp_min(1e-6)[..., None]
+        return cls(points=points, normals=normals, mask=mask & has_normal, intrinsics=K)
+
+    def check_finite(self) -> None:
+        """Raise ValueError if a valid pixel holds a non-finite point or normal."""
+        _require_finite("points", self.points, self.mask[..., None])
+        _require_finite("normals", self.normals, self.mask[..., None])
+        if self.intrinsics is not None:
+            _require_finite("intrinsics", self.intrinsics)
+
+
+@dataclass(frozen=True)
+class Material:
+    """Blinn-Phong reflectance per pixel.
+
+    Attributes:
+        kd: diffuse albedo, ``(B, H, W, 3)``; batch 1 broadcasts.
+        ks: specular reflectance, ``(B, H, W, 1)`` or ``(B, H, W, 3)``, or None for
+            none (the specular term is then skipped entirely).
+        shininess: Blinn-Phong exponent alpha > 0: a float, or a tensor of shape
+            ``()``, ``(B,)`` or ``(B, H, W)``.
+
+    Example:
+        >>> m = Material(kd=torch.full((2, 4, 5, 3), 0.5))
+        >>> m.has_specular
+        False
+    """
+
+    kd: Tensor
+    ks: Tensor | None = None
+    shininess: Tensor | float = 1.0
+
+    def __post_init__(self) -> None:
+        kd = _require_tensor("kd", self.kd)
+        if kd.dim() != 4 or kd.shape[-1] != 3:
+            raise ValueError(f"kd must have shape (B, H, W, 3), got {_shape(kd)}")
+        if self.ks is not None:
+            ks = _require_tensor("ks", self.ks)
+            if ks.dim() != 4 or ks.shape[-1] not in (1, 3) or ks.shape[1:3] != kd.shape[1:3]:
+                raise ValueError(
+                    f"ks must have shape (B, {kd.shape[1]}, {kd.shape[2]}, 1 or 3), got {_shape(ks)}"
+                )
+        shininess = self.shininess
+        if not isinstance(shininess, Tensor):
+            shininess = torch.tensor(float(shininess), dtype=kd.dtype, device=kd.device)
+        if not shininess.is_floating_point():
+            shininess = shininess.to(kd.dtype)
+        if shininess.dim() not in (0, 1, 3) or (
+            shininess.dim() == 3 and shininess.shape[1:] != kd.shape[1:3]
+        ):
+            raise ValueError(
+                f"shininess must have shape (), (B,) or (B, {kd.shape[1]}, {kd.shape[2]}), "
+                f"got {_shape(shininess)}"
+            )
+        object.__setattr__(self, "shininess", shininess)
+
+    @property
+    def has_specular(self) -> bool:
+        return self.ks is not None
+
+    def shininess_map(self) -> Tensor:
+        """Shininess broadcastable against ``(B, H, W)``: shape ``()``, ``(B, 1, 1)`` or ``(B, H, W)``."""
+        s = self.shininess
+        return s[:, None, None] if s.dim() == 1 else s
+
+    def check_finite(self) -> None:
+        """Raise ValueError on non-finite or out-of-range values."""
+        _require_finite("kd", self.kd)
+        if self.ks is not None:
+            _require_finite("ks", self.ks)
+            if bool((self.ks < 0).any()):
+                raise ValueError("ks must be >= 0")
+        _require_finite("shininess", self.shininess)
+        if bool((self.shininess <= 0).any()):
+            raise ValueError("shininess must be > 0")
+
+
+@dataclass(frozen=True)
+class PointLights:
+    """Isotropic point lights, several per image.
+
+    Attributes:
+        position: camera-frame positions, ``(B, L, 3)``, metres.
+        intensity: RGB intensities, ``(B, L, 3)``, in the units of the image model
+            (see ``render/__init__.py``).
+
+    Example:
+        >>> lights = PointLights(position=torch.zeros(2, 1, 3), intensity=torch.ones(2, 1, 3))
+        >>> lights.num_lights
+        1
+    """
+
+    position: Tensor
+    intensity: Tensor
+
+    def __post_init__(self) -> None:
+        position = _require_tensor("position", self.position)
+        intensity = _require_tensor("intensity", self.intensity)
+        if position.dim() != 3 or position.shape[-1] != 3:
+            raise ValueError(f"light position must have shape (B, L, 3), got {_shape(position)}")
+        if intensity.shape != position.shape:
+            raise ValueError(
+                f"light intensity must have the shape of position {_shape(position)}, "
+                f"got {_shape(intensity)}"
+            )
+
+    @property
+    def num_lights(self) -> int:
+        return self.position.shape[1]
+
+    def check_finite(self) -> None:
+        _require_finite("light position", self.position)
+        _require_finite("light intensity", self.intensity)
+
+
+def check_ambient(ambient: Tensor | None, batch_size: int, like: Tensor) -> Tensor:
+    """Validate the ambient illumination and return it as ``(B, 3)``; None gives zeros."""
+    if ambient is None:
+        return like.new_zeros(batch_size, 3)
+    ambient = _require_tensor("ambient", ambient)
+    if ambient.shape == (3,):
+        ambient = ambient.expand(batch_size, 3)
+    if ambient.shape != (batch_size, 3) and ambient.shape != (1, 3):
+        raise ValueError(f"ambient must have shape ({batch_size}, 3) or (3,), got {_shape(ambient)}")
+    return ambient.expand(batch_size, 3)

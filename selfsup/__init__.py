@@ -1,0 +1,1 @@
+"""Self-supervised point-light estimation built on :mod:`render`."""

@@ -1,0 +1,1 @@
+"""Procedural and analytic scenes with exact ground truth."""
