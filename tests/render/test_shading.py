@@ -1,0 +1,121 @@
+import math
+
+import pytest
+import torch
+
+from render import GBuffer, Material, PointLights, ShadowedBlinnPhong, render
+from render.shading import blinn_phong_lobe, falloff_factor, lambert, light_geometry
+
+K = torch.tensor([[20.0, 0, 7.5], [0, 20.0, 7.5], [0, 0, 1]], dtype=torch.float64)
+
+
+def flat_wall(batch=1, size=16, z=2.0, dtype=torch.float64):
+    return GBuffer.from_depth(torch.full((batch, size, size), z, dtype=dtype), K.to(dtype))
+
+
+def test_lambert_exact_angles():
+    n = torch.tensor([0.0, 0.0, -1.0])
+    at45 = torch.tensor([0.0, 1.0, -1.0]) / math.sqrt(2)
+    behind = torch.tensor([0.0, 0.0, 1.0])
+    assert lambert(n, at45).item() == pytest.approx(1 / math.sqrt(2))
+    assert lambert(n, behind).item() == 0.0
+
+
+def test_specular_peak_and_falloff():
+    n = torch.tensor([0.0, 0.0, -1.0])
+    assert blinn_phong_lobe(n, n, n, torch.tensor(500.0)).item() == pytest.approx(1.0)
+    l = torch.tensor([0.0, math.sin(0.2), -math.cos(0.2)])
+    # h is halfway: angle 0.1 from n.
+    assert blinn_phong_lobe(n, l, n, torch.tensor(10.0)).item() == pytest.approx(math.cos(0.1) ** 10)
+    assert falloff_factor(torch.tensor(2.0), "inverse_square").item() == 0.25
+    assert falloff_factor(torch.tensor(2.0), "none").item() == 1.0
+
+
+def test_single_pixel_matches_formula_by_hand():
+    g = flat_wall()
+    kd, ks, alpha, la, intensity = 0.4, 0.3, 7.0, 0.1, 3.0
+    mat = Material(kd=torch.full((1, 16, 16, 3), kd, dtype=torch.float64),
+                   ks=torch.full((1, 16, 16, 1), ks, dtype=torch.float64), shininess=alpha)
+    lp = torch.tensor([[[0.3, -0.4, 0.5]]], dtype=torch.float64)
+    lights = PointLights(position=lp, intensity=torch.full((1, 1, 3), intensity, dtype=torch.float64))
+    img = render(g, mat, lights, torch.full((1, 3), la, dtype=torch.float64), shadows="none").image
+    X = g.points[0, 5, 9]
+    n = torch.tensor([0.0, 0, -1], dtype=torch.float64)
+    d = (lp[0, 0] - X).norm()
+    l = (lp[0, 0] - X) / d
+    v = -X / X.norm()
+    h = (l + v) / (l + v).norm()
+    expected = kd * la + intensity / d**2 * (kd * (n @ l).clamp_min(0) + ks * (n @ h).clamp_min(0) ** alpha)
+    torch.testing.assert_close(img[0, :, 5, 9], expected.expand(3))
+
+
+def test_terms_add_up_and_module_equals_function():
+    g = flat_wall(batch=2)
+    mat = Material(kd=torch.rand(2, 16, 16, 3, dtype=torch.float64), ks=torch.rand(2, 16, 16, 3, dtype=torch.float64),
+                   shininess=torch.tensor([5.0, 50.0], dtype=torch.float64))
+    lights = PointLights(position=torch.randn(2, 3, 3, dtype=torch.float64) * 0.3 + torch.tensor([0, -0.5, 1.0], dtype=torch.float64),
+                         intensity=torch.rand(2, 3, 3, dtype=torch.float64))
+    ambient = torch.rand(2, 3, dtype=torch.float64)
+    layer = ShadowedBlinnPhong()
+    out = layer.render_terms(g, mat, lights, ambient)
+    torch.testing.assert_close(out.image, out.ambient + out.diffuse + out.specular)
+    torch.testing.assert_close(layer(g, mat, lights, ambient), render(g, mat, lights, ambient).image)
+    assert out.visibility.shape == (2, 3, 16, 16)
+
+
+def test_image_is_linear_in_lights():
+    g = flat_wall()
+    mat = Material(kd=torch.full((1, 16, 16, 3), 0.5, dtype=torch.float64))
+    p = torch.tensor([[[0.2, -0.3, 0.8], [-0.5, 0.1, 1.0]]], dtype=torch.float64)
+    both = render(g, mat, PointLights(position=p, intensity=torch.ones(1, 2, 3, dtype=torch.float64))).image
+    one = [render(g, mat, PointLights(position=p[:, i:i + 1], intensity=torch.ones(1, 1, 3, dtype=torch.float64))).image
+           for i in range(2)]
+    torch.testing.assert_close(both, one[0] + one[1])
+
+
+def test_specular_auto_skips_zero_ks_and_none():
+    g = flat_wall()
+    lights = PointLights(position=torch.tensor([[[0.0, -0.5, 1.0]]], dtype=torch.float64), intensity=torch.ones(1, 1, 3, dtype=torch.float64))
+    kd = torch.full((1, 16, 16, 3), 0.5, dtype=torch.float64)
+    assert render(g, Material(kd=kd), lights).specular is None
+    assert render(g, Material(kd=kd, ks=torch.zeros(1, 16, 16, 1, dtype=torch.float64)), lights).specular is None
+    assert render(g, Material(kd=kd, ks=torch.zeros(1, 16, 16, 1, dtype=torch.float64)), lights, specular=True).specular is not None
+
+
+def test_shadows_none_and_no_lights():
+    g = flat_wall()
+    mat = Material(kd=torch.full((1, 16, 16, 3), 0.5, dtype=torch.float64))
+    out = render(g, mat, PointLights(position=torch.zeros(1, 0, 3, dtype=torch.float64), intensity=torch.zeros(1, 0, 3, dtype=torch.float64)),
+                 torch.full((3,), 0.2, dtype=torch.float64))
+    torch.testing.assert_close(out.image, torch.full_like(out.image, 0.1))
+    lights = PointLights(position=torch.tensor([[[0.0, 0, 1.0]]], dtype=torch.float64), intensity=torch.ones(1, 1, 3, dtype=torch.float64))
+    assert render(g, mat, lights, shadows="none").visibility is None
+
+
+def test_bad_render_arguments():
+    g = flat_wall()
+    mat = Material(kd=torch.full((1, 8, 8, 3), 0.5, dtype=torch.float64))
+    lights = PointLights(position=torch.zeros(1, 1, 3, dtype=torch.float64), intensity=torch.ones(1, 1, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="material kd must have shape"):
+        render(g, mat, lights)
+    mat = Material(kd=torch.full((1, 16, 16, 3), 0.5, dtype=torch.float64))
+    with pytest.raises(ValueError, match="'sometimes' is not a valid ShadowMethod"):
+        render(g, mat, lights, shadows="sometimes")
+    with pytest.raises(ValueError, match="light position holds 1 non-finite"):
+        bad = PointLights(position=torch.tensor([[[0.0, float("nan"), 1]]], dtype=torch.float64), intensity=torch.ones(1, 1, 3, dtype=torch.float64))
+        render(g, mat, bad)
+    with pytest.raises(ValueError, match="ambient must have shape"):
+        render(g, mat, lights, torch.ones(2, 2))
+    with pytest.raises(TypeError, match="needs EpipolarShadowOptions"):
+        from render import CubeShadowOptions
+        render(g, mat, lights, shadow_options=CubeShadowOptions())
+    with pytest.raises(ValueError, match="spacing_px must be > 0"):
+        ShadowedBlinnPhong(shadow_options={"spacing_px": 0})
+
+
+def test_dtype_and_device_follow_inputs():
+    g = flat_wall(dtype=torch.float32)
+    mat = Material(kd=torch.full((1, 16, 16, 3), 0.5))
+    lights = PointLights(position=torch.tensor([[[0.0, -0.5, 1.0]]]), intensity=torch.ones(1, 1, 3))
+    for method in ("epipolar", "paper", "none"):
+        assert render(g, mat, lights, shadows=method).image.dtype == torch.float32
