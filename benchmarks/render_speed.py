@@ -12,8 +12,6 @@ as such. Results: benchmarks/results/render_speed_<device>_<date>.{md,json}.
 from __future__ import annotations
 
 import argparse
-import math
-
 import torch
 
 from benchmarks.common import device_name, timed, write_results
@@ -61,6 +59,39 @@ def measure(height, width, batch, num_lights, method, device):
     }
 
 
+def run(quick: bool = False, max_work: float | None = None, device: str | None = None) -> list:
+    """Measure the grid on ``device`` (default: CPU, and CUDA when present); returns the results paths."""
+    devices = [torch.device(device)] if device else [torch.device("cpu")] + (
+        [torch.device("cuda")] if torch.cuda.is_available() else [])
+    methods = ["epipolar", "paper", "none"]
+    paths = []
+    for dev in devices:
+        budget = max_work or (2**22 if dev.type == "cpu" else 2**28)
+        configs = [(120, 160, 16, 1, m) for m in methods]  # the CPU target
+        if dev.type == "cuda":
+            configs.append((256, 256, 64, 1, "epipolar"))  # the H100 target
+        if not quick:
+            configs += [(s, s, b, l, m) for s in (128, 256, 512) for b in (1, 16, 64) for l in (1, 2, 4) for m in methods]
+        rows = []
+        for h, w, b, l, m in dict.fromkeys(configs):
+            if b * l * h * w > budget:
+                rows.append({"device": dev.type, "resolution": f"{w}x{h}", "batch": b, "lights": l, "shadows": m,
+                             "fwd_ms_per_image": "skipped (over max_work)"})
+                continue
+            row = measure(h, w, b, l, m, dev)
+            print(row, flush=True)
+            rows.append(row)
+        header = (f"Scene: sphere and box on a floor (exact depth), kd only, lights above/in front; float32; "
+                  f"median of >= 3 runs after a warm-up. Targets: CPU 160x120 batch 16, 1 light, shadows, "
+                  f"fwd+bwd < 5 ms/image; H100 256x256 batch 64, 1 light, default shadows, >= 10,000 images/s.")
+        path = write_results("render_speed", dev, rows, header,
+                             ["device", "resolution", "batch", "lights", "shadows", "fwd_ms_per_image",
+                              "fwd_bwd_ms_per_image", "fwd_bwd_images_per_s"])
+        print(f"wrote {path} ({device_name(dev)})")
+        paths.append(path)
+    return paths
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="only the target configurations")
@@ -68,32 +99,7 @@ def main() -> None:
                         help="skip configs with batch*lights*pixels above this (default: 2^22 on CPU, 2^28 on CUDA)")
     parser.add_argument("--device", default=None, help="cpu or cuda (default: both when CUDA is present)")
     args = parser.parse_args()
-    devices = [torch.device(args.device)] if args.device else [torch.device("cpu")] + (
-        [torch.device("cuda")] if torch.cuda.is_available() else [])
-    methods = ["epipolar", "paper", "none"]
-    for device in devices:
-        max_work = args.max_work or (2**22 if device.type == "cpu" else 2**28)
-        configs = [(120, 160, 16, 1, m) for m in methods]  # the CPU target
-        if device.type == "cuda":
-            configs.append((256, 256, 64, 1, "epipolar"))  # the H100 target
-        if not args.quick:
-            configs += [(s, s, b, l, m) for s in (128, 256, 512) for b in (1, 16, 64) for l in (1, 2, 4) for m in methods]
-        rows = []
-        for h, w, b, l, m in dict.fromkeys(configs):
-            if b * l * h * w > max_work:
-                rows.append({"device": device.type, "resolution": f"{w}x{h}", "batch": b, "lights": l, "shadows": m,
-                             "fwd_ms_per_image": "skipped (over --max-work)"})
-                continue
-            row = measure(h, w, b, l, m, device)
-            print(row, flush=True)
-            rows.append(row)
-        header = (f"Scene: sphere and box on a floor (exact depth), kd only, lights above/in front; float32; "
-                  f"median of >= 3 runs after a warm-up. Targets: CPU 160x120 batch 16, 1 light, shadows, "
-                  f"fwd+bwd < 5 ms/image; H100 256x256 batch 64, 1 light, default shadows, >= 10,000 images/s.")
-        path = write_results("render_speed", device, rows, header,
-                             ["device", "resolution", "batch", "lights", "shadows", "fwd_ms_per_image",
-                              "fwd_bwd_ms_per_image", "fwd_bwd_images_per_s"])
-        print(f"wrote {path} ({device_name(device)})")
+    run(args.quick, args.max_work, args.device)
 
 
 if __name__ == "__main__":

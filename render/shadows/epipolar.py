@@ -223,14 +223,33 @@ def epipolar_shadow_visibility(
     B, H, W, _ = points.shape
     L = light_position.shape[1]
     N = B * L
-    dtype = points.dtype
     # (B, L, 3) -> (N, 3); per-image tensors repeated per light: (B, ...) -> (N, ...)
     light = light_position.reshape(N, 3)
     image_index = torch.arange(B, device=points.device).repeat_interleave(L)
-    K = intrinsics.to(dtype)[image_index]
+    K = intrinsics.to(points.dtype)[image_index]
     pts = points.reshape(B, 1, H * W, 3).expand(B, L, H * W, 3).reshape(N, H * W, 3)
     valid = mask.reshape(B, 1, H * W).expand(B, L, H * W).reshape(N, H * W)
+    # Lights that project inside the image need lines all around their epipole,
+    # about 2.5x the samples of the others: sweep the two kinds separately so that
+    # one such light does not size the pattern of every other (image, light).
+    with torch.no_grad():
+        lines = _make_lines(light.detach(), K, H, W, options.spacing_px)
+        groups = [torch.nonzero(lines.periodic == kind).squeeze(1) for kind in (False, True)]
+    groups = [g for g in groups if g.numel()]
+    if len(groups) == 1:
+        visibility = _sweep(pts, valid, K, light, H, W, options)
+    else:
+        visibility = torch.empty(N, H * W, dtype=points.dtype, device=points.device)
+        for g in groups:
+            visibility = visibility.index_copy(0, g, _sweep(pts[g], valid[g], K[g], light[g], H, W, options))
+    return visibility.reshape(B, L, H, W)
 
+
+def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
+           options: EpipolarShadowOptions) -> Tensor:
+    """Visibility ``(N, H*W)`` of ``pts (N, H*W, 3)`` from ``light (N, 3)``, see above."""
+    N = light.shape[0]
+    dtype = pts.dtype
     lines = _make_lines(light, K, H, W, options.spacing_px)
     gamma = _angle_from_camera_ray(pts, light)  # (N, H*W)
     weight = valid.to(dtype)
@@ -239,12 +258,12 @@ def epipolar_shadow_visibility(
     # 1) The sweep, without a gradient: for each line and sample, which sample
     #    before it (inclusive) has the smallest gamma.
     nl, ns = lines.num_lines, lines.num_samples
-    argmin = torch.empty(N, nl, ns, dtype=torch.long, device=points.device)
-    seen = torch.empty(N, nl, ns, dtype=torch.bool, device=points.device)
+    argmin = torch.empty(N, nl, ns, dtype=torch.long, device=pts.device)
+    seen = torch.empty(N, nl, ns, dtype=torch.bool, device=pts.device)
     rows_per_chunk = max(1, options.chunk_samples // (nl * ns))
     with torch.no_grad():
-        line_index = torch.arange(nl, dtype=dtype, device=points.device)
-        sample_index = torch.arange(ns, dtype=dtype, device=points.device)
+        line_index = torch.arange(nl, dtype=dtype, device=pts.device)
+        sample_index = torch.arange(ns, dtype=dtype, device=pts.device)
         for start in range(0, N, rows_per_chunk):
             part = slice(start, min(N, start + rows_per_chunk))
             sub = _Lines(*(getattr(lines, f)[part] for f in ("epipole", "forward", "periodic", "theta0",
@@ -259,8 +278,8 @@ def epipolar_shadow_visibility(
 
     # 2) Per pixel, with a gradient: where it sits in the pattern, which occluders
     #    the four surrounding pattern nodes hold, and their angles.
-    u = torch.arange(W, dtype=dtype, device=points.device).repeat(H)
-    v = torch.arange(H, dtype=dtype, device=points.device).repeat_interleave(W)
+    u = torch.arange(W, dtype=dtype, device=pts.device).repeat(H)
+    v = torch.arange(H, dtype=dtype, device=pts.device).repeat_interleave(W)
     offset = torch.stack([u, v], -1)[None] - lines.epipole[:, None]  # (N, H*W, 2)
     r_pix = offset.norm(dim=-1)
     # atan2 guard: the pixel at the epipole has no direction; any fixed one will do.
@@ -308,5 +327,4 @@ def epipolar_shadow_visibility(
     margin = (running_min - gamma) / pixel_angle
     t = ((margin + options.bias_px + options.width_px) / options.width_px).clamp(0, 1)
     visibility = t * t * (3 - 2 * t)
-    visibility = torch.where(valid, visibility, torch.ones_like(visibility))
-    return visibility.reshape(B, L, H, W)
+    return torch.where(valid, visibility, torch.ones_like(visibility))

@@ -78,8 +78,9 @@ def _spheres(s: Tensor, o: Tensor, d: Tensor, t_min: float) -> tuple[Tensor, Ten
 def _boxes(bx: Tensor, o: Tensor, d: Tensor, t_min: float) -> tuple[Tensor, Tensor]:
     centre, half, rot = bx[:, :3], bx[:, 3:6], bx[:, 6:15].reshape(-1, 3, 3)
     # Into each box's frame: x_box = R^T (x - c).
-    ol = torch.einsum("xji,rxj->rxi", rot, o[:, None] - centre[None])
-    dl = torch.einsum("xji,rj->rxi", rot, d)
+    # R^T v as broadcast products (einsum picked an (R, R) intermediate here).
+    ol = (rot[None] * (o[:, None] - centre[None])[..., :, None]).sum(-2)
+    dl = (rot[None] * d[:, None, :, None]).sum(-2)
     tiny = 1e-30
     inv = 1.0 / torch.where(dl.abs() > tiny, dl, torch.full_like(dl, tiny))
     t1 = (-half[None] - ol) * inv
@@ -93,9 +94,11 @@ def _boxes(bx: Tensor, o: Tensor, d: Tensor, t_min: float) -> tuple[Tensor, Tens
     axis = torch.where(outside, enter_axis, leave_axis)
     ok = (leave >= enter) & (t > t_min)
     t = torch.where(ok, t, torch.full_like(t, float("inf")))
-    sign = torch.where(outside, -torch.sign(dl.gather(-1, axis[..., None])), torch.sign(dl.gather(-1, axis[..., None])))
+    # The normal opposes the ray where it enters, follows it where it leaves (ray inside).
+    d_axis = torch.sign(dl.gather(-1, axis[..., None]))  # (R, X, 1)
+    sign = torch.where(outside[..., None], -d_axis, d_axis)
     local_n = torch.zeros_like(ol).scatter(-1, axis[..., None], sign)
-    normal = torch.einsum("xij,rxj->rxi", rot, local_n)
+    normal = (rot[None] * local_n[..., None, :]).sum(-1)
     return t, normal
 
 
