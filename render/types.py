@@ -19,10 +19,10 @@ def _shape(t: Tensor) -> str:
     return "(" + ", ".join(str(s) for s in t.shape) + ")"
 
 
-def _require_tensor(name: str, value: object) -> Tensor:
+def _require_tensor(name: str, value: object, floating: bool = True) -> Tensor:
     if not isinstance(value, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
-    if not value.is_floating_point() and name not in ("mask",):
+    if floating and not value.is_floating_point():
         raise TypeError(f"{name} must be a floating point tensor, got dtype {value.dtype}")
     return value
 
@@ -65,7 +65,7 @@ class GBuffer:
     def __post_init__(self) -> None:
         points = _require_tensor("points", self.points)
         normals = _require_tensor("normals", self.normals)
-        mask = _require_tensor("mask", self.mask)
+        mask = _require_tensor("mask", self.mask, floating=False)
         if points.dim() != 4 or points.shape[-1] != 3:
             raise ValueError(f"points must have shape (B, H, W, 3), got {_shape(points)}")
         if normals.shape != points.shape:

@@ -90,6 +90,11 @@ class _Lines:
     num_lines: int
     num_samples: int
 
+    def subset(self, rows: slice) -> "_Lines":
+        """The pattern of a slice of the N (image, light) pairs."""
+        fields = ("epipole", "forward", "periodic", "theta0", "dtheta", "r_min", "r_max", "dr")
+        return _Lines(*(getattr(self, f)[rows] for f in fields), self.num_lines, self.num_samples)
+
     def radius(self, k: Tensor) -> Tensor:
         """Distance to the epipole of sample index ``k`` ``(N, ...)``."""
         shape = (-1,) + (1,) * (k.dim() - 1)
@@ -266,8 +271,7 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
         sample_index = torch.arange(ns, dtype=dtype, device=pts.device)
         for start in range(0, N, rows_per_chunk):
             part = slice(start, min(N, start + rows_per_chunk))
-            sub = _Lines(*(getattr(lines, f)[part] for f in ("epipole", "forward", "periodic", "theta0",
-                                                             "dtheta", "r_min", "r_max", "dr")), nl, ns)
+            sub = lines.subset(part)
             n = part.stop - part.start
             xy = sub.position(line_index.view(1, nl, 1).expand(n, nl, ns), sample_index.view(1, 1, ns).expand(n, nl, ns))
             angle, ok = _masked_angle(angle_image[part].detach(), xy.reshape(n, nl * ns, 2), H, W)
