@@ -102,14 +102,6 @@ class _Lines:
         back = self.r_max.view(shape) - k * self.dr.view(shape)
         return torch.where(self.forward.view(shape), fwd, back)
 
-    def position(self, line: Tensor, k: Tensor) -> Tensor:
-        """Pixel coordinates ``(N, ..., 2)`` of sample ``k`` on line ``line``, both ``(N, ...)``."""
-        shape = (-1,) + (1,) * (line.dim() - 1)
-        theta = self.theta0.view(shape) + line * self.dtheta.view(shape)
-        r = self.radius(k)
-        direction = torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)
-        return self.epipole.view(shape + (2,)) + r[..., None] * direction
-
 
 def _make_lines(light_position: Tensor, K: Tensor, height: int, width: int, spacing: float) -> _Lines:
     """Sampling pattern covering the image for each light; ``light_position (N, 3)``, ``K (N, 3, 3)``."""
@@ -166,13 +158,15 @@ def _angle_from_camera_ray(points: Tensor, light_position: Tensor) -> Tensor:
     Returns:
         ``(N, M)`` angles in ``[0, pi]``.
     """
-    to_camera = -light_position[:, None, :]
-    to_point = points - light_position[:, None, :]
-    cross = torch.cross(to_camera.expand_as(to_point), to_point, dim=-1)
+    c = -light_position[:, None, :]
+    d = points - light_position[:, None, :]
+    cx, cy, cz = c.unbind(-1)
+    dx, dy, dz = d.unbind(-1)
+    sq = (cy * dz - cz * dy).square() + (cz * dx - cx * dz).square() + (cx * dy - cy * dx).square()
     # sqrt guard: |c x d| is 0 for points on the line L-O; the floor keeps sqrt'
     # finite there (atan2 itself is smooth away from (0, 0)).
-    sin_part = (cross * cross).sum(-1).clamp_min(torch.finfo(points.dtype).tiny).sqrt()
-    cos_part = (to_camera * to_point).sum(-1)
+    sin_part = sq.clamp_min(torch.finfo(points.dtype).tiny).sqrt()
+    cos_part = cx * dx + cy * dy + cz * dz
     return torch.atan2(sin_part, cos_part)
 
 
@@ -191,8 +185,14 @@ def _masked_angle(angle_image: Tensor, xy: Tensor, height: int, width: int) -> t
     # A sample is surface when most of its bilinear weight falls on valid pixels;
     # the division is guarded for the rest (holes, outside the image).
     valid = weight > 0.5
-    angle = sampled[:, 0] / torch.where(valid, weight, torch.ones_like(weight))
+    angle = sampled[:, 0] / torch.where(valid, weight, 1.0)
     return angle, valid
+
+
+def _occluder_angle(angle_image: Tensor, xy: Tensor, seen: Tensor, height: int, width: int) -> Tensor:
+    """gamma of the occluder samples at ``xy (N, M, 2)``; no occluder where not ``seen`` or off the surface."""
+    angle, ok = _masked_angle(angle_image, xy, height, width)
+    return torch.where(seen & ok, angle, _NO_OCCLUDER)
 
 
 def epipolar_shadow_visibility(
@@ -273,9 +273,13 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
             part = slice(start, min(N, start + rows_per_chunk))
             sub = lines.subset(part)
             n = part.stop - part.start
-            xy = sub.position(line_index.view(1, nl, 1).expand(n, nl, ns), sample_index.view(1, 1, ns).expand(n, nl, ns))
+            # Directions per line (n, nl, 1, 2) times radii per sample (n, 1, ns, 1).
+            theta = sub.theta0[:, None] + line_index[None] * sub.dtheta[:, None]
+            direction = torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)[:, :, None]
+            radius = sub.radius(sample_index[None].expand(n, ns))[:, None, :, None]
+            xy = sub.epipole[:, None, None] + radius * direction  # (n, nl, ns, 2)
             angle, ok = _masked_angle(angle_image[part].detach(), xy.reshape(n, nl * ns, 2), H, W)
-            angle = torch.where(ok, angle, torch.full_like(angle, _NO_OCCLUDER)).reshape(n, nl, ns)
+            angle = torch.where(ok, angle, _NO_OCCLUDER).reshape(n, nl, ns)
             running, index = torch.cummin(angle, dim=-1)
             argmin[part] = index
             seen[part] = running < _NO_OCCLUDER
@@ -305,19 +309,20 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     fa, fs = a - a0, s - s0
     a0, s0 = a0.long(), s0.long()
     occluder_angle = []
-    for da, ds in ((0, 0), (0, 1), (1, 0), (1, 1)):
+    argmin_flat, seen_flat = argmin.reshape(N, nl * ns), seen.reshape(N, nl * ns)
+    for da in (0, 1):
         line = a0 + da
         line = torch.where(lines.periodic[:, None], torch.remainder(line, nl), line.clamp(0, nl - 1))
-        k = s0 + ds
-        has_prior = (k >= 0)
-        k = k.clamp(0, ns - 1)
-        flat = line * ns + k
-        chosen = argmin.reshape(N, nl * ns).gather(1, flat)
-        node_seen = seen.reshape(N, nl * ns).gather(1, flat) & has_prior
-        xy = lines.position(line.to(dtype), chosen.to(dtype))
-        angle, ok = _masked_angle(angle_image, xy, H, W)
-        blocked = node_seen & ok
-        occluder_angle.append(torch.where(blocked, angle, torch.full_like(angle, _NO_OCCLUDER)))
+        theta = lines.theta0[:, None] + line.to(dtype) * lines.dtheta[:, None]
+        direction = torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)
+        for ds in (0, 1):
+            k = s0 + ds
+            has_prior = k >= 0
+            flat = line * ns + k.clamp(0, ns - 1)
+            chosen = argmin_flat.gather(1, flat)
+            node_seen = seen_flat.gather(1, flat) & has_prior
+            xy = lines.epipole[:, None] + lines.radius(chosen.to(dtype))[..., None] * direction
+            occluder_angle.append(_occluder_angle(angle_image, xy, node_seen, H, W))
     m00, m01, m10, m11 = occluder_angle
     running_min = (1 - fa) * ((1 - fs) * m00 + fs * m01) + fa * ((1 - fs) * m10 + fs * m11)
 
@@ -331,4 +336,4 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     margin = (running_min - gamma) / pixel_angle
     t = ((margin + options.bias_px + options.width_px) / options.width_px).clamp(0, 1)
     visibility = t * t * (3 - 2 * t)
-    return torch.where(valid, visibility, torch.ones_like(visibility))
+    return torch.where(valid, visibility, 1.0)
