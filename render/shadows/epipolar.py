@@ -95,6 +95,16 @@ class _Lines:
         fields = ("epipole", "forward", "periodic", "theta0", "dtheta", "r_min", "r_max", "dr")
         return _Lines(*(getattr(self, f)[rows] for f in fields), self.num_lines, self.num_samples)
 
+    def take(self, rows: Tensor) -> "_Lines":
+        """The patterns of the pairs ``rows (M,)``, fields ``(M,)``, differentiable."""
+        fields = ("epipole", "forward", "periodic", "theta0", "dtheta", "r_min", "r_max", "dr")
+        return _Lines(*(getattr(self, f)[rows] for f in fields), self.num_lines, self.num_samples)
+
+    def column(self) -> "_Lines":
+        """Fields as ``(N, 1)`` (epipole ``(N, 1, 2)``), to broadcast against ``(N, H*W)`` pixels."""
+        fields = ("epipole", "forward", "periodic", "theta0", "dtheta", "r_min", "r_max", "dr")
+        return _Lines(*(getattr(self, f)[:, None] for f in fields), self.num_lines, self.num_samples)
+
     def radius(self, k: Tensor) -> Tensor:
         """Distance to the epipole of sample index ``k`` ``(N, ...)``."""
         shape = (-1,) + (1,) * (k.dim() - 1)
@@ -189,12 +199,6 @@ def _masked_angle(angle_image: Tensor, xy: Tensor, height: int, width: int) -> t
     return angle, valid
 
 
-def _occluder_angle(angle_image: Tensor, xy: Tensor, seen: Tensor, height: int, width: int) -> Tensor:
-    """gamma of the occluder samples at ``xy (N, M, 2)``; no occluder where not ``seen`` or off the surface."""
-    angle, ok = _masked_angle(angle_image, xy, height, width)
-    return torch.where(seen & ok, angle, _NO_OCCLUDER)
-
-
 def epipolar_shadow_visibility(
     points: Tensor,
     mask: Tensor,
@@ -254,21 +258,24 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
            options: EpipolarShadowOptions) -> Tensor:
     """Visibility ``(N, H*W)`` of ``pts (N, H*W, 3)`` from ``light (N, 3)``, see above."""
     N = light.shape[0]
-    dtype = pts.dtype
+    dtype, device = pts.dtype, pts.device
     lines = _make_lines(light, K, H, W, options.spacing_px)
     gamma = _angle_from_camera_ray(pts, light)  # (N, H*W)
     weight = valid.to(dtype)
-    angle_image = torch.stack([gamma * weight, weight], dim=1).reshape(N, 2, H, W)
-
-    # 1) The sweep, without a gradient: for each line and sample, which sample
-    #    before it (inclusive) has the smallest gamma.
+    focal = 0.5 * (K[:, 0, 0] + K[:, 1, 1])
     nl, ns = lines.num_lines, lines.num_samples
-    argmin = torch.empty(N, nl, ns, dtype=torch.long, device=pts.device)
-    seen = torch.empty(N, nl, ns, dtype=torch.bool, device=pts.device)
-    rows_per_chunk = max(1, options.chunk_samples // (nl * ns))
+    u = torch.arange(W, dtype=dtype, device=device).repeat(H)
+    v = torch.arange(H, dtype=dtype, device=device).repeat_interleave(W)
+
     with torch.no_grad():
-        line_index = torch.arange(nl, dtype=dtype, device=pts.device)
-        sample_index = torch.arange(ns, dtype=dtype, device=pts.device)
+        # 1) The sweep: for each line and sample, the smallest gamma at or before
+        #    it (running) and which sample holds it (argmin).
+        angle_image = torch.stack([gamma * weight, weight], dim=1).reshape(N, 2, H, W)
+        running = torch.empty(N, nl, ns, dtype=dtype, device=device)
+        argmin = torch.empty(N, nl, ns, dtype=torch.long, device=device)
+        rows_per_chunk = max(1, options.chunk_samples // (nl * ns))
+        line_index = torch.arange(nl, dtype=dtype, device=device)
+        sample_index = torch.arange(ns, dtype=dtype, device=device)
         for start in range(0, N, rows_per_chunk):
             part = slice(start, min(N, start + rows_per_chunk))
             sub = lines.subset(part)
@@ -278,62 +285,119 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
             direction = torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)[:, :, None]
             radius = sub.radius(sample_index[None].expand(n, ns))[:, None, :, None]
             xy = sub.epipole[:, None, None] + radius * direction  # (n, nl, ns, 2)
-            angle, ok = _masked_angle(angle_image[part].detach(), xy.reshape(n, nl * ns, 2), H, W)
+            angle, ok = _masked_angle(angle_image[part], xy.reshape(n, nl * ns, 2), H, W)
             angle = torch.where(ok, angle, _NO_OCCLUDER).reshape(n, nl, ns)
-            running, index = torch.cummin(angle, dim=-1)
-            argmin[part] = index
-            seen[part] = running < _NO_OCCLUDER
+            torch.cummin(angle, dim=-1, out=(running[part], argmin[part]))
+        running_flat, argmin_flat = running.reshape(N, nl * ns), argmin.reshape(N, nl * ns)
 
-    # 2) Per pixel, with a gradient: where it sits in the pattern, which occluders
-    #    the four surrounding pattern nodes hold, and their angles.
-    u = torch.arange(W, dtype=dtype, device=pts.device).repeat(H)
-    v = torch.arange(H, dtype=dtype, device=pts.device).repeat_interleave(W)
-    offset = torch.stack([u, v], -1)[None] - lines.epipole[:, None]  # (N, H*W, 2)
-    r_pix = offset.norm(dim=-1)
+        # 2) Every pixel, from the running minima of the pattern nodes around it.
+        def node_from_sweep(line: Tensor, k: Tensor, has_prior: Tensor, direction: Tensor) -> Tensor:
+            value = running_flat.gather(1, line * ns + k)
+            return torch.where(has_prior & (value < _NO_OCCLUDER), value, _NO_OCCLUDER)
+
+        running_min = _running_min_at_pixels(lines.column(), u, v, nl, ns, options.lookback, node_from_sweep)
+        distance = (light[:, None] - pts).norm(dim=-1)
+        visibility, t = _smooth_visibility(running_min, gamma, pts[..., 2], distance, focal[:, None], options)
+        visibility = torch.where(valid, visibility, 1.0)
+        band = valid & (t > 0) & (t < 1)
+
+    if not (torch.is_grad_enabled() and (light.requires_grad or pts.requires_grad)):
+        return visibility
+
+    # 3) With a gradient, only where it is not zero: inside the smooth band (the
+    #    clamped smoothstep is flat, derivative 0, everywhere else). The same
+    #    computation as above, but the occluders' angles are recomputed from
+    #    their positions on the epipolar lines so that autograd sees how they
+    #    move with the light and the points.
+    rows, cols = band.nonzero(as_tuple=True)
+    if rows.numel() == 0:
+        return visibility
+    seen = running_flat < _NO_OCCLUDER
+
+    def node_recomputed(line: Tensor, k: Tensor, has_prior: Tensor, direction: Tensor) -> Tensor:
+        flat = line * ns + k
+        chosen = argmin_flat[rows, flat]
+        xy = band_lines.epipole + band_lines.radius(chosen.to(dtype))[..., None] * direction
+        angle, ok = _masked_angle_at(gamma, weight, rows, xy, H, W)
+        return torch.where(has_prior & seen[rows, flat] & ok, angle, _NO_OCCLUDER)
+
+    band_lines = lines.take(rows)
+    band_min = _running_min_at_pixels(band_lines, u[cols], v[cols], nl, ns, options.lookback, node_recomputed)
+    band_points = pts[rows, cols]
+    band_visibility, _ = _smooth_visibility(
+        band_min, gamma[rows, cols], band_points[:, 2], (light[rows] - band_points).norm(dim=-1), focal[rows], options
+    )
+    return visibility.index_put((rows, cols), band_visibility)
+
+
+def _running_min_at_pixels(lines: _Lines, u: Tensor, v: Tensor, nl: int, ns: int, lookback: float, node_angle) -> Tensor:
+    """Bilinear interpolation, at pixels ``(u, v)``, of the running minimum of gamma
+    at the four pattern nodes around each pixel, ``lookback`` samples before it.
+
+    ``lines`` fields broadcast against ``u`` and ``v``; ``node_angle(line, k,
+    has_prior, direction)`` gives the running minimum of one node (long indices
+    of the pixels' shape).
+    """
+    dtype = u.dtype
+    dx, dy = u - lines.epipole[..., 0], v - lines.epipole[..., 1]
+    r_pix = (dx * dx + dy * dy).sqrt()
     # atan2 guard: the pixel at the epipole has no direction; any fixed one will do.
     at_epipole = r_pix < 1e-6
-    offset = torch.where(at_epipole[..., None], torch.ones_like(offset), offset)
-    theta = torch.atan2(offset[..., 1], offset[..., 0])
+    theta = torch.atan2(torch.where(at_epipole, 1.0, dy), torch.where(at_epipole, 1.0, dx))
     # Angle from line 0, wrapped: lines all around (periodic) span [0, 2 pi); lines
     # from an outside epipole span less than pi, so [-pi/2, 3 pi/2) holds them
     # whole even where they straddle the +-pi seam of atan2.
-    shift = torch.where(lines.periodic, torch.zeros_like(lines.theta0), torch.full_like(lines.theta0, math.pi / 2))
-    rel = torch.remainder(theta - lines.theta0[:, None] + shift[:, None], 2 * math.pi) - shift[:, None]
-    upper = (nl - 1) + lines.periodic[:, None].to(dtype)  # periodic lines wrap to line 0 at index nl
-    a = torch.minimum((rel / lines.dtheta[:, None]).clamp_min(0), upper)
-    radial = torch.where(lines.forward[:, None], r_pix - lines.r_min[:, None], lines.r_max[:, None] - r_pix)
-    s = radial / lines.dr[:, None] - options.lookback
-
-    with torch.no_grad():
-        a0, s0 = a.floor(), s.floor()
+    shift = torch.where(lines.periodic, 0.0, math.pi / 2)
+    rel = torch.remainder(theta - lines.theta0 + shift, 2 * math.pi) - shift
+    upper = (nl - 1) + lines.periodic.to(dtype)  # periodic lines wrap to line 0 at index nl
+    a = torch.minimum((rel / lines.dtheta).clamp_min(0), upper)
+    radial = torch.where(lines.forward, r_pix - lines.r_min, lines.r_max - r_pix)
+    s = radial / lines.dr - lookback
+    a0, s0 = a.detach().floor(), s.detach().floor()
     fa, fs = a - a0, s - s0
     a0, s0 = a0.long(), s0.long()
-    occluder_angle = []
-    argmin_flat, seen_flat = argmin.reshape(N, nl * ns), seen.reshape(N, nl * ns)
+    nodes = []
     for da in (0, 1):
         line = a0 + da
-        line = torch.where(lines.periodic[:, None], torch.remainder(line, nl), line.clamp(0, nl - 1))
-        theta = lines.theta0[:, None] + line.to(dtype) * lines.dtheta[:, None]
-        direction = torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)
+        line = torch.where(lines.periodic, torch.remainder(line, nl), line.clamp(0, nl - 1))
+        theta_line = lines.theta0 + line.to(dtype) * lines.dtheta
+        direction = torch.stack([torch.cos(theta_line), torch.sin(theta_line)], dim=-1)
         for ds in (0, 1):
             k = s0 + ds
-            has_prior = k >= 0
-            flat = line * ns + k.clamp(0, ns - 1)
-            chosen = argmin_flat.gather(1, flat)
-            node_seen = seen_flat.gather(1, flat) & has_prior
-            xy = lines.epipole[:, None] + lines.radius(chosen.to(dtype))[..., None] * direction
-            occluder_angle.append(_occluder_angle(angle_image, xy, node_seen, H, W))
-    m00, m01, m10, m11 = occluder_angle
-    running_min = (1 - fa) * ((1 - fs) * m00 + fs * m01) + fa * ((1 - fs) * m10 + fs * m11)
+            nodes.append(node_angle(line, k.clamp(0, ns - 1), k >= 0, direction))
+    m00, m01, m10, m11 = nodes
+    return (1 - fa) * ((1 - fs) * m00 + fs * m01) + fa * ((1 - fs) * m10 + fs * m11)
 
+
+def _smooth_visibility(running_min: Tensor, gamma: Tensor, depth: Tensor, distance: Tensor, focal: Tensor,
+                       options: EpipolarShadowOptions) -> tuple[Tensor, Tensor]:
+    """Smoothstep of the occlusion margin in pixel-sized angles; returns visibility and its argument t."""
+    tiny = torch.finfo(gamma.dtype).tiny ** 0.5
     # Angle one pixel at X subtends at the light (fronto-parallel footprint z/f).
-    focal = 0.5 * (K[:, 0, 0] + K[:, 1, 1])
-    to_light = (light[:, None] - pts).norm(dim=-1)
-    tiny = torch.finfo(dtype).tiny ** 0.5
-    pixel_angle = pts[..., 2].abs() / (focal[:, None] * to_light).clamp_min(tiny)
     # Guard: a pixel at the light's position (or of zero depth) has no footprint.
-    pixel_angle = pixel_angle.clamp_min(tiny)
+    pixel_angle = (depth.abs() / (focal * distance).clamp_min(tiny)).clamp_min(tiny)
     margin = (running_min - gamma) / pixel_angle
     t = ((margin + options.bias_px + options.width_px) / options.width_px).clamp(0, 1)
-    visibility = t * t * (3 - 2 * t)
-    return torch.where(valid, visibility, 1.0)
+    return t * t * (3 - 2 * t), t
+
+
+def _masked_angle_at(gamma: Tensor, weight: Tensor, rows: Tensor, xy: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
+    """Like :func:`_masked_angle` (same bilinear weights, zero padding), for points
+    ``xy (M, 2)`` of images ``rows (M,)`` of ``gamma/weight (N, H*W)``."""
+    x, y = xy[..., 0], xy[..., 1]
+    x0, y0 = x.detach().floor(), y.detach().floor()
+    wx, wy = x - x0, y - y0
+    x0, y0 = x0.long(), y0.long()
+    num = torch.zeros_like(x)
+    den = torch.zeros_like(x)
+    for oy in (0, 1):
+        for ox in (0, 1):
+            xi, yi = x0 + ox, y0 + oy
+            inside = (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
+            index = yi.clamp(0, H - 1) * W + xi.clamp(0, W - 1)
+            w = (wx if ox else 1 - wx) * (wy if oy else 1 - wy)
+            m = weight[rows, index] * inside
+            num = num + w * m * gamma[rows, index]
+            den = den + w * m
+    ok = den > 0.5
+    return num / torch.where(ok, den, 1.0), ok
