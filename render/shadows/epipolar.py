@@ -23,7 +23,9 @@ on lit surfaces, exactly 0 deep in shadow, C1 in between. The gradient with
 respect to the light (and the points) is the exact derivative of this smoothed,
 discretised model: the running minimum picks its occluder sample without a
 gradient (a piecewise-constant choice), then the occluder's angle, its position on
-the epipolar line and the pixel's lookup are recomputed with autograd.
+the epipolar line and the pixel's lookup are recomputed with autograd. That
+recomputation runs only for pixels inside the smooth band: everywhere else the
+clamped smoothstep is flat and its derivative is exactly zero.
 """
 
 from __future__ import annotations
@@ -90,20 +92,11 @@ class _Lines:
     num_lines: int
     num_samples: int
 
-    def subset(self, rows: slice) -> "_Lines":
-        """The pattern of a slice of the N (image, light) pairs."""
+    def select(self, key) -> "_Lines":
+        """Every field indexed by ``key``: a slice or index tensor of pairs, or
+        ``(slice(None), None)`` for ``(N, 1)`` fields that broadcast against pixels."""
         fields = ("epipole", "forward", "periodic", "theta0", "dtheta", "r_min", "r_max", "dr")
-        return _Lines(*(getattr(self, f)[rows] for f in fields), self.num_lines, self.num_samples)
-
-    def take(self, rows: Tensor) -> "_Lines":
-        """The patterns of the pairs ``rows (M,)``, fields ``(M,)``, differentiable."""
-        fields = ("epipole", "forward", "periodic", "theta0", "dtheta", "r_min", "r_max", "dr")
-        return _Lines(*(getattr(self, f)[rows] for f in fields), self.num_lines, self.num_samples)
-
-    def column(self) -> "_Lines":
-        """Fields as ``(N, 1)`` (epipole ``(N, 1, 2)``), to broadcast against ``(N, H*W)`` pixels."""
-        fields = ("epipole", "forward", "periodic", "theta0", "dtheta", "r_min", "r_max", "dr")
-        return _Lines(*(getattr(self, f)[:, None] for f in fields), self.num_lines, self.num_samples)
+        return _Lines(*(getattr(self, f)[key] for f in fields), self.num_lines, self.num_samples)
 
     def radius(self, k: Tensor) -> Tensor:
         """Distance to the epipole of sample index ``k`` ``(N, ...)``."""
@@ -278,7 +271,7 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
         sample_index = torch.arange(ns, dtype=dtype, device=device)
         for start in range(0, N, rows_per_chunk):
             part = slice(start, min(N, start + rows_per_chunk))
-            sub = lines.subset(part)
+            sub = lines.select(part)
             n = part.stop - part.start
             # Directions per line (n, nl, 1, 2) times radii per sample (n, 1, ns, 1).
             theta = sub.theta0[:, None] + line_index[None] * sub.dtheta[:, None]
@@ -295,7 +288,7 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
             value = running_flat.gather(1, line * ns + k)
             return torch.where(has_prior & (value < _NO_OCCLUDER), value, _NO_OCCLUDER)
 
-        running_min = _running_min_at_pixels(lines.column(), u, v, nl, ns, options.lookback, node_from_sweep)
+        running_min = _running_min_at_pixels(lines.select((slice(None), None)), u, v, nl, ns, options.lookback, node_from_sweep)
         distance = (light[:, None] - pts).norm(dim=-1)
         visibility, t = _smooth_visibility(running_min, gamma, pts[..., 2], distance, focal[:, None], options)
         visibility = torch.where(valid, visibility, 1.0)
@@ -321,7 +314,7 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
         angle, ok = _masked_angle_at(gamma, weight, rows, xy, H, W)
         return torch.where(has_prior & seen[rows, flat] & ok, angle, _NO_OCCLUDER)
 
-    band_lines = lines.take(rows)
+    band_lines = lines.select(rows)
     band_min = _running_min_at_pixels(band_lines, u[cols], v[cols], nl, ns, options.lookback, node_recomputed)
     band_points = pts[rows, cols]
     band_visibility, _ = _smooth_visibility(
