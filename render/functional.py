@@ -129,8 +129,10 @@ def render(
         normals = gbuffer.normals[:, None]
         light_position = lights.position[:, :, None, None, :]
         to_light, distance, to_viewer = light_geometry(points, light_position)
-        radiance = lights.intensity[:, :, None, None, :] * falloff_factor(distance, falloff)[..., None]
-        n_dot_l = (normals * to_light).sum(-1)  # (B, L, H, W)
+        # Per-light scalar weights (B, L, H, W); the RGB intensities (B, L, 3) enter
+        # once, in the sum over lights, so no (B, L, H, W, 3) tensor is built.
+        weight = falloff_factor(distance, falloff)
+        n_dot_l = (normals * to_light).sum(-1)
         if shadows is not ShadowMethod.NONE:
             intrinsics = gbuffer.intrinsics
             if shadows is ShadowMethod.EPIPOLAR and intrinsics is None:
@@ -142,14 +144,19 @@ def render(
             # with shadows on, S_i includes that, as an exact shadow ray would. The
             # diffuse term is already 0 there; this gates the specular lobe.
             visibility = visibility * (n_dot_l > 0).to(visibility.dtype)
-            radiance = radiance * visibility[..., None]  # (B, L, H, W, 3)
+            weight = weight * visibility
+
+        def sum_over_lights(per_light: Tensor) -> Tensor:
+            # (B, L, H, W) x (B, L, 3) -> (B, H, W, 3)
+            return torch.einsum("blhw,blc->bhwc", per_light, lights.intensity)
+
         if diffuse:
-            diffuse_term = kd * (n_dot_l.clamp_min(0)[..., None] * radiance).sum(1) * mask
+            diffuse_term = kd * sum_over_lights(weight * n_dot_l.clamp_min(0)) * mask
         if with_specular:
             shininess = material.shininess_map()
             shininess = shininess[:, None] if shininess.dim() == 3 else shininess  # (B|1, 1, H|1, W|1)
             lobe = blinn_phong_lobe(normals, to_light, to_viewer, shininess)
-            specular_term = material.ks * (lobe[..., None] * radiance).sum(1) * mask
+            specular_term = material.ks * sum_over_lights(weight * lobe) * mask
 
     image = ambient_term + diffuse_term
     if specular_term is not None:
