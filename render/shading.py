@@ -12,7 +12,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-__all__ = ["Falloff", "LightGeometry", "light_geometry", "falloff_factor", "lambert", "blinn_phong_lobe"]
+__all__ = ["Falloff", "LightGeometry", "light_geometry", "falloff_factor", "blinn_phong_lobe"]
 
 
 class Falloff(str, Enum):
@@ -71,17 +71,6 @@ def falloff_factor(distance: Tensor, falloff: Falloff | str) -> Tensor:
     if falloff is Falloff.NONE:
         return torch.ones_like(distance)
     return 1.0 / (distance * distance)
-
-
-def lambert(normals: Tensor, to_light: Tensor) -> Tensor:
-    """``max(0, n . l)``, ``(B, L, H, W)`` for normals ``(B, 1, H, W, 3)``, to_light ``(B, L, H, W, 3)``.
-
-    Example:
-        >>> n = torch.tensor([0.0, 0, -1]); l = torch.tensor([0.0, 2 ** -0.5, -2 ** -0.5])
-        >>> round(lambert(n, l).item(), 6)
-        0.707107
-    """
-    return (normals * to_light).sum(-1).clamp_min(0)
 
 
 def blinn_phong_lobe(normals: Tensor, to_light: Tensor, to_viewer: Tensor, shininess: Tensor) -> Tensor:

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from render import GBuffer, Material, PointLights, ShadowedBlinnPhong, render
-from render.shading import blinn_phong_lobe, falloff_factor, lambert, light_geometry
+from render.shading import blinn_phong_lobe, falloff_factor
 
 K = torch.tensor([[20.0, 0, 7.5], [0, 20.0, 7.5], [0, 0, 1]], dtype=torch.float64)
 
@@ -13,12 +13,17 @@ def flat_wall(batch=1, size=16, z=2.0, dtype=torch.float64):
     return GBuffer.from_depth(torch.full((batch, size, size), z, dtype=dtype), K.to(dtype))
 
 
-def test_lambert_exact_angles():
-    n = torch.tensor([0.0, 0.0, -1.0])
-    at45 = torch.tensor([0.0, 1.0, -1.0]) / math.sqrt(2)
-    behind = torch.tensor([0.0, 0.0, 1.0])
-    assert lambert(n, at45).item() == pytest.approx(1 / math.sqrt(2))
-    assert lambert(n, behind).item() == 0.0
+def test_diffuse_exact_angles():
+    # Wall z = 2 facing the camera, kd = 1, falloff none: the pixel value is n . l.
+    g = flat_wall()
+    mat = Material(kd=torch.ones(1, 16, 16, 3, dtype=torch.float64))
+    X = g.points[0, 5, 9]
+    cases = {"45 degrees": (X + torch.tensor([0.0, -1.0, -1.0], dtype=torch.float64), 1 / math.sqrt(2)),
+             "behind the surface": (X + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), 0.0)}
+    for name, (light, expected) in cases.items():
+        lights = PointLights(position=light.view(1, 1, 3), intensity=torch.ones(1, 1, 3, dtype=torch.float64))
+        value = render(g, mat, lights, falloff="none", shadows="none").image[0, 0, 5, 9].item()
+        assert value == pytest.approx(expected, abs=1e-12), name
 
 
 def test_specular_peak_and_falloff():
