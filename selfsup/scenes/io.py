@@ -1,0 +1,152 @@
+"""Reading and writing scene files (``../shared/scene-format.md``), in one place.
+
+Every reader of the project goes through :func:`read_scene`; every writer through
+:func:`write_scene`. A bad file raises :class:`SceneFileError` naming the file and
+the problem, so that a batch of files can report it and go on.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from render import GBuffer, Material, PointLights
+
+__all__ = ["Scene", "SceneFileError", "read_scene", "write_scene", "render_inputs"]
+
+REQUIRED = ("image", "depth", "K", "kd", "meta")
+
+
+class SceneFileError(ValueError):
+    """A scene file that cannot be used; ``str()`` names the file and the reason."""
+
+    def __init__(self, path: str | Path, reason: str):
+        super().__init__(f"{path}: {reason}")
+        self.path = str(path)
+        self.reason = reason
+
+
+@dataclass
+class Scene:
+    """One RGB-D view; tensors float32, shapes as in the format (H, W first, no batch).
+
+    ``ks``, ``normals``, ``ambient``, ``light_pos``, ``light_intensity`` and
+    ``scene_scale`` are None when the file does not hold them; ``shininess`` is
+    ``()`` or ``(H, W)``.
+    """
+
+    image: Tensor
+    depth: Tensor
+    K: Tensor
+    kd: Tensor
+    meta: dict
+    ks: Tensor | None = None
+    shininess: Tensor = field(default_factory=lambda: torch.tensor(1.0))
+    normals: Tensor | None = None
+    ambient: Tensor | None = None
+    light_pos: Tensor | None = None
+    light_intensity: Tensor | None = None
+    scene_scale: Tensor | None = None
+
+    @property
+    def id(self) -> str:
+        return str(self.meta.get("id", ""))
+
+    @property
+    def falloff(self) -> str:
+        return str(self.meta.get("falloff", "inverse_square"))
+
+
+def _shape_ok(array: np.ndarray, *shapes: tuple) -> bool:
+    return any(array.shape == s for s in shapes)
+
+
+def read_scene(path: str | Path) -> Scene:
+    """Read and validate a scene file.
+
+    Raises:
+        SceneFileError: unreadable file, missing key, wrong shape, non-finite or
+            negative image, non-finite intrinsics, or no pixel with valid depth.
+    """
+    path = Path(path)
+    try:
+        data = np.load(path, allow_pickle=False)
+        arrays = {k: data[k] for k in data.files}
+    except Exception as error:  # numpy raises many kinds for a corrupt file
+        raise SceneFileError(path, f"cannot read as .npz ({type(error).__name__}: {error})") from None
+    missing = [k for k in REQUIRED if k not in arrays]
+    if missing:
+        raise SceneFileError(path, f"missing key(s) {', '.join(missing)}")
+    image, depth = arrays["image"], arrays["depth"]
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise SceneFileError(path, f"image must have shape (H, W, 3), got {image.shape}")
+    H, W = image.shape[:2]
+    expected = {
+        "depth": [(H, W)], "K": [(3, 3)], "kd": [(H, W, 3)], "ks": [(H, W, 3), (H, W, 1)],
+        "shininess": [(), (H, W)], "normals": [(H, W, 3)], "ambient": [(3,)],
+        "scene_scale": [()],
+    }
+    for key, shapes in expected.items():
+        if key in arrays and not _shape_ok(arrays[key], *shapes):
+            raise SceneFileError(path, f"{key} must have shape {' or '.join(map(str, shapes))}, got {arrays[key].shape}")
+    for key in ("light_pos", "light_intensity"):
+        if key in arrays and (arrays[key].ndim != 2 or arrays[key].shape[1] != 3):
+            raise SceneFileError(path, f"{key} must have shape (n, 3), got {arrays[key].shape}")
+    if ("light_pos" in arrays) != ("light_intensity" in arrays) or (
+        "light_pos" in arrays and arrays["light_pos"].shape != arrays["light_intensity"].shape
+    ):
+        raise SceneFileError(path, "light_pos and light_intensity must both be present with the same shape")
+    for key in ("image", "K", "kd", "ks", "shininess", "ambient", "light_pos", "light_intensity"):
+        if key in arrays and not np.isfinite(arrays[key]).all():
+            raise SceneFileError(path, f"{key} holds non-finite values")
+    if (image < 0).any():
+        raise SceneFileError(path, "image holds negative values (it must be linear RGB >= 0)")
+    if "shininess" in arrays and (arrays["shininess"] <= 0).any():
+        raise SceneFileError(path, "shininess must be > 0")
+    valid = np.isfinite(depth) & (depth > 0)
+    if not valid.any():
+        raise SceneFileError(path, "no pixel has a valid depth (empty valid mask)")
+    try:
+        meta = json.loads(str(arrays["meta"]))
+    except json.JSONDecodeError as error:
+        raise SceneFileError(path, f"meta is not JSON ({error})") from None
+    if not isinstance(meta, dict):
+        raise SceneFileError(path, "meta must be a JSON object")
+    meta.setdefault("id", path.stem)
+
+    def tensor(key):
+        return torch.from_numpy(np.ascontiguousarray(arrays[key], dtype=np.float32)) if key in arrays else None
+
+    return Scene(
+        image=tensor("image"), depth=tensor("depth"), K=tensor("K"), kd=tensor("kd"), meta=meta,
+        ks=tensor("ks"), shininess=tensor("shininess") if "shininess" in arrays else torch.tensor(1.0),
+        normals=tensor("normals"), ambient=tensor("ambient"), light_pos=tensor("light_pos"),
+        light_intensity=tensor("light_intensity"), scene_scale=tensor("scene_scale"),
+    )
+
+
+def write_scene(path: str | Path, scene: Scene) -> None:
+    """Write ``scene`` as an ``.npz`` file that :func:`read_scene` (or ``numpy.load``) reads."""
+    arrays = {"meta": np.array(json.dumps(scene.meta))}
+    for key in ("image", "depth", "K", "kd", "ks", "shininess", "normals", "ambient", "light_pos",
+                "light_intensity", "scene_scale"):
+        value = getattr(scene, key)
+        if value is not None:
+            arrays[key] = value.detach().cpu().numpy().astype(np.float32)
+    np.savez_compressed(path, **arrays)
+
+
+def render_inputs(scene: Scene) -> tuple[GBuffer, Material, PointLights | None]:
+    """Batch-of-one renderer inputs of a scene: G-buffer, material and (if known) its lights."""
+    gbuffer = GBuffer.from_depth(scene.depth[None], scene.K, None if scene.normals is None else scene.normals[None])
+    shininess = scene.shininess if scene.shininess.dim() == 0 else scene.shininess[None]
+    material = Material(kd=scene.kd[None], ks=None if scene.ks is None else scene.ks[None], shininess=shininess)
+    lights = None
+    if scene.light_pos is not None:
+        lights = PointLights(position=scene.light_pos[None], intensity=scene.light_intensity[None])
+    return gbuffer, material, lights
