@@ -17,11 +17,10 @@ import argparse
 import time
 
 import torch
-import torch.nn.functional as F
 
 from benchmarks.common import write_results
 from render import GBuffer, Material, PointLights, render
-from selfsup.scenes.analytic import intrinsics_for, objects_on_floor, render_exact_view
+from selfsup.scenes.analytic import compare_to_exact, intrinsics_for, objects_on_floor, render_exact_view
 
 LIGHTS = {
     "camera side, right": [0.6, -1.0, 0.5],
@@ -48,19 +47,14 @@ def run(height: int = 120, width: int = 160, methods=("epipolar", "paper"), writ
                        ks=torch.full((1, height, width, 1), 0.3, dtype=torch.float64), shininess=20.0)
         lights = PointLights(position=lp[None], intensity=torch.full((1, 1, 3), 10.0, dtype=torch.float64))
         exact = view.visibility[..., 0]
-        e = exact[None, None]
-        band = (F.max_pool2d(e, 3, 1, 1) != -F.max_pool2d(-e, 3, 1, 1))[0, 0]
-        keep = view.mask & ~band
-        lit = keep & (exact > 0.5)
         row = {"light": name, "position": light, "shadowed_share": round((exact[view.mask] < 0.5).double().mean().item(), 3)}
         for method in methods:
             t0 = time.perf_counter()
             out = render(g, mat, lights, torch.full((1, 3), 0.05, dtype=torch.float64), shadows=method)
             row[f"{method}_seconds"] = round(time.perf_counter() - t0, 4)
-            vis = out.visibility[0, 0]
-            row[f"{method}_agree"] = round(((vis > 0.5) == (exact > 0.5))[keep].double().mean().item(), 4)
-            rel = ((out.image[0].permute(1, 2, 0) - view.image).abs() / view.image).amax(-1)[lit]
-            row[f"{method}_lit_within_1e-4"] = round((rel <= 1e-4).double().mean().item(), 4)
+            score = compare_to_exact(view, out.visibility[0, 0], out.image[0].permute(1, 2, 0))
+            row[f"{method}_agree"] = round(score.agree, 4)
+            row[f"{method}_lit_within_1e-4"] = round(score.lit_within_1e4, 4)
         rows.append(row)
     mean = {"light": "**mean**"}
     for key in rows[0]:

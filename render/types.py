@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from render.geometry import normals_from_points, unproject_depth
+
 __all__ = ["GBuffer", "Material", "PointLights", "check_ambient"]
 
 
@@ -122,8 +124,6 @@ class GBuffer:
         Returns:
             The G-buffer; pixels with missing depth or normal are masked out.
         """
-        from render.geometry import normals_from_points, unproject_depth
-
         depth = _require_tensor("depth", depth)
         if depth.dim() != 3:
             raise ValueError(f"depth must have shape (B, H, W), got {_shape(depth)}")

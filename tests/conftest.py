@@ -2,7 +2,6 @@ import functools
 
 import pytest
 import torch
-import torch.nn.functional as F
 
 from render import GBuffer
 from selfsup.scenes.analytic import intrinsics_for, objects_on_floor, render_exact_view
@@ -25,12 +24,6 @@ def gbuffer_of(view, dtype=torch.float64) -> GBuffer:
         points=view.points[None].to(dtype), normals=view.normals[None].to(dtype),
         mask=view.mask[None], intrinsics=view.K[None].to(dtype),
     )
-
-
-def edge_band(visibility: torch.Tensor) -> torch.Tensor:
-    """Pixels within one pixel of a shadow edge of ``visibility (H, W)``."""
-    v = visibility[None, None]
-    return (F.max_pool2d(v, 3, 1, 1) != -F.max_pool2d(-v, 3, 1, 1))[0, 0]
 
 
 @pytest.fixture(autouse=True)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from benchmarks.devset_render import run as run_devset
 from selfsup.scenes.io import Scene, SceneFileError, read_scene, render_inputs, write_scene
 
 DEVSET = Path(__file__).resolve().parents[2] / "shared" / "devset"
@@ -70,10 +71,7 @@ def test_unreadable_file(tmp_path):
 def test_devset_direct_scenes_render_like_the_independent_renderer():
     # Mitsuba's direct-light images against ours with the true lights: the
     # conventions (frame, falloff, I = P / pi) must agree on most pixels.
-    for path in sorted((DEVSET / "direct").glob("*.npz")):
-        scene = read_scene(path)
-        g, m, lights = render_inputs(scene)
-        image = __import__("render").render(g, m, lights, scene.ambient[None], shadows="paper").image[0]
-        ref = scene.image.permute(2, 0, 1)
-        err = ((image - ref).abs().sum(0) / ref.sum(0).clamp_min(1e-6))[g.mask[0]]
-        assert err.median() < 0.02, path.name
+    rows, _ = run_devset(DEVSET, write=False)
+    for row in rows:
+        for method in ("none", "paper", "epipolar"):
+            assert row[f"{method}_median_error"] < 0.02, (row["scene"], method)

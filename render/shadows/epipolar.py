@@ -234,12 +234,11 @@ def epipolar_shadow_visibility(
     # Lights that project inside the image need lines all around their epipole,
     # about 2.5x the samples of the others: sweep the two kinds separately so that
     # one such light does not size the pattern of every other (image, light).
-    with torch.no_grad():
-        lines = _make_lines(light.detach(), K, H, W, options.spacing_px)
-        groups = [torch.nonzero(lines.periodic == kind).squeeze(1) for kind in (False, True)]
+    lines = _make_lines(light, K, H, W, options.spacing_px)
+    groups = [torch.nonzero(lines.periodic == kind).squeeze(1) for kind in (False, True)]
     groups = [g for g in groups if g.numel()]
     if len(groups) == 1:
-        visibility = _sweep(pts, valid, K, light, H, W, options)
+        visibility = _sweep(pts, valid, K, light, H, W, options, lines)
     else:
         visibility = torch.empty(N, H * W, dtype=points.dtype, device=points.device)
         for g in groups:
@@ -248,11 +247,13 @@ def epipolar_shadow_visibility(
 
 
 def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
-           options: EpipolarShadowOptions) -> Tensor:
-    """Visibility ``(N, H*W)`` of ``pts (N, H*W, 3)`` from ``light (N, 3)``, see above."""
+           options: EpipolarShadowOptions, lines: _Lines | None = None) -> Tensor:
+    """Visibility ``(N, H*W)`` of ``pts (N, H*W, 3)`` from ``light (N, 3)``, see above;
+    ``lines`` is their pattern when already built (else sized for these N alone)."""
     N = light.shape[0]
     dtype, device = pts.dtype, pts.device
-    lines = _make_lines(light, K, H, W, options.spacing_px)
+    if lines is None:
+        lines = _make_lines(light, K, H, W, options.spacing_px)
     gamma = _angle_from_camera_ray(pts, light)  # (N, H*W)
     weight = valid.to(dtype)
     focal = 0.5 * (K[:, 0, 0] + K[:, 1, 1])

@@ -10,11 +10,12 @@ import math
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from selfsup.scenes.raycast import Primitives, camera_rays, cast_rays, exact_visibility, shade_exact
 
-__all__ = ["ExactView", "objects_on_floor", "render_exact_view", "intrinsics_for"]
+__all__ = ["ExactView", "ShadowAgreement", "objects_on_floor", "render_exact_view", "intrinsics_for", "compare_to_exact"]
 
 
 @dataclass(frozen=True)
@@ -95,3 +96,26 @@ def render_exact_view(
         visibility=vis.reshape(height, width, -1) * mask.reshape(height, width, 1),
         image=image.reshape(height, width, 3), K=K,
     )
+
+
+@dataclass(frozen=True)
+class ShadowAgreement:
+    """How a render matches an exact view, on valid pixels away from the 1-pixel
+    band around exact shadow edges: ``agree``, the share whose lit/shadowed class
+    (visibility > 0.5) matches the exact shadow rays; ``lit_within_1e-4``, the share
+    of exactly lit pixels whose value is within 1e-4 relative."""
+
+    agree: float
+    lit_within_1e4: float
+
+
+def compare_to_exact(view: ExactView, visibility: Tensor, image: Tensor) -> ShadowAgreement:
+    """Compare a render's ``visibility (H, W)`` and ``image (H, W, 3)`` with ``view`` (one light)."""
+    exact = view.visibility[..., 0]
+    e = exact[None, None]
+    band = (F.max_pool2d(e, 3, 1, 1) != -F.max_pool2d(-e, 3, 1, 1))[0, 0]
+    keep = view.mask & ~band
+    agree = ((visibility > 0.5) == (exact > 0.5))[keep].double().mean().item()
+    lit = keep & (exact > 0.5)
+    rel = ((image.to(view.image.dtype) - view.image).abs() / view.image).amax(-1)[lit]
+    return ShadowAgreement(agree, (rel <= 1e-4).double().mean().item())

@@ -3,7 +3,8 @@ import torch
 
 from render import CubeShadowOptions, EpipolarShadowOptions, GBuffer, Material, PointLights, render
 from render.shadows import epipolar_shadow_visibility
-from tests.conftest import CAMERA_SIDE_LIGHTS, edge_band, exact_view, gbuffer_of
+from selfsup.scenes.analytic import compare_to_exact
+from tests.conftest import CAMERA_SIDE_LIGHTS, exact_view, gbuffer_of
 
 
 def _render_like_exact(view, light, method, dtype=torch.float64, **kw):
@@ -18,24 +19,18 @@ def test_epipolar_shadows_match_exact_ray_casting(light):
     view = exact_view(tuple(light))
     out = _render_like_exact(view, light, "epipolar")
     exact = view.visibility[..., 0]
-    keep = view.mask & ~edge_band(exact)
     assert (exact[view.mask] < 0.5).double().mean() > 0.01  # the scene really has shadows
-    vis = out.visibility[0, 0]
-    agree = ((vis > 0.5) == (exact > 0.5))[keep].double().mean().item()
-    assert agree >= 0.99
-    lit = keep & (exact > 0.5)
-    rel = ((out.image[0].permute(1, 2, 0) - view.image).abs() / view.image).amax(-1)[lit]
-    assert (rel <= 1e-4).double().mean().item() >= 0.99
+    score = compare_to_exact(view, out.visibility[0, 0], out.image[0].permute(1, 2, 0))
+    assert score.agree >= 0.99
+    assert score.lit_within_1e4 >= 0.99
 
 
 def test_paper_shadows_match_exact_ray_casting():
     light = CAMERA_SIDE_LIGHTS[1]
     view = exact_view(tuple(light))
     out = _render_like_exact(view, light, "paper")
-    exact = view.visibility[..., 0]
-    keep = view.mask & ~edge_band(exact)
-    agree = ((out.visibility[0, 0] > 0.5) == (exact > 0.5))[keep].double().mean().item()
-    assert agree >= 0.99
+    score = compare_to_exact(view, out.visibility[0, 0], out.image[0].permute(1, 2, 0))
+    assert score.agree >= 0.99
 
 
 def test_paper_jacobian_matches_central_differences_of_image():

@@ -17,7 +17,6 @@ def _scene(scale=1.0):
 
 def _light_cases():
     # (name, light position in a unit-scale scene, depth edit)
-    floor_point = None
     return [
         ("grazing", [-3.0, 0.999, 4.0]),
         ("behind the floor", [0.0, 1.5, 4.0]),
