@@ -1,6 +1,7 @@
 """Hydra entry point: builds objects from configs/ and runs the selected mode.
 
-    python train.py                                   # default: mode=benchmark benchmark=shadow_accuracy
+    python train.py                                        # mode=train on procedural scenes
+    python train.py mode=generate generate.out=data/test generate.count=200
     python train.py mode=benchmark benchmark=render_speed benchmark.quick=true
 """
 
@@ -11,10 +12,22 @@ import logging
 import hydra
 import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 log = logging.getLogger(__name__)
-MODES = ("benchmark",)
+MODES = ("benchmark", "generate")
+
+
+def _plain(node) -> dict:
+    return OmegaConf.to_container(node, resolve=True, throw_on_missing=True)
+
+
+def build_data(cfg: DictConfig):
+    """``(SamplerConfig, Degradations, samples)`` from the ``data`` group."""
+    from selfsup.scenes.dataset import sampler_config
+    from selfsup.scenes.degrade import Degradations
+
+    return sampler_config(**_plain(cfg.data.sampler)), Degradations(**_plain(cfg.data.degradations)), cfg.data.samples
 
 
 def run(cfg: DictConfig):
@@ -22,9 +35,15 @@ def run(cfg: DictConfig):
     if cfg.mode not in MODES:
         raise ValueError(f"unknown mode {cfg.mode!r}; available: {', '.join(MODES)}")
     torch.manual_seed(cfg.seed)
-    result = instantiate(cfg.benchmark)
-    log.info("benchmark %s done", cfg.benchmark._target_)
-    return result
+    if cfg.mode == "benchmark":
+        result = instantiate(cfg.benchmark)
+        log.info("benchmark %s done", cfg.benchmark._target_)
+        return result
+    if cfg.mode == "generate":
+        from selfsup.scenes.generate import generate_set
+
+        sampler, degradations, samples = build_data(cfg)
+        return generate_set(sampler=sampler, degradations=degradations, samples=samples, **_plain(cfg.generate))
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")

@@ -1,0 +1,144 @@
+"""Procedural scenes as torch datasets and as fixed-seed sets of scene files.
+
+- :class:`ProceduralScenes`: an on-the-fly map-style dataset. Item ``i`` is drawn
+  from seed ``base_seed * 1_000_003 + i`` alone, so any worker, in any order,
+  returns the same item (worker-safe, reproducible).
+- :func:`protocol_specs`: the paper's protocol set, 9 scenes x 6 light positions
+  spread around each scene.
+- :func:`scene_to_item` / :func:`collate`: one scene as a dict of tensors, lights
+  padded to a fixed count with a mask, so that batches stack.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+from torch import Tensor
+from torch.utils.data import Dataset
+
+from selfsup.scenes.degrade import Degradations, degrade
+from selfsup.scenes.exact import RenderedScene, render_spec
+from selfsup.scenes.io import Scene
+from selfsup.scenes.sampler import SamplerConfig, SceneSpec, sample_scene
+
+__all__ = ["ProceduralScenes", "sampler_config", "scene_to_item", "collate", "protocol_specs", "PROTOCOL_LIGHTS", "render_item"]
+
+# Room-normalised light positions (x across, y up, z into the room, in [0, 1]) of the
+# protocol set: front/back x left/right high, and two in the middle at two heights.
+PROTOCOL_LIGHTS = torch.tensor([
+    [0.1, 0.9, 0.15], [0.9, 0.9, 0.15], [0.1, 0.8, 0.85], [0.9, 0.8, 0.85], [0.5, 0.95, 0.5], [0.55, 0.45, 0.35],
+])
+
+
+def protocol_specs(config: SamplerConfig, seed: int = 7000, scenes: int = 9) -> list[SceneSpec]:
+    """``scenes`` fixed scenes x 6 light positions (:data:`PROTOCOL_LIGHTS`), one light each.
+
+    A light position that would fall inside an object moves up or towards the
+    room centre until it is clear (the scene is resampled if none is).
+    """
+    specs = []
+    scene_seed = seed
+    while len(specs) < scenes * len(PROTOCOL_LIGHTS):
+        batch = []
+        for light in PROTOCOL_LIGHTS:
+            for shrink in (0.0, 0.15, 0.3, 0.45):
+                moved = light + shrink * (torch.tensor([0.5, 1.0, 0.5]) - light)
+                try:
+                    batch.append(sample_scene(scene_seed, config, n_lights=1, light_position_world=moved[None]))
+                    break
+                except ValueError:
+                    continue
+        if len(batch) == len(PROTOCOL_LIGHTS):
+            for index, spec in enumerate(batch):
+                spec.seed = scene_seed * 10 + index
+                spec.meta["protocol"] = {"scene_seed": scene_seed, "light_index": index}
+            specs.extend(batch)
+        scene_seed += 1
+    return specs
+
+
+def scene_to_item(scene: Scene, max_lights: int) -> dict[str, Tensor]:
+    """One scene as tensors (no batch axis); lights padded to ``max_lights``.
+
+    Keys: ``image (H, W, 3)``, ``depth (H, W)``, ``K (3, 3)``, ``kd (H, W, 3)``,
+    ``ks (H, W, 1)``, ``shininess (H, W)``, ``normals (H, W, 3)`` (zeros when
+    unknown), ``ambient (3,)`` with ``ambient_known ()``, ``light_pos (max_lights, 3)``,
+    ``light_intensity (max_lights, 3)``, ``light_mask (max_lights,)``, ``scene_scale ()``.
+    """
+    H, W = scene.depth.shape
+    n = 0 if scene.light_pos is None else scene.light_pos.shape[0]
+    if n > max_lights:
+        raise ValueError(f"scene {scene.id} has {n} lights, more than max_lights={max_lights}")
+    light_pos = torch.zeros(max_lights, 3)
+    light_intensity = torch.zeros(max_lights, 3)
+    if n:
+        light_pos[:n], light_intensity[:n] = scene.light_pos, scene.light_intensity
+    shininess = scene.shininess if scene.shininess.dim() == 2 else scene.shininess.expand(H, W)
+    ks = torch.zeros(H, W, 1) if scene.ks is None else scene.ks
+    return {
+        "image": scene.image, "depth": scene.depth, "K": scene.K, "kd": scene.kd,
+        "ks": ks, "shininess": shininess,
+        "normals": torch.zeros(H, W, 3) if scene.normals is None else scene.normals,
+        "ambient": torch.zeros(3) if scene.ambient is None else scene.ambient,
+        "ambient_known": torch.tensor(scene.ambient is not None),
+        "light_pos": light_pos, "light_intensity": light_intensity,
+        "light_mask": torch.arange(max_lights) < n,
+        "scene_scale": torch.tensor(0.0) if scene.scene_scale is None else scene.scene_scale,
+    }
+
+
+def collate(items: list[dict[str, Tensor]]) -> dict[str, Tensor]:
+    """Stack items (all of one resolution) along a new batch axis."""
+    return {key: torch.stack([item[key] for item in items]) for key in items[0]}
+
+
+def render_item(seed: int, sampler: SamplerConfig, degradations: Degradations, samples: int) -> tuple[RenderedScene, Scene]:
+    """Sample, render and degrade one scene: ``(exact render, degraded inputs)``."""
+    rendered = render_spec(sample_scene(seed, sampler), samples=samples)
+    return rendered, degrade(rendered.scene, degradations, seed)
+
+
+class ProceduralScenes(Dataset):
+    """On-the-fly procedural scenes (map-style, ``length`` items).
+
+    Args:
+        sampler: scene distributions; its height/width fix the resolution.
+        degradations: applied to the inputs, never to the ground truth.
+        length: number of items.
+        base_seed: item ``i`` uses seed ``base_seed * 1_000_003 + i``.
+        samples: anti-aliasing samples per pixel side.
+        max_lights: lights are padded to this count.
+    """
+
+    def __init__(self, sampler: SamplerConfig, degradations: Degradations | None = None, length: int = 1000,
+                 base_seed: int = 0, samples: int = 2, max_lights: int | None = None):
+        if length < 1:
+            raise ValueError(f"length must be >= 1, got {length}")
+        self.sampler = sampler
+        self.degradations = degradations or Degradations()
+        self.length = length
+        self.base_seed = base_seed
+        self.samples = samples
+        self.max_lights = max_lights or len(sampler.n_lights_probs)
+
+    def __len__(self) -> int:
+        return self.length
+
+    def seed_of(self, index: int) -> int:
+        return self.base_seed * 1_000_003 + index
+
+    def __getitem__(self, index: int) -> dict[str, Tensor]:
+        if not 0 <= index < self.length:
+            raise IndexError(f"index {index} out of range for {self.length} scenes")
+        _, scene = render_item(self.seed_of(index), self.sampler, self.degradations, self.samples)
+        return scene_to_item(scene, self.max_lights)
+
+
+def sampler_config(**kwargs) -> SamplerConfig:
+    """:class:`SamplerConfig` from plain config values (lists become tuples)."""
+    fields = {f.name for f in dataclasses.fields(SamplerConfig)}
+    unknown = set(kwargs) - fields
+    if unknown:
+        raise ValueError(f"unknown sampler option(s) {sorted(unknown)}; known: {sorted(fields)}")
+    return SamplerConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in kwargs.items()})

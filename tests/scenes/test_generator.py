@@ -1,0 +1,145 @@
+"""Procedural scenes: sampler, exact rendering, degradations, datasets, files."""
+
+import dataclasses
+
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from render import GBuffer, Material, PointLights, render
+from selfsup.scenes.dataset import ProceduralScenes, collate, protocol_specs
+from selfsup.scenes.degrade import Degradations, degrade
+from selfsup.scenes.exact import render_spec
+from selfsup.scenes.io import read_scene
+from selfsup.scenes.sampler import SamplerConfig, sample_scene, signed_distance
+
+SMALL = SamplerConfig(height=48, width=64, n_lights_probs=(0.5, 0.5))
+
+
+def _rendered(seed, config=SMALL, samples=2):
+    return render_spec(sample_scene(seed, config), samples=samples)
+
+
+def test_same_seed_same_scene_and_different_seeds_differ():
+    a, b, c = _rendered(3).scene, _rendered(3).scene, _rendered(4).scene
+    torch.testing.assert_close(a.image, b.image, rtol=0, atol=0)
+    torch.testing.assert_close(a.light_pos, b.light_pos, rtol=0, atol=0)
+    assert not torch.equal(a.depth, c.depth)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_depth_reprojects_onto_the_surfaces_and_normals_face_the_camera(seed):
+    spec = sample_scene(seed, SMALL)
+    scene = render_spec(spec, samples=1).scene
+    gbuffer = GBuffer.from_depth(scene.depth[None], scene.K[None], scene.normals[None])
+    points = gbuffer.points[0][gbuffer.mask[0]].double()
+    distance = signed_distance(spec.prims.to(torch.float64), points).abs()
+    assert distance.max() < 1e-4 * points.norm(dim=-1).max()
+    normals = scene.normals[gbuffer.mask[0]].double()
+    assert ((normals * -points).sum(-1) > 0).all()
+    torch.testing.assert_close(normals.norm(dim=-1), torch.ones(len(normals), dtype=torch.float64))
+
+
+def test_lights_keep_the_margin_from_every_surface():
+    config = dataclasses.replace(SMALL, n_objects=(6, 8), light_margin=0.4)
+    for seed in range(20):
+        spec = sample_scene(seed, config)
+        distance = signed_distance(spec.prims.to(torch.float64), spec.light_position.double())
+        assert (distance > 0.4 - 1e-4).all(), (seed, distance)
+
+
+def test_typical_scene_has_at_least_5_percent_shadow():
+    shares = [float((_rendered(seed, samples=1).visibility < 0.5).any(-1).float().mean()) for seed in range(12)]
+    assert sorted(shares)[len(shares) // 2] >= 0.05, shares
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_exact_renderer_agrees_with_render_layer_without_occluders(seed):
+    config = dataclasses.replace(SMALL, n_objects=(0, 0), ambient_zero_prob=0.0)
+    scene = _rendered(seed, config, samples=1).scene
+    gbuffer = GBuffer.from_depth(scene.depth[None].double(), scene.K[None].double(), scene.normals[None].double())
+    material = Material(kd=scene.kd[None].double(), ks=scene.ks[None].double(), shininess=scene.shininess[None].double())
+    lights = PointLights(position=scene.light_pos[None].double(), intensity=scene.light_intensity[None].double())
+    out = render(gbuffer, material, lights, scene.ambient[None].double(), shadows="none")
+    ours = out.image[0].permute(1, 2, 0)
+    rel = (ours - scene.image.double()).abs() / scene.image.double().clamp_min(1e-3)
+    assert rel.max() < 1e-4
+
+
+def test_antialiasing_averages_edges_only():
+    spec = sample_scene(1, SMALL)
+    sharp, smooth = render_spec(spec, samples=1).scene, render_spec(spec, samples=3).scene
+    changed = (sharp.image - smooth.image).abs().amax(-1) > 1e-5
+    assert 0 < smooth.meta["aa_pixels"] < SMALL.height * SMALL.width
+    assert changed.float().mean() <= smooth.meta["aa_pixels"] / (SMALL.height * SMALL.width) + 1e-6
+    torch.testing.assert_close(sharp.depth, smooth.depth)
+
+
+def _fields(scene):
+    return {f.name: getattr(scene, f.name) for f in dataclasses.fields(scene) if f.name != "meta"}
+
+
+@pytest.mark.parametrize("switch, changed", [
+    (dict(reflectance="half"), {"kd", "ks"}),
+    (dict(reflectance="noise", reflectance_noise=0.2), {"kd"}),
+    (dict(depth_noise=0.003), {"depth", "normals"}),
+    (dict(depth_quantisation=0.002), {"depth", "normals"}),
+    (dict(edge_hole_jump=0.05), {"depth", "normals"}),
+    (dict(random_holes=0.05), {"depth", "normals"}),
+    (dict(image_noise=0.01), {"image"}),
+    (dict(ambient="unknown"), {"ambient"}),
+    (dict(ambient="wrong", wrong_ambient_factor=3.0), {"ambient"}),
+])
+def test_each_degradation_changes_only_what_it_should(switch, changed):
+    config = dataclasses.replace(SMALL, ambient_zero_prob=0.0)
+    clean = _rendered(2, config, samples=1).scene
+    before = {k: (v.clone() if v is not None else None) for k, v in _fields(clean).items()}
+    noisy = degrade(clean, Degradations(**switch), seed=5)
+    for key, value in _fields(noisy).items():
+        same = (value is None and before[key] is None) or (
+            value is not None and before[key] is not None and torch.equal(value, before[key]))
+        assert same != (key in changed), key
+    for key, value in _fields(clean).items():  # the ground truth scene is untouched
+        assert (value is None and before[key] is None) or torch.equal(value, before[key])
+
+
+def test_bad_degradation_values_are_named():
+    with pytest.raises(ValueError, match="reflectance"):
+        Degradations(reflectance="wrong")
+    with pytest.raises(ValueError, match="random_holes"):
+        Degradations(random_holes=1.5)
+
+
+def test_dataset_is_reproducible_and_worker_safe():
+    data = ProceduralScenes(SMALL, length=4, base_seed=1, samples=1)
+    direct = collate([data[i] for i in range(4)])
+    loaded = next(iter(DataLoader(data, batch_size=4, num_workers=2, collate_fn=collate)))
+    for key in direct:
+        torch.testing.assert_close(direct[key], loaded[key], rtol=0, atol=0)
+    assert direct["light_mask"].shape == (4, 2)
+    with pytest.raises(IndexError):
+        data[4]
+
+
+def test_protocol_set_is_9_scenes_by_6_lights():
+    specs = protocol_specs(dataclasses.replace(SMALL, n_lights_probs=(1.0,)))
+    assert len(specs) == 54
+    seeds = [s.meta["protocol"]["scene_seed"] for s in specs]
+    assert len(set(seeds)) == 9 and all(seeds.count(s) == 6 for s in set(seeds))
+    assert all(s.light_position.shape == (1, 3) for s in specs)
+
+
+def test_generate_mode_writes_readable_files_and_contact_sheet(tmp_path):
+    from hydra import compose, initialize_config_dir
+
+    import train
+
+    with initialize_config_dir(version_base="1.3", config_dir=str(train.__file__).rsplit("/", 1)[0] + "/configs"):
+        cfg = compose("train", overrides=[
+            "mode=generate", f"generate.out={tmp_path}", "generate.count=3",
+            "data.sampler.height=24", "data.sampler.width=32", "generate.contact_sheet_rows=2",
+        ])
+    paths = train.run(cfg)
+    assert len(paths) == 3 and (tmp_path / "contact_sheet.png").stat().st_size > 0
+    scene = read_scene(paths[0])
+    assert scene.image.shape == (24, 32, 3) and scene.light_pos.shape == (1, 3) and float(scene.scene_scale) > 0
