@@ -2,6 +2,7 @@
 
     python train.py                                        # mode=train on procedural scenes
     python train.py mode=generate generate.out=data/test generate.count=200
+    python train.py mode=estimate estimate.input=scenes/ estimate.output=lights.jsonl
     python train.py mode=benchmark benchmark=render_speed benchmark.quick=true
 """
 
@@ -15,7 +16,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 log = logging.getLogger(__name__)
-MODES = ("benchmark", "generate")
+MODES = ("benchmark", "generate", "estimate")
 
 
 def _plain(node) -> dict:
@@ -44,11 +45,21 @@ def run(cfg: DictConfig):
 
         sampler, degradations, samples = build_data(cfg)
         return generate_set(sampler=sampler, degradations=degradations, samples=samples, **_plain(cfg.generate))
+    if cfg.mode == "estimate":
+        from selfsup.estimate import EstimateOptions, estimate_files
+        from selfsup.refine import RefineOptions
+
+        est = _plain(cfg.estimate)
+        refine = RefineOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in est.pop("refine").items()})
+        io = {k: est.pop(k) for k in ("input", "output", "progress")}
+        return estimate_files(io["input"], io["output"], EstimateOptions(refine=refine, **est), progress=io["progress"])
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")
 def main(cfg: DictConfig) -> None:
-    run(cfg)
+    result = run(cfg)
+    if cfg.mode == "estimate" and result["failed"]:
+        raise SystemExit(1)  # some files failed: each is named in the log above
 
 
 if __name__ == "__main__":

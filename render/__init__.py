@@ -19,7 +19,7 @@ Conventions, stated once for the whole package:
 - dtype and device follow the inputs; nothing here reads files or configs.
 """
 
-from render.functional import RenderOutput, render, render_image
+from render.functional import LightTransport, RenderOutput, light_transport, render, render_image
 from render.layer import ShadowedBlinnPhong
 from render.shading import Falloff
 from render.shadows import CubeShadowOptions, EpipolarShadowOptions, ShadowMethod
@@ -33,6 +33,8 @@ __all__ = [
     "RenderOutput",
     "render",
     "render_image",
+    "light_transport",
+    "LightTransport",
     "Falloff",
     "ShadowMethod",
     "EpipolarShadowOptions",

@@ -17,7 +17,7 @@ from render.shading import Falloff, blinn_phong_lobe, falloff_factor, light_geom
 from render.shadows import ShadowMethod, shadow_visibility
 from render.types import GBuffer, Material, PointLights, check_ambient
 
-__all__ = ["RenderOutput", "render", "render_image"]
+__all__ = ["RenderOutput", "LightTransport", "render", "render_image", "light_transport"]
 
 
 @dataclass(frozen=True)
@@ -50,6 +50,82 @@ def _wants_specular(material: Material, specular: bool | str) -> bool:
     if not isinstance(specular, bool):
         raise ValueError(f"specular must be True, False or 'auto', got {specular!r}")
     return specular and material.ks is not None
+
+
+@dataclass(frozen=True)
+class LightTransport:
+    """Per-light scalar transport of unit white lights; the image is linear in it::
+
+        image = kd * (L_a + sum_i I_i * diffuse_i) + ks * sum_i I_i * specular_i
+
+    Attributes:
+        diffuse: ``(B, L, H, W)``, ``S_i f(d_i) max(0, n.l_i)``.
+        specular: ``(B, L, H, W)`` ``S_i f(d_i) max(0, n.h_i)^alpha``, or None when skipped.
+        visibility: ``(B, L, H, W)`` shadow term (attached shadow included), or None
+            when shadows are off.
+    """
+
+    diffuse: Tensor
+    specular: Tensor | None
+    visibility: Tensor | None
+
+
+def _transport(gbuffer, material, light_position, falloff, shadows, shadow_options, with_specular) -> LightTransport:
+    # Shapes: points/normals (B, 1, H, W, 3), lights (B, L, 1, 1, 3).
+    points = gbuffer.points[:, None]
+    normals = gbuffer.normals[:, None]
+    to_light, distance, to_viewer = light_geometry(points, light_position[:, :, None, None, :])
+    # Per-light scalar weights (B, L, H, W); RGB enters only where the caller sums lights.
+    weight = falloff_factor(distance, falloff)
+    n_dot_l = (normals * to_light).sum(-1)
+    visibility = None
+    if shadows is not ShadowMethod.NONE:
+        intrinsics = gbuffer.intrinsics
+        if shadows is ShadowMethod.EPIPOLAR and intrinsics is None:
+            intrinsics = fit_intrinsics(gbuffer.points.detach(), gbuffer.mask)
+        visibility = shadow_visibility(shadows, gbuffer.points, gbuffer.mask, intrinsics, light_position, shadow_options)
+        # A surface facing away from the light cannot see it (attached shadow):
+        # with shadows on, S_i includes that, as an exact shadow ray would. The
+        # diffuse term is already 0 there; this gates the specular lobe.
+        visibility = visibility * (n_dot_l > 0).to(visibility.dtype)
+        weight = weight * visibility
+    specular = None
+    if with_specular:
+        shininess = material.shininess_map()
+        shininess = shininess[:, None] if shininess.dim() == 3 else shininess  # (B|1, 1, H|1, W|1)
+        specular = weight * blinn_phong_lobe(normals, to_light, to_viewer, shininess)
+    return LightTransport(diffuse=weight * n_dot_l.clamp_min(0), specular=specular, visibility=visibility)
+
+
+def light_transport(
+    gbuffer: GBuffer,
+    material: Material,
+    light_position: Tensor,
+    *,
+    falloff: Falloff | str = Falloff.INVERSE_SQUARE,
+    shadows: ShadowMethod | str = ShadowMethod.EPIPOLAR,
+    shadow_options=None,
+    specular: bool = True,
+) -> LightTransport:
+    """Per-light transport maps of lights at ``light_position (B, L, 3)`` with unit intensity.
+
+    The image of any intensities ``I (B, L, 3)`` and ambient follows linearly (see
+    :class:`LightTransport`), which is what per-image solvers use to solve the
+    intensities in closed form. Only the diffuse map is computed when ``specular``
+    is False or ``material.ks`` is None. Inputs are not checked for NaN here.
+
+    Example:
+        >>> g = GBuffer.from_depth(torch.full((1, 8, 8), 2.0), torch.tensor([[[8.0, 0, 3.5], [0, 8.0, 3.5], [0, 0, 1]]]))
+        >>> t = light_transport(g, Material(kd=torch.full((1, 8, 8, 3), 0.5)), torch.tensor([[[0.0, -1.0, 0.0]]]))
+        >>> t.diffuse.shape
+        torch.Size([1, 1, 8, 8])
+    """
+    B = gbuffer.mask.shape[0]
+    if light_position.dim() != 3 or light_position.shape[0] != B or light_position.shape[2] != 3:
+        raise ValueError(f"light_position must have shape ({B}, L, 3), got {tuple(light_position.shape)}")
+    with_specular = bool(specular) and material.ks is not None
+    return _transport(gbuffer, material, light_position, Falloff(falloff), ShadowMethod(shadows), shadow_options,
+                      with_specular)
 
 
 def render(
@@ -124,39 +200,17 @@ def render(
     specular_term = torch.zeros_like(ambient_term) if with_specular else None
 
     if lights.num_lights > 0 and (diffuse or with_specular):
-        # Shapes: points/normals (B, 1, H, W, 3), lights (B, L, 1, 1, 3).
-        points = gbuffer.points[:, None]
-        normals = gbuffer.normals[:, None]
-        light_position = lights.position[:, :, None, None, :]
-        to_light, distance, to_viewer = light_geometry(points, light_position)
-        # Per-light scalar weights (B, L, H, W); the RGB intensities (B, L, 3) enter
-        # once, in the sum over lights, so no (B, L, H, W, 3) tensor is built.
-        weight = falloff_factor(distance, falloff)
-        n_dot_l = (normals * to_light).sum(-1)
-        if shadows is not ShadowMethod.NONE:
-            intrinsics = gbuffer.intrinsics
-            if shadows is ShadowMethod.EPIPOLAR and intrinsics is None:
-                intrinsics = fit_intrinsics(gbuffer.points.detach(), gbuffer.mask)
-            visibility = shadow_visibility(
-                shadows, gbuffer.points, gbuffer.mask, intrinsics, lights.position, shadow_options
-            )
-            # A surface facing away from the light cannot see it (attached shadow):
-            # with shadows on, S_i includes that, as an exact shadow ray would. The
-            # diffuse term is already 0 there; this gates the specular lobe.
-            visibility = visibility * (n_dot_l > 0).to(visibility.dtype)
-            weight = weight * visibility
+        transport = _transport(gbuffer, material, lights.position, falloff, shadows, shadow_options, with_specular)
+        visibility = transport.visibility
 
         def sum_over_lights(per_light: Tensor) -> Tensor:
             # (B, L, H, W) x (B, L, 3) -> (B, H, W, 3)
             return torch.einsum("blhw,blc->bhwc", per_light, lights.intensity)
 
         if diffuse:
-            diffuse_term = kd * sum_over_lights(weight * n_dot_l.clamp_min(0)) * mask
+            diffuse_term = kd * sum_over_lights(transport.diffuse) * mask
         if with_specular:
-            shininess = material.shininess_map()
-            shininess = shininess[:, None] if shininess.dim() == 3 else shininess  # (B|1, 1, H|1, W|1)
-            lobe = blinn_phong_lobe(normals, to_light, to_viewer, shininess)
-            specular_term = material.ks * sum_over_lights(weight * lobe) * mask
+            specular_term = material.ks * sum_over_lights(transport.specular) * mask
 
     image = ambient_term + diffuse_term
     if specular_term is not None:

@@ -1,0 +1,83 @@
+"""Errors of estimated lights against ground truth, as ``../shared/scene-format.md`` defines them.
+
+- position error ``|L_est - L_true| / scene_scale``, estimates and truths paired by
+  minimum total distance; an unpaired true or estimated light counts 1.0;
+- success: every light of the scene below 0.05;
+- angular error: degrees between ``L_est - c`` and ``L_true - c``, ``c`` the
+  centroid of the valid points;
+- intensity error ``|I_est - I_true| / |I_true|``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = ["LightErrors", "light_errors", "pair_lights", "SUCCESS_THRESHOLD"]
+
+SUCCESS_THRESHOLD = 0.05
+
+
+def pair_lights(estimated: Tensor, true: Tensor) -> list[tuple[int, int]]:
+    """Pairs ``(est_index, true_index)`` of least total distance; ``(E, 3)``, ``(T, 3)``.
+
+    Exhaustive over assignments (light counts are small: at most 6 here).
+    """
+    E, T = estimated.shape[0], true.shape[0]
+    if E == 0 or T == 0:
+        return []
+    if max(E, T) > 6:
+        raise ValueError(f"pairing supports at most 6 lights a side, got {E} and {T}")
+    distance = torch.cdist(estimated.double(), true.double())
+    best, best_cost = [], math.inf
+    if E <= T:
+        for perm in itertools.permutations(range(T), E):
+            cost = sum(float(distance[e, t]) for e, t in enumerate(perm))
+            if cost < best_cost:
+                best, best_cost = list(enumerate(perm)), cost
+    else:
+        for perm in itertools.permutations(range(E), T):
+            cost = sum(float(distance[e, t]) for t, e in enumerate(perm))
+            if cost < best_cost:
+                best, best_cost = [(e, t) for t, e in enumerate(perm)], cost
+    return best
+
+
+@dataclass(frozen=True)
+class LightErrors:
+    """Errors of one scene: per true light (unpaired extra estimates appended as 1.0).
+
+    ``position``: list of relative position errors; ``angular``: degrees (paired
+    lights only); ``intensity``: relative (paired only); ``success``: all < 0.05;
+    ``count_right``: as many estimated lights as true ones.
+    """
+
+    position: list[float]
+    angular: list[float]
+    intensity: list[float]
+    success: bool
+    count_right: bool
+
+
+def light_errors(est_pos: Tensor, est_int: Tensor | None, true_pos: Tensor, true_int: Tensor | None,
+                 scene_scale: float, centroid: Tensor) -> LightErrors:
+    """Errors of estimated lights ``(E, 3)`` against true ones ``(T, 3)``; see the module doc."""
+    if scene_scale <= 0:
+        raise ValueError(f"scene_scale must be > 0, got {scene_scale}")
+    pairs = pair_lights(est_pos, true_pos)
+    position, angular, intensity = [], [], []
+    for e, t in pairs:
+        position.append(float((est_pos[e] - true_pos[t]).norm()) / scene_scale)
+        a, b = (est_pos[e] - centroid).double(), (true_pos[t] - centroid).double()
+        cos = float((a @ b) / (a.norm() * b.norm()).clamp_min(1e-12))
+        angular.append(math.degrees(math.acos(max(-1.0, min(1.0, cos)))))
+        if est_int is not None and true_int is not None:
+            intensity.append(float((est_int[e] - true_int[t]).norm() / true_int[t].norm().clamp_min(1e-12)))
+    unpaired = abs(est_pos.shape[0] - true_pos.shape[0])
+    position.extend([1.0] * unpaired)
+    return LightErrors(position, angular, intensity, success=bool(position) and max(position) < SUCCESS_THRESHOLD,
+                       count_right=est_pos.shape[0] == true_pos.shape[0])

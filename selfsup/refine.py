@@ -1,0 +1,466 @@
+"""Per-image refinement of point lights: Levenberg-Marquardt, Adam, the paper's gradient descent.
+
+The image model is linear in the light intensities and the ambient once the light
+positions are fixed (:class:`render.LightTransport`). All three optimisers use
+that: the intensities and (unknown) ambient are re-solved in closed form by
+weighted least squares at every position (variable projection), so the
+non-linear search runs over the ``3 L`` position coordinates only.
+
+- ``lm``: damped Gauss-Newton on the positions. The Jacobian of the image with
+  respect to a coordinate is a forward difference of the transport maps; each
+  light's maps depend on its own position only, so moving coordinate ``j`` of all
+  lights at once gives every column in 3 renders, whatever ``L``.
+- ``adam`` / ``gd``: first-order steps on the same projected objective, its
+  gradient by autograd through the renderer (shadows included); ``gd`` is the
+  paper's (rate 0.02 in scene-scale units, stop at relative energy change 1e-4).
+
+Every image of the batch stops on its own. The robust option reweights
+residuals (Cauchy, IRLS) so highlights and albedo errors the model lacks do not
+pull the lights. Positions move in units of the scene size, so nothing assumes
+an absolute scale.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from render import GBuffer, Material, light_transport
+
+__all__ = ["FitProblem", "RefineOptions", "Fit", "refine", "search", "solve_linear", "evaluate", "grid_candidates",
+           "robust_loss", "position_covariance", "subsample"]
+
+
+@dataclass
+class FitProblem:
+    """One batch of images to explain.
+
+    Attributes:
+        gbuffer: ``points/normals (B, H, W, 3)``, ``mask (B, H, W)``, intrinsics ``(B, 3, 3)``.
+        material: ``kd (B, H, W, 3)``, ``ks (B, H, W, 1|3)`` or None, shininess.
+        image: observed linear RGB ``(B, 3, H, W)``.
+        ambient: known ambient ``(B, 3)``, or None to estimate it.
+        falloff, shadows: renderer options (see :func:`render.render`).
+    """
+
+    gbuffer: GBuffer
+    material: Material
+    image: Tensor
+    ambient: Tensor | None = None
+    falloff: str = "inverse_square"
+    shadows: str = "epipolar"
+
+    @property
+    def batch(self) -> int:
+        return self.image.shape[0]
+
+    def select(self, index: Tensor) -> "FitProblem":
+        """The images ``index`` (a 1-D long tensor), repeats allowed."""
+        g, m = self.gbuffer, self.material
+        shin = m.shininess if m.shininess.dim() == 0 else m.shininess[index]
+        return FitProblem(
+            GBuffer(g.points[index], g.normals[index], g.mask[index], None if g.intrinsics is None else g.intrinsics[index]),
+            Material(kd=m.kd[index], ks=None if m.ks is None else m.ks[index], shininess=shin),
+            self.image[index], None if self.ambient is None else self.ambient[index], self.falloff, self.shadows,
+        )
+
+
+def subsample(problem: FitProblem, stride: int) -> FitProblem:
+    """Every ``stride``-th pixel of every row and column (no averaging across edges); K follows."""
+    if stride == 1:
+        return problem
+    g, m, s = problem.gbuffer, problem.material, stride
+    K = None
+    if g.intrinsics is not None:
+        # Pixel (i*s, j*s) becomes (i, j): u' = u / s, v' = v / s.
+        scale = torch.tensor([1 / s, 1 / s, 1.0], dtype=g.intrinsics.dtype, device=g.intrinsics.device)
+        K = g.intrinsics * scale[:, None]
+    shin = m.shininess[:, ::s, ::s] if m.shininess.dim() == 3 else m.shininess
+    return dataclasses.replace(
+        problem,
+        gbuffer=GBuffer(g.points[:, ::s, ::s], g.normals[:, ::s, ::s], g.mask[:, ::s, ::s], K),
+        material=Material(kd=m.kd[:, ::s, ::s], ks=None if m.ks is None else m.ks[:, ::s, ::s], shininess=shin),
+        image=problem.image[:, :, ::s, ::s],
+    )
+
+
+@dataclass
+class RefineOptions:
+    """Optimiser settings (mirrors ``configs/refine/*.yaml``).
+
+    ``method``: ``lm`` | ``adam`` | ``gd``. ``max_iters`` per pyramid level,
+    ``strides``: coarse-to-fine pixel strides. ``tol``: stop when the relative cost
+    decrease of an accepted step falls below it (``gd`` uses the paper's 1e-4).
+    ``robust``: Cauchy IRLS with scale ``robust_scale`` x median observed value.
+    ``fd_step``: forward-difference step, in scene sizes. ``learning_rate``: adam/gd.
+    """
+
+    method: str = "lm"
+    max_iters: tuple[int, ...] = (30, 10)
+    strides: tuple[int, ...] = (2, 1)
+    tol: float = 1e-5
+    robust: bool = True
+    robust_scale: float = 0.2
+    fd_step: float = 1e-3
+    learning_rate: float = 0.02
+    specular: bool = True
+
+    def __post_init__(self):
+        if self.method not in ("lm", "adam", "gd"):
+            raise ValueError(f"method must be lm, adam or gd, got {self.method!r}")
+        if len(self.max_iters) != len(self.strides):
+            raise ValueError(f"max_iters {self.max_iters} and strides {self.strides} must have the same length")
+        if any(s < 1 for s in self.strides) or any(i < 0 for i in self.max_iters):
+            raise ValueError("strides must be >= 1 and max_iters >= 0")
+
+
+@dataclass
+class Fit:
+    """Result for a batch: ``position (B, L, 3)``, ``intensity (B, L, 3)``,
+    ``ambient (B, 3)``, ``cost (B,)`` (robust weighted SSE at full resolution),
+    ``model (B, 3, H, W)``, ``iterations (B,)``, ``rss (B,)`` (plain SSE), ``n (B,)``
+    (valid values used)."""
+
+    position: Tensor
+    intensity: Tensor
+    ambient: Tensor
+    cost: Tensor
+    model: Tensor
+    iterations: Tensor
+    rss: Tensor
+    n: Tensor
+
+
+def _scene_frame(problem: FitProblem) -> tuple[Tensor, Tensor]:
+    # Centroid (B, 3) and size (B,) (bounding-box diagonal) of the valid points.
+    g = problem.gbuffer
+    m = g.mask[..., None]
+    count = m.sum((1, 2)).clamp_min(1)
+    centre = (g.points * m).sum((1, 2)) / count
+    big = torch.finfo(g.points.dtype).max
+    lo = torch.where(m, g.points, torch.full_like(g.points, big)).amin((1, 2))
+    hi = torch.where(m, g.points, torch.full_like(g.points, -big)).amax((1, 2))
+    return centre, (hi - lo).norm(dim=-1).clamp_min(1e-6)
+
+
+def _columns(problem: FitProblem, diffuse: Tensor, specular: Tensor | None) -> Tensor:
+    # Per-channel basis images (B, 3, L, H, W) of unit lights: kd_c D_i + ks_c S_i.
+    kd = problem.material.kd.permute(0, 3, 1, 2)[:, :, None]  # (B, 3, 1, H, W)
+    cols = kd * diffuse[:, None]
+    if specular is not None:
+        ks = problem.material.ks.permute(0, 3, 1, 2)[:, :, None]
+        cols = cols + ks * specular[:, None]
+    return cols
+
+
+def _weights(problem: FitProblem, residual: Tensor | None, options: RefineOptions) -> Tensor:
+    # IRLS weights (B, 3, H, W): the valid mask, times Cauchy weights of the residual.
+    mask = problem.gbuffer.mask[:, None].to(problem.image.dtype).expand_as(problem.image)
+    if residual is None or not options.robust:
+        return mask
+    observed = torch.where(mask > 0, problem.image, torch.full_like(problem.image, float("nan")))
+    scale = options.robust_scale * observed.flatten(1).nanmedian(1).values.clamp_min(1e-6)
+    return mask / (1 + (residual / scale[:, None, None, None]) ** 2)
+
+
+def solve_linear(problem: FitProblem, diffuse: Tensor, specular: Tensor | None, weights: Tensor
+                 ) -> tuple[Tensor, Tensor, Tensor]:
+    """Closed-form intensities and ambient for fixed light transport.
+
+    Args:
+        diffuse, specular: ``(B, L, H, W)`` transport maps (specular may be None).
+        weights: ``(B, 3, H, W)`` per-value weights (0 on invalid pixels).
+
+    Returns:
+        intensity ``(B, L, 3)`` (>= 0), ambient ``(B, 3)`` (the known one if given,
+        else solved, >= 0) and the model image ``(B, 3, H, W)``.
+    """
+    B, L = diffuse.shape[:2]
+    cols = _columns(problem, diffuse, specular)  # (B, 3, L, H, W)
+    target = problem.image
+    kd = problem.material.kd.permute(0, 3, 1, 2)  # (B, 3, H, W)
+    if problem.ambient is not None:
+        target = target - kd * problem.ambient[:, :, None, None]
+    else:
+        cols = torch.cat([cols, kd[:, :, None]], 2)
+    k = cols.shape[2]
+    a = cols.flatten(3)  # (B, 3, k, N)
+    w = weights.flatten(2)[:, :, None]  # (B, 3, 1, N)
+    normal = (a * w) @ a.transpose(-1, -2)  # (B, 3, k, k)
+    rhs = ((a * w) @ target.flatten(2)[..., None]).squeeze(-1)  # (B, 3, k)
+    # Ridge of 1e-9 of the trace keeps a light that lights nothing solvable (intensity -> 0).
+    ridge = 1e-9 * normal.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(1e-30)
+    eye = torch.eye(k, dtype=a.dtype, device=a.device)
+    x = torch.linalg.solve(normal + ridge[..., None, None] * eye, rhs).clamp_min(0)  # (B, 3, k)
+    model = (x[..., None, None] * cols).sum(2)
+    if problem.ambient is not None:
+        ambient = problem.ambient
+        model = model + kd * ambient[:, :, None, None]
+    else:
+        ambient = x[:, :, L]
+    intensity = x[:, :, :L].transpose(1, 2)
+    return intensity, ambient, model * problem.gbuffer.mask[:, None]
+
+
+def _transport(problem: FitProblem, position: Tensor, specular: bool):
+    t = light_transport(problem.gbuffer, problem.material, position, falloff=problem.falloff,
+                        shadows=problem.shadows, specular=specular)
+    return t.diffuse, t.specular
+
+
+def evaluate(problem: FitProblem, position: Tensor, options: RefineOptions, weights: Tensor | None = None):
+    """Solve intensities/ambient at ``position (B, L, 3)``; returns
+    ``(cost (B,), intensity, ambient, model, weights, diffuse, specular)``."""
+    diffuse, specular = _transport(problem, position, options.specular)
+    if weights is None:
+        base = _weights(problem, None, options)
+        _, _, model = solve_linear(problem, diffuse, specular, base)
+        weights = _weights(problem, model - problem.image, options)
+    intensity, ambient, model = solve_linear(problem, diffuse, specular, weights)
+    cost = (weights * (model - problem.image) ** 2).flatten(1).sum(1)
+    return cost, intensity, ambient, model, weights, diffuse, specular
+
+
+def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters: int) -> tuple[Tensor, Tensor]:
+    B, L, _ = position.shape
+    _, size = _scene_frame(problem)
+    h = (options.fd_step * size)[:, None, None]  # (B, 1, 1)
+    damping = torch.full((B,), 1e-3, dtype=position.dtype, device=position.device)
+    active = torch.ones(B, dtype=torch.bool, device=position.device)
+    iterations = torch.zeros(B, dtype=torch.long, device=position.device)
+    cost, intensity, ambient, model, weights, diffuse, specular = evaluate(problem, position, options)
+    eye3 = torch.eye(3, dtype=position.dtype, device=position.device)
+    for _ in range(max_iters):
+        idx = active.nonzero(as_tuple=True)[0]
+        if idx.numel() == 0:
+            break
+        sub = problem.select(idx)
+        pos, w = position[idx], weights[idx]
+        n = idx.numel()
+        # Jacobian columns: moving coordinate j of every light at once (3 renders).
+        shifted = (pos[None] + h[idx][None] * eye3[:, None, None, :]).reshape(3 * n, L, 3)  # (3, n, L, 3) -> (3n, L, 3)
+        tiled = sub.select(torch.arange(n, device=idx.device).repeat(3))
+        d_sh, s_sh = _transport(tiled, shifted, options.specular)
+        cols_base = _columns(sub, diffuse[idx], None if specular is None else specular[idx])  # (n, 3, L, H, W)
+        cols_sh = _columns(tiled, d_sh, s_sh).unflatten(0, (3, n))  # (3, n, 3, L, H, W)
+        inten = intensity[idx].transpose(1, 2)  # (n, 3, L)
+        # d model / d p_ij = I_i . (cols(p + h e_j) - cols(p))_i / h  -> (n, L, 3, 3ch, H, W)
+        deriv = (cols_sh - cols_base[None]) * inten[None, :, :, :, None, None] / h[idx].reshape(1, n, 1, 1, 1, 1)
+        jac = deriv.permute(1, 3, 0, 2, 4, 5).reshape(n, 3 * L, -1)  # (n, 3L, 3*H*W)
+        resid = (model[idx] - sub.image).flatten(1)
+        wf = w.flatten(1)
+        jtj = (jac * wf[:, None]) @ jac.transpose(1, 2)
+        jtr = ((jac * wf[:, None]) @ resid[..., None]).squeeze(-1)
+        diag = jtj.diagonal(dim1=-2, dim2=-1)
+        # A light that lights nothing has zero columns: a floor of 1e-6 of the largest
+        # curvature keeps the damped system positive definite (it then stays put).
+        peak = diag.amax(-1, keepdim=True)
+        diag = torch.where(peak > 0, diag.clamp_min(1e-6 * peak), torch.ones_like(diag))
+        step = -torch.linalg.solve(jtj + damping[idx, None, None] * torch.diag_embed(diag)
+                                   + torch.diag_embed(1e-9 * diag), jtr)
+        trial = pos + step.reshape(n, L, 3)
+        t_cost, t_int, t_amb, t_model, _, t_d, t_s = evaluate(sub, trial, options, weights=w)
+        better = t_cost < cost[idx]
+        rel = (cost[idx] - t_cost) / cost[idx].clamp_min(1e-30)
+        keep = idx[better]
+        position[keep], cost[keep], intensity[keep], ambient[keep] = trial[better], t_cost[better], t_int[better], t_amb[better]
+        model[keep], diffuse[keep] = t_model[better], t_d[better]
+        if specular is not None:
+            specular[keep] = t_s[better]
+        damping[idx] = torch.where(better, damping[idx] * 0.3, damping[idx] * 10).clamp(1e-9, 1e9)
+        iterations[idx] += 1
+        moved = step.reshape(n, -1).norm(dim=-1) / (options.fd_step * _scene_frame(sub)[1])
+        done = (better & ((rel < options.tol) | (moved < 1e-2))) | (damping[idx] >= 1e9)
+        active[idx[done]] = False
+        # Re-weight (IRLS) the images that moved.
+        if options.robust and keep.numel():
+            new_w = _weights(problem.select(keep), model[keep] - problem.image[keep], options)
+            weights[keep] = new_w
+            cost[keep] = (new_w * (model[keep] - problem.image[keep]) ** 2).flatten(1).sum(1)
+    return position, iterations
+
+
+def _first_order(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters: int) -> tuple[Tensor, Tensor]:
+    B = position.shape[0]
+    centre, size = _scene_frame(problem)
+    unit = ((position - centre[:, None]) / size[:, None, None]).detach().requires_grad_(True)
+    tol = 1e-4 if options.method == "gd" else options.tol
+    optimiser = (torch.optim.SGD([unit], lr=options.learning_rate) if options.method == "gd"
+                 else torch.optim.Adam([unit], lr=options.learning_rate))
+    _, _, _, _, weights, _, _ = evaluate(problem, position.detach(), options)
+    norm = (weights * problem.image**2).flatten(1).sum(1).clamp_min(1e-30)
+    previous = torch.full((B,), float("inf"), dtype=position.dtype, device=position.device)
+    active = torch.ones(B, dtype=torch.bool, device=position.device)
+    iterations = torch.zeros(B, dtype=torch.long, device=position.device)
+    for _ in range(max_iters):
+        if not active.any():
+            break
+        optimiser.zero_grad()
+        diffuse, specular = _transport(problem, centre[:, None] + unit * size[:, None, None], options.specular)
+        _, _, model = solve_linear(problem, diffuse, specular, weights)
+        energy = (weights * (model - problem.image) ** 2).flatten(1).sum(1) / norm
+        (energy * active).sum().backward()
+        unit.grad[~active] = 0
+        optimiser.step()
+        iterations += active
+        with torch.no_grad():
+            change = (previous - energy).abs() / energy.clamp_min(1e-30)
+            active &= ~(change < tol)
+            previous = energy.detach()
+    return (centre[:, None] + unit.detach() * size[:, None, None]), iterations
+
+
+def refine(problem: FitProblem, position: Tensor, options: RefineOptions | None = None) -> Fit:
+    """Refine lights starting at ``position (B, L, 3)``; coarse to fine over ``options.strides``.
+
+    Example:
+        >>> # fit = refine(FitProblem(gbuffer, material, image), init_positions)  # doctest: +SKIP
+    """
+    options = options or RefineOptions()
+    if position.dim() != 3 or position.shape[0] != problem.batch or position.shape[2] != 3:
+        raise ValueError(f"position must have shape ({problem.batch}, L, 3), got {tuple(position.shape)}")
+    if not bool(torch.isfinite(position).all()):
+        raise ValueError("initial light positions hold non-finite values")
+    position = position.detach().clone()
+    total = torch.zeros(problem.batch, dtype=torch.long, device=position.device)
+    for stride, iters in zip(options.strides, options.max_iters):
+        level = subsample(problem, stride)
+        if options.method == "lm":
+            position, iterations = _lm(level, position, options, iters)
+        else:
+            with torch.enable_grad():
+                position, iterations = _first_order(level, position, options, iters)
+        total += iterations
+    with torch.no_grad():
+        cost, intensity, ambient, model, weights, _, _ = evaluate(problem, position, options)
+        rss = ((model - problem.image) ** 2 * problem.gbuffer.mask[:, None]).flatten(1).sum(1)
+        n = problem.gbuffer.mask.flatten(1).sum(1) * 3
+    return Fit(position, intensity, ambient, cost, model, total, rss, n)
+
+
+def grid_candidates(problem: FitProblem, per_axis: tuple[int, int, int] = (5, 5, 5)) -> Tensor:
+    """Candidate light positions ``(B, G, 3)`` on a grid over the valid points' box,
+    grown by half its size sideways and upwards (lights hang above what a camera
+    sees), and reaching towards the camera (never behind it)."""
+    g = problem.gbuffer
+    m = g.mask[..., None]
+    big = torch.finfo(g.points.dtype).max
+    lo = torch.where(m, g.points, torch.full_like(g.points, big)).amin((1, 2))
+    hi = torch.where(m, g.points, torch.full_like(g.points, -big)).amax((1, 2))
+    span = hi - lo
+    lo = torch.stack([lo[:, 0] - 0.5 * span[:, 0], lo[:, 1] - 0.5 * span[:, 1], 0.1 * lo[:, 2]], 1)
+    hi = torch.stack([hi[:, 0] + 0.5 * span[:, 0], hi[:, 1], hi[:, 2]], 1)
+    axes = [torch.linspace(0, 1, n, dtype=lo.dtype, device=lo.device) for n in per_axis]
+    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # (G, 3)
+    return lo[:, None] + grid[None] * (hi - lo)[:, None]
+
+
+def robust_loss(problem: FitProblem, model: Tensor, options: RefineOptions) -> Tensor:
+    """Cauchy loss ``(B,)`` of the residual, ``sum c^2 log(1 + (r/c)^2)`` over valid values
+    (plain SSE when ``options.robust`` is off); comparable across candidate fits."""
+    mask = problem.gbuffer.mask[:, None].expand_as(problem.image)
+    residual = (model - problem.image) * mask
+    if not options.robust:
+        return residual.pow(2).flatten(1).sum(1)
+    observed = torch.where(mask, problem.image, torch.full_like(problem.image, float("nan")))
+    c = options.robust_scale * observed.flatten(1).nanmedian(1).values.clamp_min(1e-6)
+    return (c[:, None] ** 2 * torch.log1p((residual.flatten(1) / c[:, None]) ** 2)).sum(1)
+
+
+def _spread_best(cands: Tensor, score: Tensor, size: float, count: int, min_gap: float) -> Tensor:
+    # Indices of up to `count` best candidates (G, 3) at least `min_gap * size` apart.
+    chosen: list[int] = []
+    for index in score.argsort().tolist():
+        if all(float((cands[index] - cands[c]).norm()) > min_gap * size for c in chosen):
+            chosen.append(index)
+        if len(chosen) == count:
+            break
+    while len(chosen) < count:
+        chosen.append(chosen[-1])
+    return torch.tensor(chosen, device=cands.device)
+
+
+def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = None, fixed: Tensor | None = None,
+           per_axis: tuple[int, int, int] = (7, 6, 7), starts: int = 8, finalists: int = 2) -> Fit:
+    """Fit ``n_lights`` lights with no initial guess, one image at a time.
+
+    The last light is searched (the others, ``fixed (B, n_lights - 1, 3)``, start
+    where given): every grid candidate is scored at stride 4 by the robust loss
+    with intensities solved; the ``starts`` best well-spread ones run a short LM
+    there; the ``finalists`` best of those run the full coarse-to-fine refinement;
+    the lowest robust loss wins.
+    """
+    options = options or RefineOptions()
+    if fixed is None and n_lights != 1:
+        raise ValueError("without fixed lights only one light is searched")
+    fits = []
+    for b in range(problem.batch):
+        one = problem.select(torch.tensor([b]))
+        base = torch.zeros(1, 0, 3, dtype=one.image.dtype) if fixed is None else fixed[b : b + 1]
+        coarse = subsample(one, 4)
+        cands = grid_candidates(coarse, per_axis)[0]  # (G, 3)
+        G = cands.shape[0]
+        tiled = coarse.select(torch.zeros(G, dtype=torch.long))
+        with torch.no_grad():
+            positions = torch.cat([base.expand(G, -1, -1), cands[:, None]], 1)
+            _, _, _, model, _, _, _ = evaluate(tiled, positions, options)
+            score = robust_loss(tiled, model, options)
+        size = float(_scene_frame(coarse)[1][0])
+        pick = _spread_best(cands, score, size, starts, 0.15)
+        quick = dataclasses.replace(options, strides=(1,), max_iters=(12,))
+        tiled = coarse.select(torch.zeros(len(pick), dtype=torch.long))
+        short = refine(tiled, positions[pick], quick)
+        score = robust_loss(tiled, short.model, options)
+        final = short.position[score.argsort()[:finalists]]
+        full = refine(one.select(torch.zeros(final.shape[0], dtype=torch.long)), final, options)
+        best = int(robust_loss(one.select(torch.zeros(final.shape[0], dtype=torch.long)), full.model, options).argmin())
+        fits.append(Fit(*(getattr(full, f.name)[best : best + 1] for f in dataclasses.fields(Fit))))
+    return Fit(*(torch.cat([getattr(f, name.name) for f in fits]) for name in dataclasses.fields(Fit)))
+
+
+def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, correlation_px: float = 1.0) -> Tensor:
+    """Gauss-Newton covariance ``(B, L, 3, 3)`` of each light's position.
+
+    The Jacobian covers every parameter (positions, intensities, unknown ambient),
+    so their trade-offs widen the positions' uncertainty; the noise variance is the
+    residual's. ``correlation_px`` (pixels per independent residual) inflates it for
+    spatially correlated residuals.
+    """
+    B, L, _ = fit.position.shape
+    _, size = _scene_frame(problem)
+    h = (options.fd_step * size)[:, None, None]
+    eye3 = torch.eye(3, dtype=fit.position.dtype, device=fit.position.device)
+    diffuse, specular = _transport(problem, fit.position, options.specular)
+    shifted = (fit.position[None] + h[None] * eye3[:, None, None, :]).reshape(3 * B, L, 3)
+    tiled = problem.select(torch.arange(B, device=fit.position.device).repeat(3))
+    d_sh, s_sh = _transport(tiled, shifted, options.specular)
+    cols = _columns(problem, diffuse, specular)  # (B, 3, L, H, W)
+    cols_sh = _columns(tiled, d_sh, s_sh).unflatten(0, (3, B))
+    inten = fit.intensity.transpose(1, 2)  # (B, 3, L)
+    deriv = (cols_sh - cols[None]) * inten[None, :, :, :, None, None] / h.reshape(1, B, 1, 1, 1, 1)
+    j_pos = deriv.permute(1, 3, 0, 2, 4, 5).reshape(B, 3 * L, -1)
+    # Intensity columns: light i, channel c lights channel c only.
+    HW = cols.shape[-2] * cols.shape[-1]
+    j_int = torch.zeros(B, L, 3, 3, HW, dtype=cols.dtype, device=cols.device)
+    for c in range(3):
+        j_int[:, :, c, c] = cols[:, c].flatten(2)
+    blocks = [j_pos, j_int.reshape(B, 3 * L, -1)]
+    if problem.ambient is None:
+        kd = problem.material.kd.permute(0, 3, 1, 2).flatten(2)  # (B, 3, HW)
+        j_amb = torch.zeros(B, 3, 3, HW, dtype=cols.dtype, device=cols.device)
+        for c in range(3):
+            j_amb[:, c, c] = kd[:, c]
+        blocks.append(j_amb.reshape(B, 3, -1))
+    jac = torch.cat(blocks, 1)
+    mask = problem.gbuffer.mask[:, None].expand_as(problem.image).flatten(1).to(jac.dtype)
+    jac = jac * mask[:, None]
+    k = jac.shape[1]
+    sigma2 = fit.rss / (fit.n - k).clamp_min(1) * correlation_px
+    info = jac @ jac.transpose(1, 2)
+    info = info + 1e-12 * info.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] * torch.eye(k, dtype=jac.dtype)
+    cov = torch.linalg.inv(info) * sigma2[:, None, None]
+    pos_cov = cov[:, : 3 * L, : 3 * L].reshape(B, L, 3, L, 3)
+    return torch.stack([pos_cov[:, i, :, i, :] for i in range(L)], 1)
