@@ -194,7 +194,9 @@ def solve_linear(problem: FitProblem, diffuse: Tensor, specular: Tensor | None, 
     # Ridge of 1e-9 of the trace keeps a light that lights nothing solvable (intensity -> 0).
     ridge = 1e-9 * normal.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(1e-30)
     eye = torch.eye(k, dtype=a.dtype, device=a.device)
-    x = torch.linalg.solve(normal + ridge[..., None, None] * eye, rhs).clamp_min(0)  # (B, 3, k)
+    x, info = torch.linalg.solve_ex(normal + ridge[..., None, None] * eye, rhs[..., None])
+    # A singular system (no lit pixel at all) gives no light rather than an exception.
+    x = torch.where((info == 0)[..., None, None] & torch.isfinite(x), x, torch.zeros_like(x)).squeeze(-1).clamp_min(0)
     model = (x[..., None, None] * cols).sum(2)
     if problem.ambient is not None:
         ambient = problem.ambient
@@ -259,11 +261,15 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         # curvature keeps the damped system positive definite (it then stays put).
         peak = diag.amax(-1, keepdim=True)
         diag = torch.where(peak > 0, diag.clamp_min(1e-6 * peak), torch.ones_like(diag))
-        step = -torch.linalg.solve(jtj + damping[idx, None, None] * torch.diag_embed(diag)
-                                   + torch.diag_embed(1e-9 * diag), jtr)
+        system = jtj + damping[idx, None, None] * torch.diag_embed(diag) + torch.diag_embed(1e-9 * diag)
+        # solve_ex never raises: a singular or non-finite system gives a step that is rejected below.
+        step = -torch.linalg.solve_ex(system, jtr[..., None])[0].squeeze(-1)
+        # A failed solve (non-finite step) counts as a rejected step: more damping next time.
+        finite = torch.isfinite(step).all(-1)
+        step = torch.where(finite[:, None], step, torch.zeros_like(step))
         trial = pos + step.reshape(n, L, 3)
         t_cost, t_int, t_amb, t_model, _, t_d, t_s = evaluate(sub, trial, options, weights=w)
-        better = t_cost < cost[idx]
+        better = (t_cost < cost[idx]) & finite
         rel = (cost[idx] - t_cost) / cost[idx].clamp_min(1e-30)
         keep = idx[better]
         position[keep], cost[keep], intensity[keep], ambient[keep] = trial[better], t_cost[better], t_int[better], t_amb[better]
@@ -384,13 +390,15 @@ def _spread_best(cands: Tensor, score: Tensor, size: float, count: int, min_gap:
 
 
 def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = None, fixed: Tensor | None = None,
-           per_axis: tuple[int, int, int] = (7, 6, 7), starts: int = 8, finalists: int = 2) -> Fit:
+           per_axis: tuple[int, int, int] = (7, 6, 7), starts: int = 8, finalists: int = 2,
+           unshadowed_first: bool = True) -> Fit:
     """Fit ``n_lights`` lights with no initial guess, one image at a time.
 
     The last light is searched (the others, ``fixed (B, n_lights - 1, 3)``, start
     where given): every grid candidate is scored at stride 4 by the robust loss
     with intensities solved; the ``starts`` best well-spread ones run a short LM
-    there; the ``finalists`` best of those run the full coarse-to-fine refinement;
+    there, from where they are and (``unshadowed_first``) from where a shadow-free
+    LM, whose landscape is smoother, took them; the ``finalists`` best of those run the full coarse-to-fine refinement;
     the lowest robust loss wins.
     """
     options = options or RefineOptions()
@@ -412,7 +420,15 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
         pick = _spread_best(cands, score, size, starts, 0.15)
         quick = dataclasses.replace(options, strides=(1,), max_iters=(12,))
         tiled = coarse.select(torch.zeros(len(pick), dtype=torch.long))
-        short = refine(tiled, positions[pick], quick)
+        if unshadowed_first:
+            # Shading alone gives a smoother landscape: descend there first, then with shadows.
+            smooth = refine(dataclasses.replace(tiled, shadows="none"), positions[pick], quick)
+            both = torch.cat([positions[pick], smooth.position])
+            tiled2 = coarse.select(torch.zeros(both.shape[0], dtype=torch.long))
+            short = refine(tiled2, both, quick)
+            tiled = tiled2
+        else:
+            short = refine(tiled, positions[pick], quick)
         score = robust_loss(tiled, short.model, options)
         final = short.position[score.argsort()[:finalists]]
         full = refine(one.select(torch.zeros(final.shape[0], dtype=torch.long)), final, options)
@@ -461,6 +477,6 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     sigma2 = fit.rss / (fit.n - k).clamp_min(1) * correlation_px
     info = jac @ jac.transpose(1, 2)
     info = info + 1e-12 * info.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] * torch.eye(k, dtype=jac.dtype)
-    cov = torch.linalg.inv(info) * sigma2[:, None, None]
+    cov = torch.linalg.pinv(info, hermitian=True) * sigma2[:, None, None]
     pos_cov = cov[:, : 3 * L, : 3 * L].reshape(B, L, 3, L, 3)
     return torch.stack([pos_cov[:, i, :, i, :] for i in range(L)], 1)

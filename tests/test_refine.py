@@ -1,0 +1,129 @@
+"""Per-image refinement, model selection, uncertainty and the estimate command."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from selfsup.estimate import EstimateOptions, estimate_files, estimate_scene, problem_of
+from selfsup.refine import RefineOptions, evaluate, refine, robust_loss, search
+from selfsup.scenes.exact import render_spec
+from selfsup.scenes.io import write_scene
+from selfsup.scenes.sampler import SamplerConfig, sample_scene
+
+SMALL = SamplerConfig(height=48, width=64, specular_prob=0.0, ambient_zero_prob=1.0)
+MEDIUM = dataclasses.replace(SMALL, height=96, width=128)  # the grid search works at stride 4: keep 24x32 there
+
+
+def _scene(seed, n_lights=1, config=SMALL):
+    return render_spec(sample_scene(seed, config, n_lights=n_lights), samples=1).scene
+
+
+def _rel_error(position, scene):
+    return float((position - scene.light_pos).norm(dim=-1).max() / scene.scene_scale)
+
+
+@pytest.mark.parametrize("method, iters, tol", [("lm", (15, 5), 5e-3), ("adam", (60, 0), 0.03)])
+def test_each_optimiser_moves_towards_the_true_light(method, iters, tol):
+    scene = _scene(1)
+    problem = problem_of(scene)
+    start = scene.light_pos[None] + 0.04 * scene.scene_scale * torch.tensor([1.0, -1.0, 1.0]) / 3**0.5
+    options = RefineOptions(method=method, max_iters=iters, strides=(1, 1), learning_rate=0.01 if method == "adam" else 0.02)
+    fit = refine(problem, start, options)
+    assert _rel_error(fit.position[0], scene) < min(tol, _rel_error(start[0], scene))
+    assert torch.isfinite(fit.intensity).all() and (fit.intensity >= 0).all()
+
+
+@pytest.mark.xfail(strict=True, reason="known issue: the paper's rate 0.02 on our normalised energy overshoots")
+def test_paper_gradient_descent_lowers_the_energy_and_stops_on_its_own():
+    scene = _scene(1)
+    problem = problem_of(scene)
+    start = scene.light_pos[None] + 0.04 * scene.scene_scale * torch.tensor([1.0, -1.0, 1.0]) / 3**0.5
+    options = RefineOptions(method="gd", max_iters=(500,), strides=(1,))
+    fit = refine(problem, start, options)
+    before = robust_loss(problem, evaluate(problem, start, options)[3], options)
+    assert float(robust_loss(problem, fit.model, options)[0]) < float(before[0])
+    assert 0 < int(fit.iterations[0]) < 500  # the relative-change rule (1e-4) ended it
+
+
+def test_lm_recovers_intensity_and_unknown_ambient_exactly():
+    config = dataclasses.replace(SMALL, ambient_zero_prob=0.0)
+    scene = _scene(2, config=config)
+    scene.ambient = None
+    problem = problem_of(scene, shadows="epipolar")
+    fit = refine(problem, scene.light_pos[None] * 1.05, RefineOptions(max_iters=(20, 10)))
+    torch.testing.assert_close(fit.intensity[0], scene.light_intensity, rtol=0.05, atol=0)
+    assert _rel_error(fit.position[0], scene) < 0.01  # the depth-map shadows differ from exact rays
+
+
+def test_search_finds_the_light_without_a_start():
+    scene = _scene(3, config=MEDIUM)
+    fit = search(problem_of(scene), 1, RefineOptions(max_iters=(15, 5)))
+    assert _rel_error(fit.position[0], scene) < 0.02
+
+
+@pytest.mark.parametrize("seed, n_lights", [(4, 1), (11, 2)])
+def test_model_selection_picks_the_number_of_lights(seed, n_lights):
+    scene = _scene(seed, n_lights, config=MEDIUM)
+    record = estimate_scene(scene, EstimateOptions(refine=RefineOptions(max_iters=(15, 5))))
+    assert len(record["lights"]) == n_lights, record["candidates"]
+
+
+def test_uncertainty_is_present_finite_and_small_on_an_exact_scene():
+    scene = _scene(5)
+    record = estimate_scene(scene, EstimateOptions(max_lights=1, refine=RefineOptions(max_iters=(15, 5))))
+    std = torch.tensor(record["lights"][0]["position_std"])
+    assert std.shape == (3,) and torch.isfinite(std).all() and (std > 0).all()
+    assert float(std.max()) < 0.05 * float(scene.scene_scale)
+
+
+def test_estimate_files_writes_jsonl_and_skips_bad_files(tmp_path):
+    good = _scene(6)
+    write_scene(tmp_path / "a_good.npz", good)
+    np.savez(tmp_path / "b_missing.npz", image=np.zeros((4, 4, 3), np.float32))
+    arrays = dict(np.load(tmp_path / "a_good.npz"))
+    for name, change in {
+        "c_nan": lambda a: a["image"].__setitem__((0, 0, 0), np.nan),
+        "d_empty": lambda a: a["depth"].__setitem__(slice(None), 0),
+        "e_shape": lambda a: a.__setitem__("kd", a["kd"][:, :-1]),
+    }.items():
+        bad = {k: v.copy() for k, v in arrays.items()}
+        change(bad)
+        np.savez(tmp_path / f"{name}.npz", **bad)
+    options = EstimateOptions(max_lights=1, refine=RefineOptions(max_iters=(10, 3)))
+    summary = estimate_files(tmp_path, tmp_path / "out" / "lights.jsonl", options, progress=False)
+    assert summary["done"] == 1 and summary["failed"] == 4
+    reasons = " ".join(summary["failures"].values())
+    for word in ("missing", "non-finite", "empty valid mask", "kd must have shape"):
+        assert word in reasons
+    record = json.loads((tmp_path / "out" / "lights.jsonl").read_text().splitlines()[0])
+    assert set(record) >= {"id", "lights", "ambient", "seconds"}
+    assert set(record["lights"][0]) >= {"position", "intensity", "position_std"}
+
+
+def test_estimate_command_exits_non_zero_when_a_file_fails(tmp_path):
+    import subprocess
+    import sys
+
+    write_scene(tmp_path / "good.npz", _scene(7, config=dataclasses.replace(SMALL, height=24, width=32)))
+    np.savez(tmp_path / "bad.npz", image=np.zeros((4, 4, 3), np.float32))
+    result = subprocess.run([sys.executable, "train.py", "mode=estimate", f"estimate.input={tmp_path}",
+                             f"estimate.output={tmp_path}/o.jsonl", "estimate.max_lights=1", "estimate.progress=false",
+                             "estimate.refine.max_iters=[5,2]", f"hydra.run.dir={tmp_path}/run"],
+                            capture_output=True, text=True, cwd=str(__import__("pathlib").Path(__file__).parents[1]))
+    assert result.returncode == 1, result.stderr[-2000:]
+    log = result.stdout + result.stderr
+    assert "bad.npz" in log and "missing key" in log
+    assert len((tmp_path / "o.jsonl").read_text().splitlines()) == 1
+
+
+def test_bad_refine_inputs_are_named():
+    problem = problem_of(_scene(8))
+    with pytest.raises(ValueError, match="position must have shape"):
+        refine(problem, torch.zeros(1, 3))
+    with pytest.raises(ValueError, match="non-finite"):
+        refine(problem, torch.full((1, 1, 3), float("nan")))
+    with pytest.raises(ValueError, match="method"):
+        RefineOptions(method="newton")
