@@ -226,6 +226,25 @@ def evaluate(problem: FitProblem, position: Tensor, options: RefineOptions, weig
     return cost, intensity, ambient, model, weights, diffuse, specular
 
 
+def _position_jacobian(problem: FitProblem, position: Tensor, intensity: Tensor, cols: Tensor, h: Tensor,
+                       specular: bool) -> Tensor:
+    """Forward-difference Jacobian ``(B, 3L, 3*H*W)`` of the model image w.r.t. the positions.
+
+    ``cols (B, 3, L, H, W)`` are the basis images at ``position (B, L, 3)``; ``h (B, 1, 1)``
+    the step. Each light's maps depend on its own position only, so moving coordinate
+    j of every light at once gives all columns in 3 renders.
+    """
+    B, L, _ = position.shape
+    eye3 = torch.eye(3, dtype=position.dtype, device=position.device)
+    shifted = (position[None] + h[None] * eye3[:, None, None, :]).reshape(3 * B, L, 3)  # (3, B, L, 3) -> (3B, L, 3)
+    tiled = problem.select(torch.arange(B, device=position.device).repeat(3))
+    d_sh, s_sh = _transport(tiled, shifted, specular)
+    cols_sh = _columns(tiled, d_sh, s_sh).unflatten(0, (3, B))  # (3, B, 3, L, H, W)
+    # d model / d p_ij = I_i . (cols(p + h e_j) - cols(p))_i / h
+    deriv = (cols_sh - cols[None]) * intensity.transpose(1, 2)[None, :, :, :, None, None] / h.reshape(1, B, 1, 1, 1, 1)
+    return deriv.permute(1, 3, 0, 2, 4, 5).reshape(B, 3 * L, -1)  # (B, L, 3, 3ch, H, W) -> (B, 3L, 3HW)
+
+
 def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters: int) -> tuple[Tensor, Tensor]:
     B, L, _ = position.shape
     _, size = _scene_frame(problem)
@@ -234,7 +253,6 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
     active = torch.ones(B, dtype=torch.bool, device=position.device)
     iterations = torch.zeros(B, dtype=torch.long, device=position.device)
     cost, intensity, ambient, model, weights, diffuse, specular = evaluate(problem, position, options)
-    eye3 = torch.eye(3, dtype=position.dtype, device=position.device)
     for _ in range(max_iters):
         idx = active.nonzero(as_tuple=True)[0]
         if idx.numel() == 0:
@@ -242,16 +260,8 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         sub = problem.select(idx)
         pos, w = position[idx], weights[idx]
         n = idx.numel()
-        # Jacobian columns: moving coordinate j of every light at once (3 renders).
-        shifted = (pos[None] + h[idx][None] * eye3[:, None, None, :]).reshape(3 * n, L, 3)  # (3, n, L, 3) -> (3n, L, 3)
-        tiled = sub.select(torch.arange(n, device=idx.device).repeat(3))
-        d_sh, s_sh = _transport(tiled, shifted, options.specular)
-        cols_base = _columns(sub, diffuse[idx], None if specular is None else specular[idx])  # (n, 3, L, H, W)
-        cols_sh = _columns(tiled, d_sh, s_sh).unflatten(0, (3, n))  # (3, n, 3, L, H, W)
-        inten = intensity[idx].transpose(1, 2)  # (n, 3, L)
-        # d model / d p_ij = I_i . (cols(p + h e_j) - cols(p))_i / h  -> (n, L, 3, 3ch, H, W)
-        deriv = (cols_sh - cols_base[None]) * inten[None, :, :, :, None, None] / h[idx].reshape(1, n, 1, 1, 1, 1)
-        jac = deriv.permute(1, 3, 0, 2, 4, 5).reshape(n, 3 * L, -1)  # (n, 3L, 3*H*W)
+        cols_base = _columns(sub, diffuse[idx], None if specular is None else specular[idx])
+        jac = _position_jacobian(sub, pos, intensity[idx], cols_base, h[idx], options.specular)
         resid = (model[idx] - sub.image).flatten(1)
         wf = w.flatten(1)
         jtj = (jac * wf[:, None]) @ jac.transpose(1, 2)
@@ -448,16 +458,9 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     B, L, _ = fit.position.shape
     _, size = _scene_frame(problem)
     h = (options.fd_step * size)[:, None, None]
-    eye3 = torch.eye(3, dtype=fit.position.dtype, device=fit.position.device)
     diffuse, specular = _transport(problem, fit.position, options.specular)
-    shifted = (fit.position[None] + h[None] * eye3[:, None, None, :]).reshape(3 * B, L, 3)
-    tiled = problem.select(torch.arange(B, device=fit.position.device).repeat(3))
-    d_sh, s_sh = _transport(tiled, shifted, options.specular)
     cols = _columns(problem, diffuse, specular)  # (B, 3, L, H, W)
-    cols_sh = _columns(tiled, d_sh, s_sh).unflatten(0, (3, B))
-    inten = fit.intensity.transpose(1, 2)  # (B, 3, L)
-    deriv = (cols_sh - cols[None]) * inten[None, :, :, :, None, None] / h.reshape(1, B, 1, 1, 1, 1)
-    j_pos = deriv.permute(1, 3, 0, 2, 4, 5).reshape(B, 3 * L, -1)
+    j_pos = _position_jacobian(problem, fit.position, fit.intensity, cols, h, options.specular)
     # Intensity columns: light i, channel c lights channel c only.
     HW = cols.shape[-2] * cols.shape[-1]
     j_int = torch.zeros(B, L, 3, 3, HW, dtype=cols.dtype, device=cols.device)
