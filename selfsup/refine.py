@@ -429,16 +429,14 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
         size = float(_scene_frame(coarse)[1][0])
         pick = _spread_best(cands, score, size, starts, 0.15)
         quick = dataclasses.replace(options, strides=(1,), max_iters=(12,))
-        tiled = coarse.select(torch.zeros(len(pick), dtype=torch.long))
+        starts_at = positions[pick]
         if unshadowed_first:
-            # Shading alone gives a smoother landscape: descend there first, then with shadows.
-            smooth = refine(dataclasses.replace(tiled, shadows="none"), positions[pick], quick)
-            both = torch.cat([positions[pick], smooth.position])
-            tiled2 = coarse.select(torch.zeros(both.shape[0], dtype=torch.long))
-            short = refine(tiled2, both, quick)
-            tiled = tiled2
-        else:
-            short = refine(tiled, positions[pick], quick)
+            # Shading alone gives a smoother landscape: also start from where a shadow-free descent went.
+            smooth = refine(dataclasses.replace(coarse.select(torch.zeros(len(pick), dtype=torch.long)), shadows="none"),
+                            starts_at, quick)
+            starts_at = torch.cat([starts_at, smooth.position])
+        tiled = coarse.select(torch.zeros(starts_at.shape[0], dtype=torch.long))
+        short = refine(tiled, starts_at, quick)
         score = robust_loss(tiled, short.model, options)
         final = short.position[score.argsort()[:finalists]]
         full = refine(one.select(torch.zeros(final.shape[0], dtype=torch.long)), final, options)
