@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from torch import Tensor, nn
 
-from render.functional import RenderOutput, render
+from render.functional import LightTransport, RenderOutput, light_transport, render
 from render.shading import Falloff
 from render.shadows import ShadowMethod, default_options
 from render.types import GBuffer, Material, PointLights
@@ -66,6 +66,14 @@ class ShadowedBlinnPhong(nn.Module):
             gbuffer, material, lights, ambient,
             falloff=self.falloff, shadows=self.shadows, shadow_options=self.shadow_options,
             diffuse=self.diffuse, specular=self.specular, check_finite=self.check_finite,
+        )
+
+    def transport(self, gbuffer: GBuffer, material: Material, light_position: Tensor) -> LightTransport:
+        """Per-light transport maps ``(B, L, H, W)`` of unit lights at ``light_position (B, L, 3)``
+        with this layer's options (see :func:`render.functional.light_transport`)."""
+        return light_transport(
+            gbuffer, material, light_position, falloff=self.falloff, shadows=self.shadows,
+            shadow_options=self.shadow_options, specular=self.specular is not False,
         )
 
     def forward(

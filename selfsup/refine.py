@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from render import GBuffer, Material, light_transport
+from selfsup.linear import basis_images, solve_intensities
 
 __all__ = ["FitProblem", "RefineOptions", "Fit", "refine", "search", "solve_linear", "evaluate", "grid_candidates",
            "robust_loss", "position_covariance", "subsample"]
@@ -148,12 +149,7 @@ def _scene_frame(problem: FitProblem) -> tuple[Tensor, Tensor]:
 
 def _columns(problem: FitProblem, diffuse: Tensor, specular: Tensor | None) -> Tensor:
     # Per-channel basis images (B, 3, L, H, W) of unit lights: kd_c D_i + ks_c S_i.
-    kd = problem.material.kd.permute(0, 3, 1, 2)[:, :, None]  # (B, 3, 1, H, W)
-    cols = kd * diffuse[:, None]
-    if specular is not None:
-        ks = problem.material.ks.permute(0, 3, 1, 2)[:, :, None]
-        cols = cols + ks * specular[:, None]
-    return cols
+    return basis_images(problem.material.kd, problem.material.ks, diffuse, specular)
 
 
 def _weights(problem: FitProblem, residual: Tensor | None, options: RefineOptions) -> Tensor:
@@ -178,32 +174,8 @@ def solve_linear(problem: FitProblem, diffuse: Tensor, specular: Tensor | None, 
         intensity ``(B, L, 3)`` (>= 0), ambient ``(B, 3)`` (the known one if given,
         else solved, >= 0) and the model image ``(B, 3, H, W)``.
     """
-    B, L = diffuse.shape[:2]
-    cols = _columns(problem, diffuse, specular)  # (B, 3, L, H, W)
-    target = problem.image
-    kd = problem.material.kd.permute(0, 3, 1, 2)  # (B, 3, H, W)
-    if problem.ambient is not None:
-        target = target - kd * problem.ambient[:, :, None, None]
-    else:
-        cols = torch.cat([cols, kd[:, :, None]], 2)
-    k = cols.shape[2]
-    a = cols.flatten(3)  # (B, 3, k, N)
-    w = weights.flatten(2)[:, :, None]  # (B, 3, 1, N)
-    normal = (a * w) @ a.transpose(-1, -2)  # (B, 3, k, k)
-    rhs = ((a * w) @ target.flatten(2)[..., None]).squeeze(-1)  # (B, 3, k)
-    # Ridge of 1e-9 of the trace keeps a light that lights nothing solvable (intensity -> 0).
-    ridge = 1e-9 * normal.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(1e-30)
-    eye = torch.eye(k, dtype=a.dtype, device=a.device)
-    x, info = torch.linalg.solve_ex(normal + ridge[..., None, None] * eye, rhs[..., None])
-    # A singular system (no lit pixel at all) gives no light rather than an exception.
-    x = torch.where((info == 0)[..., None, None] & torch.isfinite(x), x, torch.zeros_like(x)).squeeze(-1).clamp_min(0)
-    model = (x[..., None, None] * cols).sum(2)
-    if problem.ambient is not None:
-        ambient = problem.ambient
-        model = model + kd * ambient[:, :, None, None]
-    else:
-        ambient = x[:, :, L]
-    intensity = x[:, :, :L].transpose(1, 2)
+    intensity, ambient, model = solve_intensities(_columns(problem, diffuse, specular), problem.material.kd,
+                                                  problem.image, weights, problem.ambient)
     return intensity, ambient, model * problem.gbuffer.mask[:, None]
 
 

@@ -22,7 +22,8 @@ from selfsup.scenes.exact import RenderedScene, render_spec
 from selfsup.scenes.io import Scene
 from selfsup.scenes.sampler import SamplerConfig, SceneSpec, sample_scene
 
-__all__ = ["ProceduralScenes", "sampler_config", "scene_to_item", "collate", "protocol_specs", "PROTOCOL_LIGHTS", "render_item"]
+__all__ = ["ProceduralScenes", "sampler_config", "scene_to_item", "collate", "materialise", "protocol_specs", "PROTOCOL_LIGHTS",
+           "render_item"]
 
 # Room-normalised light positions (x across, y up, z into the room, in [0, 1]) of the
 # protocol set: front/back x left/right high, and two in the middle at two heights.
@@ -142,3 +143,17 @@ def sampler_config(**kwargs) -> SamplerConfig:
     if unknown:
         raise ValueError(f"unknown sampler option(s) {sorted(unknown)}; known: {sorted(fields)}")
     return SamplerConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in kwargs.items()})
+
+
+def materialise(dataset: Dataset, workers: int = 0, batch_size: int = 32, progress: bool = False) -> dict[str, Tensor]:
+    """Every item of ``dataset`` rendered once and stacked: ``{key: (N, ...)}``.
+
+    Training reuses a pool of procedural scenes for several epochs instead of
+    ray casting each one again; ``workers`` processes render in parallel.
+    """
+    from torch.utils.data import DataLoader
+    from tqdm import tqdm
+
+    loader = DataLoader(dataset, batch_size=batch_size, num_workers=workers, collate_fn=collate)
+    parts = [batch for batch in tqdm(loader, desc="rendering scenes", disable=not progress, unit="batch")]
+    return {key: torch.cat([part[key] for part in parts]) for key in parts[0]}

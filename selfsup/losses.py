@@ -1,0 +1,205 @@
+"""The self-supervised loss: re-render the scene from the predicted lights, compare.
+
+No ground-truth light enters :func:`reconstruction_loss` unless the ablation
+switch ``supervised_weight`` is above zero.
+
+The image is linear in the light intensities and the ambient term, so for the
+predicted light positions the best intensities are solved in closed form
+(:mod:`selfsup.linear`) and the photometric error of that re-rendering drives
+the positions (variable projection: the network cannot lower the loss by
+trading distance for brightness, which otherwise sends lights far away). The
+network's own intensity, ambient and presence heads learn from the same fit:
+
+- a slot is *needed* when removing it from the fit raises the photometric error
+  by more than ``need_ratio`` of it (and more than ``need_floor``); the slot whose
+  removal costs most is always needed. Presence learns this label (binary cross
+  entropy), so unneeded slots switch off: the network models only what a scene needs.
+- intensities and ambient learn the closed-form values of the fit with the
+  needed slots (log-L1), treated as constants.
+
+The first slot's position hypotheses (:class:`selfsup.model.LightNet`) are
+scored by the same photometric error: each hypothesis is re-rendered alone
+(without cast shadows and every ``hypothesis_stride``-th pixel, for speed), its
+intensity solved in closed form, and the scores learn the softmax of the
+negative errors (temperature ``hypothesis_temperature`` times the best error),
+while the offsets of the likely hypotheses descend their error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from render import GBuffer, Material, ShadowedBlinnPhong
+from selfsup.linear import basis_images, solve_intensities
+from selfsup.model import LightPrediction, scene_frame
+
+__all__ = ["LossOptions", "LossTerms", "SceneBatch", "scene_batch", "reconstruction_loss"]
+
+
+@dataclass
+class LossOptions:
+    """Weights of the loss (mirrors the ``loss`` node of ``configs/experiment``).
+
+    ``robust_scale``: pseudo-Huber width on the exposure-normalised residual
+    (quadratic below, linear above: outliers such as unmodelled highlights pull
+    with bounded force). ``presence_weight``, ``intensity_weight``: weights of the
+    presence and intensity/ambient heads' terms. ``need_ratio``, ``need_floor``:
+    when a slot counts as needed (see the module doc). ``supervised_weight``:
+    ablation only; 0 (default) keeps the loss free of ground-truth lights.
+    """
+
+    robust_scale: float = 0.05
+    presence_weight: float = 0.05
+    intensity_weight: float = 0.05
+    need_ratio: float = 0.1
+    need_floor: float = 0.002
+    hypothesis_weight: float = 1.0
+    hypothesis_stride: int = 2
+    hypothesis_temperature: float = 0.1
+    supervised_weight: float = 0.0
+
+    def __post_init__(self):
+        if self.robust_scale <= 0:
+            raise ValueError(f"robust_scale must be > 0, got {self.robust_scale}")
+        if self.hypothesis_stride < 1 or self.hypothesis_temperature <= 0:
+            raise ValueError("hypothesis_stride must be >= 1 and hypothesis_temperature > 0")
+        for name in ("presence_weight", "intensity_weight", "need_ratio", "need_floor", "hypothesis_weight",
+                     "supervised_weight"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass
+class SceneBatch:
+    """The renderer's view of a batch: ``image (B, 3, H, W)``, G-buffer, material."""
+
+    image: Tensor
+    gbuffer: GBuffer
+    material: Material
+
+
+def scene_batch(batch: dict[str, Tensor]) -> SceneBatch:
+    """From a collated batch of :func:`selfsup.scenes.dataset.scene_to_item` dicts."""
+    gbuffer = GBuffer.from_depth(batch["depth"], batch["K"], normals=batch["normals"])
+    material = Material(kd=batch["kd"], ks=batch["ks"], shininess=batch["shininess"])
+    return SceneBatch(image=batch["image"].permute(0, 3, 1, 2), gbuffer=gbuffer, material=material)
+
+
+@dataclass
+class LossTerms:
+    """``total ()`` and its parts (detached); ``needed (B, K)`` the slots' self-supervised
+    presence labels; ``render (B, 3, H, W)`` the re-rendered image of the needed slots
+    and ``visibility (B, K, H, W)`` their shadow maps (detached), for logging."""
+
+    total: Tensor
+    photometric: Tensor
+    hypotheses: Tensor
+    presence: Tensor
+    intensity: Tensor
+    supervised: Tensor
+    needed: Tensor
+    render: Tensor
+    visibility: Tensor
+
+
+def _supervised(prediction: LightPrediction, batch: dict[str, Tensor], size: Tensor) -> Tensor:
+    # Ablation: each true light to its nearest slot, relative to the scene size.
+    distance = torch.cdist(batch["light_pos"].to(prediction.position), prediction.position).amin(-1)
+    mask = batch["light_mask"].to(distance)
+    return ((distance / size[:, None]) * mask).sum() / mask.sum().clamp_min(1)
+
+
+def _robust_cost(model: Tensor, image: Tensor, mask: Tensor, exposure: Tensor, c: float) -> Tensor:
+    # Per-image mean pseudo-Huber of the exposure-normalised residual over valid values: (B,).
+    residual = (model - image) / exposure[:, None, None, None]
+    per_value = (torch.sqrt(residual**2 + c * c) - c) * mask
+    return per_value.sum((1, 2, 3)) / (3 * mask.sum((1, 2, 3)).clamp_min(1))
+
+
+def hypothesis_costs(anchor_position: Tensor, scenes: SceneBatch, falloff, stride: int, robust_scale: float) -> Tensor:
+    """Photometric error ``(B, M)`` of each hypothesis ``(B, M, 3)`` as the only light.
+
+    Unshadowed, on every ``stride``-th pixel, intensity and ambient solved in closed form.
+    """
+    from render import light_transport
+
+    g, m, image = scenes.gbuffer, scenes.material, scenes.image
+    s = stride
+    sub = GBuffer(g.points[:, ::s, ::s], g.normals[:, ::s, ::s], g.mask[:, ::s, ::s])
+    kd = m.kd[:, ::s, ::s]
+    img = image[:, :, ::s, ::s]
+    diffuse = light_transport(sub, Material(kd=kd), anchor_position, falloff=falloff, shadows="none",
+                              specular=False).diffuse  # (B, M, h, w)
+    B, M, h, w = diffuse.shape
+    cols = (kd.permute(0, 3, 1, 2)[:, None] * diffuse[:, :, None]).reshape(B * M, 3, 1, h, w)
+    mask = sub.mask[:, None].to(img.dtype).expand_as(img)
+    repeat = lambda t: t.repeat_interleave(M, 0)  # noqa: E731
+    _, _, model = solve_intensities(cols, repeat(kd), repeat(img), repeat(mask), ridge=1e-6)
+    exposure = scene_frame(image, g).exposure
+    return _robust_cost(model * repeat(mask), repeat(img), repeat(mask), repeat(exposure), robust_scale).view(B, M)
+
+
+def reconstruction_loss(prediction: LightPrediction, scenes: SceneBatch, renderer: ShadowedBlinnPhong,
+                        options: LossOptions, batch: dict[str, Tensor] | None = None) -> LossTerms:
+    """Robust photometric error of the re-rendered scene, plus the heads' terms.
+
+    Args:
+        prediction: the network's output for the batch (K slots).
+        scenes: what the renderer needs (image, G-buffer, material).
+        renderer: the shadowed Blinn-Phong layer (shadows on for training); its
+            per-light transport maps are what the closed-form fit combines.
+        options: weights.
+        batch: the collated batch; read only for the ``supervised_weight`` ablation.
+    """
+    g, m, image = scenes.gbuffer, scenes.material, scenes.image
+    transport = renderer.transport(g, m, prediction.position)
+    cols = basis_images(m.kd, m.ks, transport.diffuse, transport.specular)  # (B, 3, K, H, W)
+    mask = g.mask[:, None].to(image.dtype).expand_as(image)
+    frame = scene_frame(image, g)
+    B, K = prediction.presence.shape
+
+    def fit(on: Tensor):
+        intensity, ambient, model = solve_intensities(cols * on[:, None, :, None, None], m.kd, image, mask, ridge=1e-6)
+        return intensity, ambient, model * mask, _robust_cost(model * mask, image, mask, frame.exposure, options.robust_scale)
+
+    everything = torch.ones(B, K, dtype=image.dtype, device=image.device)
+    _, _, _, cost_all = fit(everything)
+    with torch.no_grad():  # which slots the image needs: the error without each one
+        rise = torch.stack([fit(everything - F.one_hot(torch.tensor(k), K).to(everything))[3] for k in range(K)], 1)
+        rise = rise - cost_all[:, None]
+        needed = rise > torch.maximum(options.need_ratio * cost_all, torch.full_like(cost_all, options.need_floor))[:, None]
+        needed |= F.one_hot(rise.argmax(1), K).bool()
+    intensity, ambient, model, cost_needed = fit(needed.to(image.dtype))
+    photometric = 0.5 * (cost_all.mean() + cost_needed.mean())
+
+    costs = hypothesis_costs(prediction.anchor_position, scenes, renderer.falloff, options.hypothesis_stride,
+                             options.robust_scale)
+    best = costs.detach().amin(1, keepdim=True)
+    target = torch.softmax(-(costs.detach() - best) / (options.hypothesis_temperature * best.clamp_min(1e-8)), 1)
+    score_term = -(target * torch.log_softmax(prediction.anchor_logits, 1)).sum(1).mean()
+    offset_term = ((target * costs).sum(1) / best[:, 0].clamp_min(1e-8)).mean()
+    hypotheses = score_term + offset_term
+
+    presence = F.binary_cross_entropy(prediction.presence.clamp(1e-6, 1 - 1e-6), needed.to(image.dtype))
+    s = frame.exposure
+    target_int = intensity.detach().clamp_min(1e-6 * s[:, None, None] * frame.size[:, None, None] ** 2)
+    log_error = (prediction.intensity.clamp_min(1e-12).log() - target_int.log()).abs().mean(-1)
+    intensity_term = (log_error * needed).sum() / needed.sum().clamp_min(1)
+    intensity_term = intensity_term + ((prediction.ambient - ambient.detach()).abs() / s[:, None]).mean()
+
+    supervised = torch.zeros((), dtype=image.dtype, device=image.device)
+    if options.supervised_weight > 0:
+        if batch is None or "light_pos" not in batch:
+            raise ValueError("supervised_weight > 0 needs the batch's ground-truth lights")
+        supervised = _supervised(prediction, batch, frame.size)
+    total = (photometric + options.hypothesis_weight * hypotheses + options.presence_weight * presence + options.intensity_weight * intensity_term
+             + options.supervised_weight * supervised)
+    visibility = transport.visibility if transport.visibility is not None else torch.ones_like(transport.diffuse)
+    return LossTerms(total=total, photometric=photometric.detach(), hypotheses=hypotheses.detach(),
+                     presence=presence.detach(),
+                     intensity=intensity_term.detach(), supervised=supervised.detach(), needed=needed,
+                     render=model.detach(), visibility=visibility.detach())

@@ -1,0 +1,206 @@
+"""The light-estimation CNN: image + G-buffer in, point lights + ambient out.
+
+A plain ``nn.Module`` that knows nothing of training. Every input is normalised
+per image, so that no resolution, aspect ratio, intrinsics, exposure or scene
+size is assumed:
+
+- the image is divided by its exposure ``s`` (99th percentile of the valid
+  pixels' brightest channel);
+- points are expressed relative to the centroid ``c`` of the valid points, in
+  units of the scene size ``r`` (diagonal of their bounding box);
+- all maps are resampled (mask-weighted area averages) to a fixed
+  ``input_size x input_size`` grid.
+
+The first light slot is chosen among M hypotheses: a fixed grid of anchors in
+the normalised frame, each with a predicted offset (within one grid step) and
+score; the network's best-scored hypothesis is the slot's position. Scoring
+hypotheses is a classification over space, which learns far more reliably
+than regressing a position through a photometric loss with local minima. The
+other slots are regressed. Outputs are mapped back: light positions are
+``c + r * p`` with ``p`` the network's normalised position; intensities are ``exp(q) * s`` times ``r^2`` under
+inverse-square falloff (the light must be brighter the farther it is); the
+ambient term is ``softplus(a) * s``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from render.shading import Falloff
+from render.types import GBuffer
+
+__all__ = ["LightNet", "LightPrediction", "SceneFrame", "scene_frame", "network_inputs"]
+
+IN_CHANNELS = 14
+
+
+@dataclass
+class LightPrediction:
+    """What :class:`LightNet` predicts for a batch.
+
+    Attributes:
+        position: ``(B, K, 3)`` camera-frame metres, one row per slot.
+        intensity: ``(B, K, 3)`` in the units of the image model (not yet gated).
+        presence: ``(B, K)`` in (0, 1): how much the slot is needed.
+        ambient: ``(B, 3)``.
+        normalised_position: ``(B, K, 3)`` ``(position - c) / r`` (see module doc).
+        anchor_logits: ``(B, M)`` scores of the first slot's M position hypotheses.
+        anchor_position: ``(B, M, 3)`` metres: the hypotheses (anchors plus offsets);
+            the first slot is the best-scored one.
+    """
+
+    position: Tensor
+    intensity: Tensor
+    presence: Tensor
+    ambient: Tensor
+    normalised_position: Tensor
+    anchor_logits: Tensor
+    anchor_position: Tensor
+
+    def gated_intensity(self) -> Tensor:
+        """``(B, K, 3)`` intensity times presence: what a render of all slots uses."""
+        return self.intensity * self.presence[..., None]
+
+    def lights_of(self, index: int, threshold: float = 0.5) -> tuple[Tensor, Tensor]:
+        """Positions and intensities ``(n, 3)`` of image ``index``'s slots with presence
+        above ``threshold`` (the most present slot is always kept)."""
+        keep = self.presence[index] > threshold
+        keep[self.presence[index].argmax()] = True
+        return self.position[index, keep], self.intensity[index, keep]
+
+
+@dataclass
+class SceneFrame:
+    """Per-image normalisation: ``centre (B, 3)``, ``size (B,)`` metres, ``exposure (B,)``."""
+
+    centre: Tensor
+    size: Tensor
+    exposure: Tensor
+
+
+def scene_frame(image: Tensor, gbuffer: GBuffer) -> SceneFrame:
+    """Centroid and bounding-box diagonal of the valid points, and the image exposure.
+
+    Args:
+        image: ``(B, 3, H, W)`` linear RGB.
+        gbuffer: the view's G-buffer; its mask must hold at least one pixel per image.
+    """
+    mask = gbuffer.mask
+    count = mask.flatten(1).sum(1)
+    if bool((count == 0).any()):
+        raise ValueError(f"image(s) {(count == 0).nonzero().flatten().tolist()} have no valid pixel")
+    points = gbuffer.points
+    m = mask[..., None].to(points.dtype)
+    centre = (points * m).flatten(1, 2).sum(1) / count[:, None]
+    big = torch.finfo(points.dtype).max
+    lo = torch.where(mask[..., None], points, torch.full_like(points, big)).flatten(1, 2).amin(1)
+    hi = torch.where(mask[..., None], points, torch.full_like(points, -big)).flatten(1, 2).amax(1)
+    size = (hi - lo).norm(dim=-1).clamp_min(1e-6)
+    brightest = image.amax(1).flatten(1)
+    brightest = torch.where(mask.flatten(1), brightest, torch.full_like(brightest, float("nan")))
+    exposure = torch.nanquantile(brightest, 0.99, dim=1).clamp_min(1e-8)
+    return SceneFrame(centre=centre, size=size, exposure=exposure)
+
+
+def network_inputs(image: Tensor, gbuffer: GBuffer, kd: Tensor, frame: SceneFrame, size: int) -> Tensor:
+    """The normalised ``(B, 14, size, size)`` input of :class:`LightNet`.
+
+    Channels: image / s (3), brightness over albedo / s (1), kd (3), normalised
+    points (3), normals (3), mask (1); invalid pixels hold zeros, and the
+    resampling averages valid pixels only.
+    """
+    mask = gbuffer.mask[:, None].to(image.dtype)
+    s = frame.exposure[:, None, None, None]
+    shown = (image / s).clamp(0, 4)
+    luminance = image.mean(1, keepdim=True)
+    albedo = kd.permute(0, 3, 1, 2)
+    ratio = (luminance / albedo.mean(1, keepdim=True).clamp_min(0.05) / s).clamp(0, 8)
+    points = (gbuffer.points - frame.centre[:, None, None]) / frame.size[:, None, None, None]
+    maps = torch.cat([shown, ratio, albedo, points.permute(0, 3, 1, 2), gbuffer.normals.permute(0, 3, 1, 2)], 1)
+    pooled = F.adaptive_avg_pool2d(maps * mask, size)
+    coverage = F.adaptive_avg_pool2d(mask, size)
+    return torch.cat([pooled / coverage.clamp_min(1e-6) * (coverage > 0), coverage], 1)
+
+
+def _block(cin: int, cout: int, stride: int) -> nn.Sequential:
+    groups = 8 if cout % 8 == 0 else 1
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.GroupNorm(groups, cout), nn.SiLU(),
+        nn.Conv2d(cout, cout, 3, 1, 1, bias=False), nn.GroupNorm(groups, cout), nn.SiLU(),
+    )
+
+
+class LightNet(nn.Module):
+    """Small CNN predicting up to ``max_lights`` point lights and the ambient term.
+
+    Args:
+        max_lights: slots K; each has a position, an RGB intensity and a presence.
+        input_size: side of the square grid the inputs are resampled to.
+        widths: channels of the stride-2 stages (each halves the grid).
+        hidden: width of the fully connected head.
+        anchors_per_axis, anchor_extent: the first slot's hypotheses, a grid of
+            ``anchors_per_axis^3`` points spanning ``+-anchor_extent`` scene sizes.
+        falloff: the image model's falloff; sets how intensity scales with size.
+
+    ``forward(image (B, 3, H, W), gbuffer, kd (B, H, W, 3)) -> LightPrediction``.
+    """
+
+    def __init__(self, max_lights: int = 2, input_size: int = 64, widths: tuple[int, ...] = (32, 48, 64, 96, 128),
+                 hidden: int = 256, anchors_per_axis: int = 6, anchor_extent: float = 0.75,
+                 falloff: Falloff | str = Falloff.INVERSE_SQUARE):
+        super().__init__()
+        if max_lights < 1:
+            raise ValueError(f"max_lights must be >= 1, got {max_lights}")
+        if input_size % 2 ** len(widths):
+            raise ValueError(f"input_size {input_size} must be divisible by 2^{len(widths)} (one halving per stage)")
+        self.max_lights = max_lights
+        self.input_size = input_size
+        self.falloff = Falloff(falloff)
+        stages, cin = [], IN_CHANNELS
+        for width in widths:
+            stages.append(_block(cin, width, 2))
+            cin = width
+        self.backbone = nn.Sequential(*stages)
+        cells = (input_size // 2 ** len(widths)) ** 2
+        self.head = nn.Sequential(nn.Flatten(), nn.Linear(cin * cells, hidden), nn.SiLU(), nn.Linear(hidden, hidden), nn.SiLU())
+        axis = torch.linspace(-anchor_extent, anchor_extent, anchors_per_axis)
+        grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+        self.register_buffer("anchors", grid, persistent=False)
+        self.anchor_step = 2 * anchor_extent / max(anchors_per_axis - 1, 1)
+        self.out = nn.Linear(hidden, max_lights * 7 + 3)
+        self.anchor_out = nn.Linear(hidden, grid.shape[0] * 4)
+        with torch.no_grad():
+            self.anchor_out.weight.mul_(0.1)
+            self.anchor_out.bias.zero_()
+        with torch.no_grad():  # start every slot near the scene, slots slightly apart, half present
+            self.out.weight.mul_(0.1)
+            self.out.bias.zero_()
+            generator = torch.Generator().manual_seed(0)
+            bias = self.out.bias[: max_lights * 7].view(max_lights, 7)
+            bias[:, :3] = 0.2 * torch.randn(max_lights, 3, generator=generator)
+
+    def forward(self, image: Tensor, gbuffer: GBuffer, kd: Tensor) -> LightPrediction:
+        frame = scene_frame(image, gbuffer)
+        x = network_inputs(image, gbuffer, kd, frame, self.input_size)
+        features = self.head(self.backbone(x))
+        raw = self.out(features)
+        slots = raw[:, : self.max_lights * 7].view(-1, self.max_lights, 7)
+        hypotheses = self.anchor_out(features).view(x.shape[0], -1, 4)
+        anchor_logits = hypotheses[..., 3]
+        anchor_normalised = self.anchors + self.anchor_step * torch.tanh(hypotheses[..., :3])
+        best = anchor_normalised[torch.arange(x.shape[0], device=x.device), anchor_logits.argmax(1)]
+        # Slot 0: the best hypothesis; the others: regressed, within 1.5 scene sizes of the centroid.
+        normalised = torch.cat([best[:, None], 1.5 * torch.tanh(slots[:, 1:, :3] / 1.5)], 1)
+        position = frame.centre[:, None] + frame.size[:, None, None] * normalised
+        unit = frame.exposure if self.falloff == Falloff.NONE else frame.exposure * frame.size**2
+        intensity = torch.exp(slots[..., 3:6].clamp(-12, 12)) * unit[:, None, None]
+        presence = torch.sigmoid(slots[..., 6])
+        ambient = F.softplus(raw[:, -3:]) * frame.exposure[:, None] * 0.1
+        anchor_position = frame.centre[:, None] + frame.size[:, None, None] * anchor_normalised
+        return LightPrediction(position=position, intensity=intensity, presence=presence, ambient=ambient,
+                               normalised_position=normalised, anchor_logits=anchor_logits,
+                               anchor_position=anchor_position)
