@@ -12,7 +12,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["basis_images", "solve_intensities"]
+from render.shading import falloff_factor
+
+__all__ = ["basis_images", "solve_intensities", "single_light_costs"]
 
 
 def basis_images(kd: Tensor, ks: Tensor | None, diffuse: Tensor, specular: Tensor | None) -> Tensor:
@@ -69,3 +71,64 @@ def solve_intensities(cols: Tensor, kd: Tensor, image: Tensor, weights: Tensor, 
     else:
         ambient = x[:, :, L]
     return x[:, :, :L].transpose(1, 2), ambient, model
+
+
+def single_light_costs(position: Tensor, points: Tensor, normals: Tensor, mask: Tensor, kd: Tensor, image: Tensor,
+                       exposure: Tensor, falloff, robust_scale: float | None = None) -> Tensor:
+    """Error ``(B, M)`` of each light position ``(B, M, 3)`` as the only light, unshadowed
+    and diffuse, with its intensity and the ambient term the non-negative
+    least-squares fit (per channel).
+
+    Args:
+        points, normals: ``(B, H, W, 3)``; mask ``(B, H, W)``; kd ``(B, H, W, 3)``;
+        image ``(B, 3, H, W)``; exposure ``(B,)`` divides the residual.
+
+    ``robust_scale`` None: the mean squared exposure-normalised error, from
+    per-hypothesis sums over pixels alone (``|y|^2 - x^T b``, three matrix products).
+    Otherwise the mean pseudo-Huber cost of the same fit's residual (what the
+    photometric loss measures: shadows and highlights the hypothesis cannot
+    explain pull with bounded force).
+    """
+    points = points.flatten(1, 2)  # (B, P, 3)
+    normals = normals.flatten(1, 2)
+    weight = mask.flatten(1).to(image.dtype)[..., None]  # (B, P, 1)
+    kd = kd.flatten(1, 2)  # (B, P, 3)
+    observed = image.flatten(2).transpose(1, 2)  # (B, P, 3)
+
+    offset = position[:, :, None] - points[:, None]  # (B, M, P, 3)
+    distance = offset.norm(dim=-1).clamp_min(1e-6 * points.norm(dim=-1).amax(1)[:, None, None])
+    cosine = ((offset * normals[:, None]).sum(-1) / distance).clamp_min(0)
+    diffuse = cosine * falloff_factor(distance, falloff)  # (B, M, P)
+
+    albedo_weight = weight * kd * kd  # (B, P, 3)
+    target_weight = weight * kd * observed
+    # The sums are formed in the input dtype, the 2x2 solves in float64: a far light
+    # is nearly constant over the scene, so its column is close to the ambient one.
+    wide = torch.float64 if image.device.type != "mps" else image.dtype
+    s_11 = albedo_weight.sum(1)[:, None].to(wide)  # (B, 1, 3): ambient column against itself
+    s_d1 = (diffuse @ albedo_weight).to(wide)  # (B, M, 3)
+    s_dd = ((diffuse * diffuse) @ albedo_weight).to(wide)
+    b_1 = target_weight.sum(1)[:, None].to(wide)
+    b_d = (diffuse @ target_weight).to(wide)
+    y_y = (weight * observed * observed).sum(1)[:, None].to(wide)
+    s_dd, s_11 = s_dd * (1 + 1e-9) + 1e-30, s_11 * (1 + 1e-9) + 1e-30  # ridge: an unlit hypothesis stays solvable
+    det = s_dd * s_11 - s_d1 * s_d1
+    light = (b_d * s_11 - b_1 * s_d1) / det
+    ambient = (s_dd * b_1 - s_d1 * b_d) / det
+    both = y_y - light * b_d - ambient * b_1
+    light_only = y_y - b_d.clamp_min(0) ** 2 / s_dd
+    ambient_only = y_y - b_1.clamp_min(0) ** 2 / s_11
+    feasible = (light >= 0) & (ambient >= 0)
+    error = torch.where(feasible, both, torch.minimum(light_only, ambient_only))
+    count = 3 * weight.sum((1, 2)).clamp_min(1)
+    if robust_scale is None:
+        return error.clamp_min(0).sum(-1).to(image.dtype) / (count * exposure**2)[:, None]
+    only_light = ~feasible & (light_only <= ambient_only)
+    light = torch.where(feasible, light, torch.where(only_light, b_d.clamp_min(0) / s_dd, torch.zeros_like(light)))
+    ambient = torch.where(feasible, ambient, torch.where(only_light, torch.zeros_like(ambient), b_1.clamp_min(0) / s_11))
+    light, ambient = light.to(image.dtype), ambient.to(image.dtype)  # (B, M, 3)
+    model = kd[:, None] * (light[:, :, None] * diffuse[..., None] + ambient[:, :, None])  # (B, M, P, 3)
+    residual = (model - observed[:, None]) / exposure[:, None, None, None]
+    c = robust_scale
+    cost = (torch.sqrt(residual * residual + c * c) - c) * weight[:, None]
+    return cost.sum((2, 3)) / count[:, None]

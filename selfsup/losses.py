@@ -11,8 +11,8 @@ trading distance for brightness, which otherwise sends lights far away). The
 network's own intensity, ambient and presence heads learn from the same fit:
 
 - a slot is *needed* when removing it from the fit raises the photometric error
-  by more than ``need_ratio`` of it (and more than ``need_floor``); the slot whose
-  removal costs most is always needed. Presence learns this label (binary cross
+  by more than ``need_ratio`` of it (and more than ``need_floor``); slot 0 (the
+  network's best position hypothesis) is always needed. Presence learns this label (binary cross
   entropy), so unneeded slots switch off: the network models only what a scene needs.
 - intensities and ambient learn the closed-form values of the fit with the
   needed slots (log-L1), treated as constants.
@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from render import GBuffer, Material, ShadowedBlinnPhong
-from selfsup.linear import basis_images, solve_intensities
+from selfsup.linear import basis_images, single_light_costs, solve_intensities
 from selfsup.model import LightPrediction, scene_frame
 
 __all__ = ["LossOptions", "LossTerms", "SceneBatch", "scene_batch", "reconstruction_loss"]
@@ -58,7 +58,7 @@ class LossOptions:
     need_ratio: float = 0.1
     need_floor: float = 0.002
     hypothesis_weight: float = 1.0
-    hypothesis_stride: int = 2
+    hypothesis_stride: int = 3
     hypothesis_temperature: float = 0.1
     supervised_weight: float = 0.0
 
@@ -120,27 +120,15 @@ def _robust_cost(model: Tensor, image: Tensor, mask: Tensor, exposure: Tensor, c
     return per_value.sum((1, 2, 3)) / (3 * mask.sum((1, 2, 3)).clamp_min(1))
 
 
-def hypothesis_costs(anchor_position: Tensor, scenes: SceneBatch, falloff, stride: int, robust_scale: float) -> Tensor:
-    """Photometric error ``(B, M)`` of each hypothesis ``(B, M, 3)`` as the only light.
-
-    Unshadowed, on every ``stride``-th pixel, intensity and ambient solved in closed form.
-    """
-    from render import light_transport
-
-    g, m, image = scenes.gbuffer, scenes.material, scenes.image
-    s = stride
-    sub = GBuffer(g.points[:, ::s, ::s], g.normals[:, ::s, ::s], g.mask[:, ::s, ::s])
-    kd = m.kd[:, ::s, ::s]
-    img = image[:, :, ::s, ::s]
-    diffuse = light_transport(sub, Material(kd=kd), anchor_position, falloff=falloff, shadows="none",
-                              specular=False).diffuse  # (B, M, h, w)
-    B, M, h, w = diffuse.shape
-    cols = (kd.permute(0, 3, 1, 2)[:, None] * diffuse[:, :, None]).reshape(B * M, 3, 1, h, w)
-    mask = sub.mask[:, None].to(img.dtype).expand_as(img)
-    repeat = lambda t: t.repeat_interleave(M, 0)  # noqa: E731
-    _, _, model = solve_intensities(cols, repeat(kd), repeat(img), repeat(mask), ridge=1e-6)
-    exposure = scene_frame(image, g).exposure
-    return _robust_cost(model * repeat(mask), repeat(img), repeat(mask), repeat(exposure), robust_scale).view(B, M)
+def hypothesis_costs(anchor_position: Tensor, scenes: SceneBatch, falloff, stride: int,
+                     robust_scale: float | None = None) -> Tensor:
+    """Error ``(B, M)`` of each hypothesis ``(B, M, 3)`` as the only light, unshadowed,
+    on every ``stride``-th pixel (:func:`selfsup.linear.single_light_costs`)."""
+    g, s = scenes.gbuffer, stride
+    exposure = scene_frame(scenes.image, g).exposure
+    return single_light_costs(anchor_position, g.points[:, ::s, ::s], g.normals[:, ::s, ::s], g.mask[:, ::s, ::s],
+                              scenes.material.kd[:, ::s, ::s], scenes.image[:, :, ::s, ::s], exposure, falloff,
+                              robust_scale)
 
 
 def reconstruction_loss(prediction: LightPrediction, scenes: SceneBatch, renderer: ShadowedBlinnPhong,
@@ -172,7 +160,7 @@ def reconstruction_loss(prediction: LightPrediction, scenes: SceneBatch, rendere
         rise = torch.stack([fit(everything - F.one_hot(torch.tensor(k), K).to(everything))[3] for k in range(K)], 1)
         rise = rise - cost_all[:, None]
         needed = rise > torch.maximum(options.need_ratio * cost_all, torch.full_like(cost_all, options.need_floor))[:, None]
-        needed |= F.one_hot(rise.argmax(1), K).bool()
+        needed[:, 0] = True
     intensity, ambient, model, cost_needed = fit(needed.to(image.dtype))
     photometric = 0.5 * (cost_all.mean() + cost_needed.mean())
 

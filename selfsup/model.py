@@ -15,8 +15,13 @@ The first light slot is chosen among M hypotheses: a fixed grid of anchors in
 the normalised frame, each with a predicted offset (within one grid step) and
 score; the network's best-scored hypothesis is the slot's position. Scoring
 hypotheses is a classification over space, which learns far more reliably
-than regressing a position through a photometric loss with local minima. The
-other slots are regressed. Outputs are mapped back: light positions are
+than regressing a position through a photometric loss with local minima.
+Like the cost volume of a stereo network, the scores start from physics: each
+anchor's photometric error as the only light (diffuse, unshadowed, intensity and
+ambient in closed form, :func:`selfsup.linear.single_light_costs`, on a coarse
+pixel grid) is an input of the head and a prior on the scores; the network
+learns what that simple model misses (shadows, highlights, a second light).
+The other slots are regressed. Outputs are mapped back: light positions are
 ``c + r * p`` with ``p`` the network's normalised position; intensities are ``exp(q) * s`` times ``r^2`` under
 inverse-square falloff (the light must be brighter the farther it is); the
 ambient term is ``softplus(a) * s``.
@@ -32,6 +37,7 @@ from torch import Tensor, nn
 
 from render.shading import Falloff
 from render.types import GBuffer
+from selfsup.linear import single_light_costs
 
 __all__ = ["LightNet", "LightPrediction", "SceneFrame", "scene_frame", "network_inputs"]
 
@@ -45,7 +51,8 @@ class LightPrediction:
     Attributes:
         position: ``(B, K, 3)`` camera-frame metres, one row per slot.
         intensity: ``(B, K, 3)`` in the units of the image model (not yet gated).
-        presence: ``(B, K)`` in (0, 1): how much the slot is needed.
+        presence: ``(B, K)`` in (0, 1): how much the slot is needed; slot 0 is
+            always present (1): every scene has at least one light.
         ambient: ``(B, 3)``.
         normalised_position: ``(B, K, 3)`` ``(position - c) / r`` (see module doc).
         anchor_logits: ``(B, M)`` scores of the first slot's M position hypotheses.
@@ -67,9 +74,9 @@ class LightPrediction:
 
     def lights_of(self, index: int, threshold: float = 0.5) -> tuple[Tensor, Tensor]:
         """Positions and intensities ``(n, 3)`` of image ``index``'s slots with presence
-        above ``threshold`` (the most present slot is always kept)."""
+        above ``threshold`` (slot 0 is always kept)."""
         keep = self.presence[index] > threshold
-        keep[self.presence[index].argmax()] = True
+        keep[0] = True
         return self.position[index, keep], self.intensity[index, keep]
 
 
@@ -126,6 +133,21 @@ def network_inputs(image: Tensor, gbuffer: GBuffer, kd: Tensor, frame: SceneFram
     return torch.cat([pooled / coverage.clamp_min(1e-6) * (coverage > 0), coverage], 1)
 
 
+def _parabola_vertex(cost: Tensor, per_axis: int) -> Tensor:
+    """Per anchor of an ``per_axis^3`` grid (``cost (B, M)``, x-major), the offset in grid
+    steps ``(B, M, 3)`` of the minimum of the parabola through it and its two neighbours
+    along each axis; 0 where the parabola does not open upwards; within +-0.5."""
+    grid = cost.view(-1, per_axis, per_axis, per_axis)
+    shifts = []
+    for axis in (1, 2, 3):
+        before = torch.cat([grid.narrow(axis, 0, 1), grid.narrow(axis, 0, per_axis - 1)], axis)
+        after = torch.cat([grid.narrow(axis, 1, per_axis - 1), grid.narrow(axis, per_axis - 1, 1)], axis)
+        curvature = before - 2 * grid + after
+        vertex = 0.5 * (before - after) / curvature.clamp_min(1e-12)
+        shifts.append(torch.where(curvature > 1e-12, vertex.clamp(-0.5, 0.5), torch.zeros_like(vertex)))
+    return torch.stack(shifts, -1).reshape(cost.shape[0], -1, 3)
+
+
 def _block(cin: int, cout: int, stride: int) -> nn.Sequential:
     groups = 8 if cout % 8 == 0 else 1
     return nn.Sequential(
@@ -145,13 +167,15 @@ class LightNet(nn.Module):
         anchors_per_axis, anchor_extent: the first slot's hypotheses, a grid of
             ``anchors_per_axis^3`` points spanning ``+-anchor_extent`` scene sizes.
         falloff: the image model's falloff; sets how intensity scales with size.
+        evidence_points: the anchors' photometric errors are measured on about
+            this many pixels along the shorter image side.
 
     ``forward(image (B, 3, H, W), gbuffer, kd (B, H, W, 3)) -> LightPrediction``.
     """
 
     def __init__(self, max_lights: int = 2, input_size: int = 64, widths: tuple[int, ...] = (32, 48, 64, 96, 128),
                  hidden: int = 256, anchors_per_axis: int = 6, anchor_extent: float = 0.75,
-                 falloff: Falloff | str = Falloff.INVERSE_SQUARE):
+                 falloff: Falloff | str = Falloff.INVERSE_SQUARE, evidence_points: int = 24):
         super().__init__()
         if max_lights < 1:
             raise ValueError(f"max_lights must be >= 1, got {max_lights}")
@@ -160,6 +184,7 @@ class LightNet(nn.Module):
         self.max_lights = max_lights
         self.input_size = input_size
         self.falloff = Falloff(falloff)
+        self.evidence_points = evidence_points
         stages, cin = [], IN_CHANNELS
         for width in widths:
             stages.append(_block(cin, width, 2))
@@ -170,9 +195,13 @@ class LightNet(nn.Module):
         axis = torch.linspace(-anchor_extent, anchor_extent, anchors_per_axis)
         grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
         self.register_buffer("anchors", grid, persistent=False)
+        self.anchors_per_axis = anchors_per_axis
         self.anchor_step = 2 * anchor_extent / max(anchors_per_axis - 1, 1)
-        self.out = nn.Linear(hidden, max_lights * 7 + 3)
-        self.anchor_out = nn.Linear(hidden, grid.shape[0] * 4)
+        anchors = grid.shape[0]
+        self.evidence_in = nn.Sequential(nn.Linear(anchors, hidden), nn.SiLU())
+        self.evidence_weight = nn.Parameter(torch.tensor(20.0))  # prior logits: -20 x relative excess error
+        self.out = nn.Linear(2 * hidden, max_lights * 7 + 3)
+        self.anchor_out = nn.Linear(2 * hidden, anchors * 4)
         with torch.no_grad():
             self.anchor_out.weight.mul_(0.1)
             self.anchor_out.bias.zero_()
@@ -183,22 +212,40 @@ class LightNet(nn.Module):
             bias = self.out.bias[: max_lights * 7].view(max_lights, 7)
             bias[:, :3] = 0.2 * torch.randn(max_lights, 3, generator=generator)
 
+    @torch.no_grad()
+    def anchor_evidence(self, image: Tensor, gbuffer: GBuffer, kd: Tensor, frame: SceneFrame) -> Tensor:
+        """``(B, M)`` minus each anchor's relative excess photometric error (0 for the best)."""
+        step = max(1, round(min(image.shape[-2:]) / self.evidence_points))
+        position = frame.centre[:, None] + frame.size[:, None, None] * self.anchors.to(frame.centre)
+        g = gbuffer
+        with torch.autocast(image.device.type, enabled=False):  # sums of many small terms: keep float32
+            costs = single_light_costs(position.float(), g.points[:, ::step, ::step].float(),
+                                       g.normals[:, ::step, ::step].float(), g.mask[:, ::step, ::step],
+                                       kd[:, ::step, ::step].float(), image[:, :, ::step, ::step].float(),
+                                       frame.exposure.float(), self.falloff)
+        best = costs.amin(1, keepdim=True).clamp_min(1e-12)
+        return -(costs / best - 1).clamp(0, 10).to(image.dtype)
+
     def forward(self, image: Tensor, gbuffer: GBuffer, kd: Tensor) -> LightPrediction:
         frame = scene_frame(image, gbuffer)
         x = network_inputs(image, gbuffer, kd, frame, self.input_size)
-        features = self.head(self.backbone(x))
+        evidence = self.anchor_evidence(image, gbuffer, kd, frame)
+        features = torch.cat([self.head(self.backbone(x)), self.evidence_in(evidence)], 1)
         raw = self.out(features)
         slots = raw[:, : self.max_lights * 7].view(-1, self.max_lights, 7)
         hypotheses = self.anchor_out(features).view(x.shape[0], -1, 4)
-        anchor_logits = hypotheses[..., 3]
-        anchor_normalised = self.anchors + self.anchor_step * torch.tanh(hypotheses[..., :3])
+        anchor_logits = hypotheses[..., 3] + self.evidence_weight * evidence
+        # Each anchor moves to the vertex of the parabola through its neighbours' errors
+        # (sub-grid refinement, as in stereo matching), then by the learned offset.
+        shift = _parabola_vertex(-evidence.float(), self.anchors_per_axis).to(evidence.dtype)
+        anchor_normalised = self.anchors + self.anchor_step * (shift + 0.5 * torch.tanh(hypotheses[..., :3]))
         best = anchor_normalised[torch.arange(x.shape[0], device=x.device), anchor_logits.argmax(1)]
         # Slot 0: the best hypothesis; the others: regressed, within 1.5 scene sizes of the centroid.
         normalised = torch.cat([best[:, None], 1.5 * torch.tanh(slots[:, 1:, :3] / 1.5)], 1)
         position = frame.centre[:, None] + frame.size[:, None, None] * normalised
         unit = frame.exposure if self.falloff == Falloff.NONE else frame.exposure * frame.size**2
         intensity = torch.exp(slots[..., 3:6].clamp(-12, 12)) * unit[:, None, None]
-        presence = torch.sigmoid(slots[..., 6])
+        presence = torch.cat([torch.ones_like(slots[:, :1, 6]), torch.sigmoid(slots[:, 1:, 6])], 1)
         ambient = F.softplus(raw[:, -3:]) * frame.exposure[:, None] * 0.1
         anchor_position = frame.centre[:, None] + frame.size[:, None, None] * anchor_normalised
         return LightPrediction(position=position, intensity=intensity, presence=presence, ambient=ambient,

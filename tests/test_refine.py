@@ -2,12 +2,14 @@
 
 import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
 import torch
 
 from selfsup.estimate import EstimateOptions, estimate_files, estimate_scene, problem_of
+from selfsup.metrics import light_errors
 from selfsup.refine import RefineOptions, evaluate, refine, robust_loss, search
 from selfsup.scenes.exact import render_spec
 from selfsup.scenes.io import write_scene
@@ -23,6 +25,11 @@ def _scene(seed, n_lights=1, config=SMALL):
 
 def _rel_error(position, scene):
     return float((position - scene.light_pos).norm(dim=-1).max() / scene.scene_scale)
+
+
+def _rel_error_paired(position, scene):
+    return max(light_errors(position, None, scene.light_pos, None, float(scene.scene_scale),
+                            scene.light_pos.mean(0)).position)
 
 
 @pytest.mark.parametrize("method, iters, tol", [("lm", (15, 5), 5e-3), ("adam", (60, 0), 0.03)])
@@ -67,13 +74,40 @@ def test_search_finds_the_light_without_a_start():
 @pytest.mark.parametrize("seed, n_lights", [(4, 1), (11, 2)])
 def test_model_selection_picks_the_number_of_lights(seed, n_lights):
     scene = _scene(seed, n_lights, config=MEDIUM)
-    record = estimate_scene(scene, EstimateOptions(refine=RefineOptions(max_iters=(15, 5))))
+    record = estimate_scene(scene, EstimateOptions(method="refine", refine=RefineOptions(max_iters=(15, 5))))
     assert len(record["lights"]) == n_lights, record["candidates"]
+
+
+@pytest.mark.parametrize("seed, n_lights", [(4, 1), (11, 2)])
+def test_shipped_network_starts_the_refinement_and_selection(seed, n_lights):
+    scene = _scene(seed, n_lights, config=MEDIUM)
+    record = estimate_scene(scene, EstimateOptions(method="cnn+refine", refine=RefineOptions(max_iters=(15, 5))))
+    assert len(record["lights"]) == n_lights, record["candidates"]
+    position = torch.tensor([light["position"] for light in record["lights"]])
+    assert _rel_error_paired(position, scene) < 0.02
+
+
+def test_network_alone_gives_a_full_record(tmp_path):
+    # Any checkpoint works (here an untrained network): the record has the contract's fields.
+    from selfsup.checkpoint import save_network
+    from selfsup.model import LightNet
+
+    path = save_network(tmp_path / "net.pt", LightNet(max_lights=2, hidden=32), {"max_lights": 2, "hidden": 32})
+    record = estimate_scene(_scene(4), EstimateOptions(method="cnn", checkpoint=str(path)))
+    assert 1 <= len(record["lights"]) <= 2 and len(record["candidates"]) == 1
+    light = record["lights"][0]
+    assert len(light["position"]) == len(light["intensity"]) == len(light["position_std"]) == 3
+    assert all(math.isfinite(v) for v in light["position"] + light["intensity"] + record["ambient"])
+
+
+def test_unknown_method_is_named():
+    with pytest.raises(ValueError, match="estimate.method must be one of"):
+        EstimateOptions(method="magic")
 
 
 def test_uncertainty_is_present_finite_and_small_on_an_exact_scene():
     scene = _scene(5)
-    record = estimate_scene(scene, EstimateOptions(max_lights=1, refine=RefineOptions(max_iters=(15, 5))))
+    record = estimate_scene(scene, EstimateOptions(method="refine", max_lights=1, refine=RefineOptions(max_iters=(15, 5))))
     std = torch.tensor(record["lights"][0]["position_std"])
     assert std.shape == (3,) and torch.isfinite(std).all() and (std > 0).all()
     assert float(std.max()) < 0.05 * float(scene.scene_scale)

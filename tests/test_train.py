@@ -10,8 +10,8 @@ def _cfg(*overrides):
         return compose(config_name="train", overrides=list(overrides))
 
 
-def test_default_config_runs_the_shadow_benchmark_shrunk():
-    rows, path = run(_cfg("benchmark.height=30", "benchmark.width=40", "benchmark.write=false"))
+def test_benchmark_mode_runs_the_shadow_benchmark_shrunk():
+    rows, path = run(_cfg("mode=benchmark", "benchmark.height=30", "benchmark.width=40", "benchmark.write=false"))
     assert path is None and rows[-1]["light"] == "**mean**"
     assert 0.8 < rows[-1]["epipolar_agree"] <= 1.0
 

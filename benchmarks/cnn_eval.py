@@ -1,0 +1,108 @@
+"""Ground-truth accuracy and speed of the light-estimation CNN alone (``mode=eval``).
+
+Targets (issue 4), on the fixed-seed procedural test set with true reflectance:
+median position error <= 0.05 of the scene size, median angular error <= 5
+degrees; inference <= 5 ms per 128x128 image at batch 16 on the 2-core CPU.
+The degraded sets (reflectance noise m, sensor depth noise) and directories of
+scene files (e.g. the Mitsuba devset) are reported as measured.
+
+    python train.py mode=eval                      # the shipped checkpoint
+    python train.py mode=eval eval.checkpoint=outputs/.../best.pt eval.scenes=50
+
+Results: benchmarks/results/cnn_eval_<device>_<date>.{md,json}.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import torch
+
+from benchmarks.common import timed, write_results
+from selfsup.checkpoint import load_network
+from selfsup.evaluate import evaluate_network, summarise
+from selfsup.losses import scene_batch
+from selfsup.scenes.dataset import ProceduralScenes, collate, materialise, sampler_config, scene_to_item
+from selfsup.scenes.degrade import Degradations
+
+log = logging.getLogger(__name__)
+
+COLUMNS = ["set", "scenes", "median_position_error", "median_angular_error", "mean_angular_error", "success_rate",
+           "count_accuracy", "ms_per_image"]
+
+
+def _file_pool_rows(network, directory: str, device) -> list[dict]:
+    from selfsup.estimate import scene_files
+    from selfsup.scenes.io import read_scene
+
+    rows = []
+    for path in scene_files(directory):
+        scene = read_scene(path)
+        if scene.light_pos is None or scene.scene_scale is None:
+            raise ValueError(f"{path}: eval needs ground-truth lights and scene_scale")
+        item = scene_to_item(scene, max(network.max_lights, scene.light_pos.shape[0]))
+        rows.extend(evaluate_network(network, collate([item]), batch_size=1))
+    return rows
+
+
+def inference_ms(network, device, height: int = 128, width: int = 128, batch: int = 16) -> float:
+    """Milliseconds per image of the network's forward pass (inputs already built)."""
+    sampler = sampler_config(height=height, width=width)
+    pool = materialise(ProceduralScenes(sampler, length=batch, base_seed=77, samples=1))
+    scenes = scene_batch({k: v.to(device) for k, v in pool.items()})
+    with torch.no_grad():
+        seconds = timed(lambda: network(scenes.image, scenes.gbuffer, scenes.material.kd), device)
+    return 1000 * seconds / batch
+
+
+def run(checkpoint: str | None = None, sets: dict | None = None, files: dict | None = None, scenes: int = 200,
+        seed: int = 9000, height: int = 120, width: int = 160, samples: int = 2,
+        n_lights_probs: tuple = (0.75, 0.25), workers: int = 2, device: str = "auto", write: bool = True):
+    """Evaluate ``checkpoint`` (None: the shipped one) on each procedural set in
+    ``sets`` (name -> Degradations fields) and each directory in ``files``
+    (name -> path). Returns ``(rows, results path or None)``."""
+    device = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else
+                          ("cpu" if device == "auto" else device))
+    network, state = load_network(checkpoint, map_location=device)
+    network.to(device)
+    sampler = sampler_config(height=height, width=width, n_lights_probs=list(n_lights_probs))
+    speed = inference_ms(network, device)
+    rows = []
+    for name, fields in (sets or {"true reflectance": {}}).items():
+        degradations = Degradations(**(fields or {}))
+        pool = materialise(ProceduralScenes(sampler, degradations, length=scenes, base_seed=seed, samples=samples,
+                                            max_lights=max(network.max_lights, len(n_lights_probs))), workers=workers)
+        started = time.perf_counter()
+        summary = summarise(evaluate_network(network, pool))
+        rows.append({"set": name, **_rounded(summary),
+                     "ms_per_image": round(1000 * (time.perf_counter() - started) / scenes, 2)})
+    for name, directory in (files or {}).items():
+        if not Path(directory).exists():
+            log.warning("eval set %r skipped: no directory %s", name, directory)
+            continue
+        started = time.perf_counter()
+        per_scene = _file_pool_rows(network, directory, device)
+        rows.append({"set": name, **_rounded(summarise(per_scene)),
+                     "ms_per_image": round(1000 * (time.perf_counter() - started) / len(per_scene), 2)})
+    rows.append({"set": "inference only, 128x128, batch 16", "ms_per_image": round(speed, 2)})
+    path = None
+    if write:
+        trained = state.get("metrics", {})
+        header = (f"Checkpoint: {checkpoint or 'shipped (selfsup/checkpoints/lightnet.pt)'}; "
+                  f"{sum(p.numel() for p in network.parameters())} parameters; its validation at save: "
+                  f"{ {k: round(v, 4) for k, v in trained.items()} }. Procedural sets: {scenes} scenes each, "
+                  f"seed {seed}, {width}x{height}, {samples}x{samples} AA, P(lights) {list(n_lights_probs)}. "
+                  "Errors as in scene-format.md (position: worst light per scene, of the scene size; "
+                  "angular: degrees about the centroid); ms_per_image of a set includes input preparation and "
+                  "scoring.")
+        path = write_results("cnn_eval", device, rows, header, COLUMNS)
+    return rows, path
+
+
+def _rounded(summary: dict) -> dict:
+    return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in summary.items()}
+
+
+__all__ = ["run", "inference_ms"]

@@ -1,0 +1,51 @@
+"""LightNet checkpoints: one file holds the network's constructor arguments and weights.
+
+The shipped checkpoint (``selfsup/checkpoints/lightnet.pt``) is what ``mode=eval``
+and ``estimate.method=cnn|cnn+refine`` use when no other is named; training
+checkpoints (``last.pt``, ``best.pt``) add the optimiser, schedule, step and RNG
+states for resuming.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from selfsup.model import LightNet
+
+__all__ = ["DEFAULT_CHECKPOINT", "save_network", "load_network"]
+
+DEFAULT_CHECKPOINT = Path(__file__).parent / "checkpoints" / "lightnet.pt"
+CHECKPOINT_FORMAT = 1
+
+
+def save_network(path: str | Path, network: LightNet, model_config: dict, metrics: dict | None = None,
+                 extra: dict | None = None) -> Path:
+    """Write a checkpoint (atomically: a crash never leaves a half-written file)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {"format": CHECKPOINT_FORMAT, "model_config": model_config, "model": network.state_dict(),
+             "metrics": metrics or {}, **(extra or {})}
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def load_network(path: str | Path | None = None, map_location="cpu") -> tuple[LightNet, dict]:
+    """``(network in eval mode, checkpoint dict)``; ``path`` None: the shipped checkpoint."""
+    path = Path(path) if path is not None else DEFAULT_CHECKPOINT
+    if not path.is_file():
+        raise FileNotFoundError(f"no checkpoint at {path}" + (
+            " (the shipped one: train it with `python train.py experiment=pretrained`)" if path == DEFAULT_CHECKPOINT else ""))
+    state = torch.load(path, map_location=map_location, weights_only=False)
+    if not isinstance(state, dict) or "model" not in state or "model_config" not in state:
+        raise ValueError(f"{path} is not a LightNet checkpoint (needs 'model' and 'model_config')")
+    config = dict(state["model_config"])
+    if "widths" in config:
+        config["widths"] = tuple(config["widths"])
+    network = LightNet(**config)
+    network.load_state_dict(state["model"])
+    return network.eval(), state

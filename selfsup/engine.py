@@ -1,0 +1,367 @@
+"""Self-supervised training of :class:`selfsup.model.LightNet`: loop, checkpoints, logging, DDP.
+
+The loop is plain PyTorch. What it guarantees:
+
+- **reproducible data**: procedural scenes are rendered into a pool
+  (:func:`selfsup.scenes.dataset.materialise`) from seeds, refreshed with new
+  seeds every ``refresh_epochs`` epochs; the order of epoch ``e`` is a
+  permutation seeded by ``seed`` and ``e``. Step ``n`` therefore always sees the
+  same batch, which is what makes resume exact;
+- **checkpoints**: ``last.pt`` at every validation (model, optimiser, schedule,
+  step, RNG states, the composed config) and ``best.pt`` when the validation
+  median position error improves; ``resume=auto`` continues from ``last.pt``;
+- **distributed**: launched by ``torchrun``, each process takes its share of
+  every global batch and DDP averages the gradients (NCCL on GPUs, gloo on CPU);
+  rank 0 validates, logs and writes checkpoints;
+- **mixed precision** (bfloat16 autocast of the network) on CUDA when ``amp``;
+  the renderer and the loss always run in float32;
+- **logging**: TensorBoard scalars (loss terms, learning rate, scenes/s,
+  validation metrics) and image grids (input, re-render, residual, shadow mask),
+  and a progress bar.
+
+Ground-truth lights are read only by validation and by the loss's ablation switch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+from torch import Tensor
+
+from render import ShadowedBlinnPhong
+from selfsup.checkpoint import save_network
+from selfsup.evaluate import evaluate_network, summarise
+from selfsup.losses import LossOptions, reconstruction_loss, scene_batch
+from selfsup.model import LightNet, LightPrediction
+
+__all__ = ["DataOptions", "OptimOptions", "TrainerOptions", "LoggerOptions", "Trainer"]
+
+log = logging.getLogger(__name__)
+
+
+
+@dataclass
+class DataOptions:
+    """Scene pools (mirrors ``data.pool``): counts, seeds, refresh period, render workers."""
+
+    train_scenes: int = 1500
+    val_scenes: int = 150
+    train_seed: int = 1
+    val_seed: int = 2
+    refresh_epochs: int = 0  # 0: one pool for the whole run
+    workers: int = 2
+
+    def __post_init__(self):
+        if self.train_scenes < 1 or self.val_scenes < 1:
+            raise ValueError(f"train_scenes and val_scenes must be >= 1, got {self.train_scenes}, {self.val_scenes}")
+        if self.refresh_epochs < 0 or self.workers < 0:
+            raise ValueError("refresh_epochs and workers must be >= 0")
+
+
+@dataclass
+class OptimOptions:
+    """AdamW with a one-cycle learning rate (mirrors the ``optim`` group)."""
+
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    betas: tuple[float, float] = (0.9, 0.999)
+    warmup: float = 0.1  # share of the steps spent rising to lr
+    grad_clip: float = 1.0  # 0: off
+
+    def __post_init__(self):
+        if not self.lr > 0 or not 0 <= self.warmup < 1 or self.grad_clip < 0 or self.weight_decay < 0:
+            raise ValueError(f"bad optimiser options: {self}")
+
+
+@dataclass
+class TrainerOptions:
+    """How long and where (mirrors the ``trainer`` group)."""
+
+    max_steps: int = 900
+    batch_size: int = 32  # global: split over the processes
+    val_every: int = 100
+    max_minutes: float = 0.0  # >0: stop (and checkpoint) after this wall time
+    amp: bool = True  # bfloat16 autocast of the network, CUDA only
+    device: str = "auto"  # auto | cpu | cuda
+    out_dir: str = "runs/default"
+    resume: str = "auto"  # auto (last.pt of out_dir if any) | never | a checkpoint path
+    progress: bool = True
+    threads: int = 0  # >0: torch.set_num_threads on CPU
+
+    def __post_init__(self):
+        if self.max_steps < 1 or self.batch_size < 1 or self.val_every < 1:
+            raise ValueError(f"max_steps, batch_size and val_every must be >= 1: {self}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
+
+
+@dataclass
+class LoggerOptions:
+    """TensorBoard (mirrors the ``logger`` group)."""
+
+    tensorboard: bool = True
+    log_every: int = 10
+    image_every: int = 1  # image grids every n-th validation; 0: never
+    images: int = 4
+
+
+@dataclass
+class _Dist:
+    rank: int = 0
+    world: int = 1
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def _setup_distributed(device: str) -> _Dist:
+    use_cuda = device == "cuda" or (device == "auto" and torch.cuda.is_available())
+    if device == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError("trainer.device=cuda but no CUDA device is available")
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return _Dist(device=torch.device("cuda" if use_cuda else "cpu"))
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if use_cuda else "gloo")
+    if use_cuda:
+        torch.cuda.set_device(local)
+    return _Dist(rank=dist.get_rank(), world=dist.get_world_size(),
+                 device=torch.device(f"cuda:{local}" if use_cuda else "cpu"))
+
+
+def _float32(prediction: LightPrediction) -> LightPrediction:
+    return LightPrediction(**{f.name: getattr(prediction, f.name).float() for f in dataclasses.fields(prediction)})
+
+
+def _display(image: Tensor, exposure: Tensor) -> Tensor:
+    # (B, 3, H, W) linear -> [0, 1] gamma-encoded for the image grid.
+    return (image / exposure[:, None, None, None]).clamp(0, 1) ** (1 / 2.2)
+
+
+class Trainer:
+    """Trains a :class:`LightNet` on procedural scenes; see the module doc.
+
+    Args:
+        model_config: keyword arguments of :class:`LightNet`.
+        sampler, degradations, samples: procedural scene options (the ``data`` group).
+        pool: :class:`DataOptions`; optim: :class:`OptimOptions`; trainer:
+        :class:`TrainerOptions`; logger: :class:`LoggerOptions`; loss: :class:`LossOptions`.
+        renderer: the shadowed renderer the loss re-renders with.
+        seed: initialisation and data order.
+        config: the composed config, stored in checkpoints for the record.
+    """
+
+    def __init__(self, model_config: dict, sampler, degradations, samples: int, pool: DataOptions,
+                 optim: OptimOptions, trainer: TrainerOptions, logger: LoggerOptions, loss: LossOptions,
+                 renderer: ShadowedBlinnPhong, seed: int = 0, config: dict | None = None):
+        self.model_config = dict(model_config)
+        self.sampler, self.degradations, self.samples = sampler, degradations, samples
+        self.pool_options, self.optim, self.options, self.logger, self.loss = pool, optim, trainer, logger, loss
+        self.renderer = renderer
+        self.seed = seed
+        self.config = config or {}
+        self.out_dir = Path(trainer.out_dir)
+        self._pools: dict[int, dict[str, Tensor]] = {}
+
+    # -- data ---------------------------------------------------------------
+    def _pool(self, generation: int, which: str) -> dict[str, Tensor]:
+        from selfsup.scenes.dataset import ProceduralScenes, materialise
+
+        key = -1 if which == "val" else generation
+        if key not in self._pools:
+            if which == "train":
+                self._pools = {k: v for k, v in self._pools.items() if k == -1}  # keep one train pool in memory
+            count = self.pool_options.val_scenes if which == "val" else self.pool_options.train_scenes
+            base = self.pool_options.val_seed if which == "val" else self.pool_options.train_seed + 1000 * generation
+            dataset = ProceduralScenes(self.sampler, self.degradations, length=count, base_seed=base,
+                                       samples=self.samples, max_lights=self.model_config.get("max_lights", 2))
+            started = time.perf_counter()
+            self._pools[key] = materialise(dataset, workers=self.pool_options.workers, progress=self.options.progress)
+            log.info("rendered %d %s scenes in %.1f s", count, which, time.perf_counter() - started)
+        return self._pools[key]
+
+    def _steps_per_epoch(self) -> int:
+        return max(1, self.pool_options.train_scenes // self.options.batch_size)
+
+    def batch_indices(self, step: int, rank: int = 0, world: int = 1) -> tuple[int, Tensor]:
+        """``(pool generation, indices of this process's share)`` of global step ``step``."""
+        per_epoch = self._steps_per_epoch()
+        epoch, within = divmod(step, per_epoch)
+        refresh = self.pool_options.refresh_epochs
+        generation = epoch // refresh if refresh else 0
+        order = torch.randperm(self.pool_options.train_scenes,
+                               generator=torch.Generator().manual_seed(self.seed * 100_003 + epoch))
+        batch = order[within * self.options.batch_size:(within + 1) * self.options.batch_size]
+        return generation, batch[rank::world]
+
+    # -- checkpoints ------------------------------------------------------------
+    def _checkpoint_extra(self, optimiser, schedule, step: int, best: float) -> dict:
+        rng = {"torch": torch.get_rng_state()}
+        if torch.cuda.is_available():
+            rng["cuda"] = torch.cuda.get_rng_state_all()
+        return {"optimizer": optimiser.state_dict(), "scheduler": schedule.state_dict(), "step": step,
+                "best": best, "rng": rng, "config": self.config}
+
+    def _resume_path(self) -> Path | None:
+        resume = self.options.resume
+        if resume == "never":
+            return None
+        if resume == "auto":
+            path = self.out_dir / "last.pt"
+            return path if path.is_file() else None
+        path = Path(resume)
+        if not path.is_file():
+            raise FileNotFoundError(f"trainer.resume: no checkpoint at {path}")
+        return path
+
+    # -- the loop -----------------------------------------------------------------
+    def fit(self) -> dict:
+        """Train to ``max_steps`` (or ``max_minutes``); returns the final validation summary,
+        the step reached and the checkpoint paths."""
+        from tqdm import tqdm
+
+        ctx = _setup_distributed(self.options.device)
+        if self.options.threads > 0 and ctx.device.type == "cpu":
+            torch.set_num_threads(self.options.threads)
+        if self.options.batch_size < ctx.world:
+            raise ValueError(f"batch_size {self.options.batch_size} is smaller than the {ctx.world} processes")
+        torch.manual_seed(self.seed)
+        network = LightNet(**self.model_config).to(ctx.device)
+        model = network
+        if ctx.world > 1:
+            model = torch.nn.parallel.DistributedDataParallel(network, device_ids=[ctx.device.index] if ctx.device.type == "cuda" else None)
+        optimiser = torch.optim.AdamW(network.parameters(), lr=self.optim.lr, betas=tuple(self.optim.betas),
+                                      weight_decay=self.optim.weight_decay)
+        schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, self.optim.lr, total_steps=self.options.max_steps,
+                                                       pct_start=max(self.optim.warmup, 1e-3))
+        step, best = 0, math.inf
+        resume = self._resume_path()
+        if resume is not None:
+            state = torch.load(resume, map_location=ctx.device, weights_only=False)
+            network.load_state_dict(state["model"])
+            optimiser.load_state_dict(state["optimizer"])
+            schedule.load_state_dict(state["scheduler"])
+            step, best = int(state["step"]), float(state["best"])
+            torch.set_rng_state(state["rng"]["torch"].cpu())
+            if "cuda" in state["rng"] and torch.cuda.is_available():
+                torch.cuda.set_rng_state_all(state["rng"]["cuda"])
+            if ctx.main:
+                log.info("resumed from %s at step %d", resume, step)
+        renderer = self.renderer.to(ctx.device)
+        writer = None
+        if ctx.main and self.logger.tensorboard:
+            from torch.utils.tensorboard import SummaryWriter
+
+            writer = SummaryWriter(str(self.out_dir / "tensorboard"), purge_step=step)
+        val_pool = self._pool(0, "val") if ctx.main else None
+        amp = self.options.amp and ctx.device.type == "cuda"
+        started = time.perf_counter()
+        window_start, window_scenes = started, 0
+        summary, stop = {}, False
+        bar = tqdm(total=self.options.max_steps, initial=step, disable=not (ctx.main and self.options.progress),
+                   desc="train", unit="step")
+        try:
+            while step < self.options.max_steps and not stop:
+                generation, indices = self.batch_indices(step, ctx.rank, ctx.world)
+                pool = self._pool(generation, "train")
+                batch = {key: value[indices].to(ctx.device, non_blocking=True) for key, value in pool.items()}
+                scenes = scene_batch(batch)
+                with torch.autocast(ctx.device.type, dtype=torch.bfloat16, enabled=amp):
+                    prediction = model(scenes.image, scenes.gbuffer, scenes.material.kd)
+                terms = reconstruction_loss(_float32(prediction), scenes, renderer, self.loss, batch)
+                if not torch.isfinite(terms.total):
+                    raise FloatingPointError(f"non-finite loss at step {step}: {terms.total.item()}")
+                optimiser.zero_grad(set_to_none=True)
+                terms.total.backward()
+                if self.optim.grad_clip > 0:
+                    torch.nn.utils.clip_grad_norm_(network.parameters(), self.optim.grad_clip)
+                optimiser.step()
+                schedule.step()
+                step += 1
+                window_scenes += int(indices.numel()) * ctx.world
+                bar.update(1)
+                if writer is not None and (step % self.logger.log_every == 0 or step == 1):
+                    now = time.perf_counter()
+                    for name in ("total", "photometric", "hypotheses", "presence", "intensity", "supervised"):
+                        writer.add_scalar(f"train/{name}", float(getattr(terms, name).detach()), step)
+                    writer.add_scalar("train/needed_lights", float(terms.needed.float().sum(1).mean()), step)
+                    writer.add_scalar("train/lr", schedule.get_last_lr()[0], step)
+                    writer.add_scalar("train/scenes_per_second", window_scenes / max(now - window_start, 1e-9), step)
+                    window_start, window_scenes = now, 0
+                    bar.set_postfix(loss=f"{float(terms.total.detach()):.4f}")
+                if self.options.max_minutes > 0:
+                    stop = self._agree((time.perf_counter() - started) / 60 > self.options.max_minutes, ctx)
+                if step % self.options.val_every == 0 or step == self.options.max_steps or stop:
+                    if ctx.main:
+                        summary = self._validate(network, val_pool, renderer, writer, step)
+                        improved = summary["median_position_error"] < best
+                        best = min(best, summary["median_position_error"])
+                        extra = self._checkpoint_extra(optimiser, schedule, step, best)
+                        save_network(self.out_dir / "last.pt", network, self.model_config, summary, extra)
+                        if improved:
+                            save_network(self.out_dir / "best.pt", network, self.model_config, summary, extra)
+                        bar.write(f"step {step}: " + ", ".join(f"{k} {v:.4g}" for k, v in summary.items()))
+                    if ctx.world > 1:
+                        dist.barrier()
+        finally:
+            bar.close()
+            if writer is not None:
+                writer.close()
+        if stop and ctx.main:
+            log.warning("stopped at step %d of %d: trainer.max_minutes=%s reached", step,
+                        self.options.max_steps, self.options.max_minutes)
+        result = {"step": step, "minutes": (time.perf_counter() - started) / 60, "validation": summary,
+                  "last": str(self.out_dir / "last.pt"), "best": str(self.out_dir / "best.pt")}
+        if ctx.main:
+            (self.out_dir / "result.json").write_text(json.dumps(result, indent=2))
+        return result
+
+    @staticmethod
+    def _agree(flag: bool, ctx: _Dist) -> bool:
+        # Every process must stop at the same step, or DDP would wait forever.
+        if ctx.world == 1:
+            return flag
+        value = torch.tensor([float(flag)], device=ctx.device)
+        dist.all_reduce(value, op=dist.ReduceOp.MAX)
+        return bool(value.item() > 0)
+
+    def _validate(self, network: LightNet, pool: dict[str, Tensor], renderer, writer, step: int) -> dict:
+        summary = summarise(evaluate_network(network, pool))
+        if writer is not None:
+            for name, value in summary.items():
+                writer.add_scalar(f"val/{name}", value, step)
+            every = self.logger.image_every
+            if every and (step // self.options.val_every) % every == 0:
+                writer.add_image("val/input|render|residual|shadow", self._grid(network, pool, renderer), step)
+        return summary
+
+    @torch.no_grad()
+    def _grid(self, network: LightNet, pool: dict[str, Tensor], renderer) -> Tensor:
+        """``(3, n H, 4 W)``: per scene, input, re-render, |residual| and slot 0's shadow mask."""
+        device = next(network.parameters()).device
+        batch = {key: value[: self.logger.images].to(device) for key, value in pool.items()}
+        scenes = scene_batch(batch)
+        network.eval()
+        prediction = network(scenes.image, scenes.gbuffer, scenes.material.kd)
+        network.train()
+        terms = reconstruction_loss(prediction, scenes, renderer, self.loss)
+        from selfsup.model import scene_frame
+
+        exposure = scene_frame(scenes.image, scenes.gbuffer).exposure
+        shadow = terms.visibility[:, :1].expand(-1, 3, -1, -1)
+        tiles = [_display(scenes.image, exposure), _display(terms.render, exposure),
+                 _display((terms.render - scenes.image).abs() * 4, exposure), shadow.clamp(0, 1)]
+        rows = torch.cat(tiles, 3)  # (n, 3, H, 4W)
+        return rows.permute(1, 0, 2, 3).reshape(3, -1, rows.shape[-1]).cpu()

@@ -1,0 +1,71 @@
+"""Ground-truth metrics of a light-estimation network on a pool of scenes.
+
+Training never sees these numbers through its loss; validation and ``mode=eval``
+report them (definitions in :mod:`selfsup.metrics` and ``../shared/scene-format.md``).
+"""
+
+from __future__ import annotations
+
+import statistics
+
+import torch
+from torch import Tensor
+
+from selfsup.losses import scene_batch
+from selfsup.metrics import SUCCESS_THRESHOLD, light_errors
+from selfsup.model import LightNet, scene_frame
+
+__all__ = ["evaluate_network", "summarise"]
+
+
+def summarise(rows: list[dict]) -> dict[str, float]:
+    """Medians and rates over per-scene rows of :func:`evaluate_network`."""
+    if not rows:
+        raise ValueError("no scenes to summarise")
+    return {
+        "scenes": len(rows),
+        "median_position_error": statistics.median(r["position_error"] for r in rows),
+        "mean_position_error": statistics.fmean(r["position_error"] for r in rows),
+        "median_angular_error": statistics.median(r["angular_error"] for r in rows),
+        "mean_angular_error": statistics.fmean(r["angular_error"] for r in rows),
+        "success_rate": statistics.fmean(float(r["success"]) for r in rows),
+        "count_accuracy": statistics.fmean(float(r["count_right"]) for r in rows),
+    }
+
+
+@torch.no_grad()
+def evaluate_network(network: LightNet, pool: dict[str, Tensor], batch_size: int = 64,
+                     presence_threshold: float = 0.5) -> list[dict]:
+    """One row per scene of ``pool`` (stacked items with ground truth): the worst
+    light's ``position_error`` (an unpaired light counts 1.0), the median
+    ``angular_error`` of the paired lights (180 when none), ``success``, ``count_right``.
+
+    The network runs in eval mode on its own device; the pool may live anywhere.
+    """
+    was_training = network.training
+    network.eval()
+    device = next(network.parameters()).device
+    rows = []
+    try:
+        for start in range(0, pool["image"].shape[0], batch_size):
+            batch = {key: value[start:start + batch_size].to(device) for key, value in pool.items()}
+            scenes = scene_batch(batch)
+            prediction = network(scenes.image, scenes.gbuffer, scenes.material.kd)
+            centre = scene_frame(scenes.image, scenes.gbuffer).centre
+            for i in range(scenes.image.shape[0]):
+                position, intensity = prediction.lights_of(i, presence_threshold)
+                truth = batch["light_mask"][i]
+                errors = light_errors(position.float().cpu(), intensity.float().cpu(),
+                                      batch["light_pos"][i][truth].cpu(), batch["light_intensity"][i][truth].cpu(),
+                                      float(batch["scene_scale"][i]), centre[i].float().cpu())
+                rows.append({
+                    "position_error": max(errors.position),
+                    "angular_error": statistics.median(errors.angular) if errors.angular else 180.0,
+                    "success": max(errors.position) < SUCCESS_THRESHOLD,
+                    "count_right": errors.count_right,
+                    "lights_true": int(truth.sum()),
+                    "lights_found": int(position.shape[0]),
+                })
+    finally:
+        network.train(was_training)
+    return rows

@@ -1,0 +1,200 @@
+"""The CNN, its self-supervised loss and the training framework (issue 4)."""
+
+import json
+import os
+import shutil
+import subprocess
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from render import GBuffer, Material, ShadowedBlinnPhong, light_transport
+from selfsup.checkpoint import load_network
+from selfsup.linear import solve_intensities
+from selfsup.losses import LossOptions, hypothesis_costs, reconstruction_loss, scene_batch
+from selfsup.model import LightNet, scene_frame
+from selfsup.scenes.dataset import ProceduralScenes, materialise, sampler_config
+from tests.test_readme import ROOT
+from train import build_trainer, run
+
+TINY = sampler_config(height=24, width=32, n_lights_probs=[0.5, 0.5])
+
+
+@pytest.fixture(scope="module")
+def pool():
+    return materialise(ProceduralScenes(TINY, length=8, base_seed=5, samples=1))
+
+
+def _cfg(*overrides):
+    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "configs")):
+        return compose(config_name="train", overrides=list(overrides))
+
+
+def _smoke(tmp_path, *overrides):
+    return _cfg("experiment=smoke", f"trainer.out_dir={tmp_path}", "logger.tensorboard=false", *overrides)
+
+
+def test_network_is_small_and_predicts_every_slot(pool):
+    network = LightNet(max_lights=2)
+    assert sum(p.numel() for p in network.parameters()) <= 2_000_000
+    scenes = scene_batch(pool)
+    prediction = network(scenes.image, scenes.gbuffer, scenes.material.kd)
+    assert prediction.position.shape == (8, 2, 3) and prediction.intensity.shape == (8, 2, 3)
+    assert prediction.presence.shape == (8, 2) and prediction.ambient.shape == (8, 3)
+    assert torch.isfinite(prediction.position).all() and (prediction.intensity > 0).all()
+
+
+def test_network_output_follows_scene_scale_and_exposure(pool):
+    # Inputs are normalised: scaling the scene by 3 scales positions by 3 about the
+    # camera, and doubling the exposure doubles intensities (inverse square: x 9 for size).
+    network = LightNet(max_lights=2).eval()
+    scenes = scene_batch(pool)
+    g = scenes.gbuffer
+    with torch.no_grad():
+        base = network(scenes.image, g, scenes.material.kd)
+        scaled = network(2 * scenes.image, GBuffer(3 * g.points, g.normals, g.mask), scenes.material.kd)
+    torch.testing.assert_close(scaled.position, 3 * base.position, rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(scaled.intensity, 18 * base.intensity, rtol=1e-3, atol=1e-6)
+
+
+def test_hypothesis_costs_match_an_explicit_least_squares_fit(pool):
+    scenes = scene_batch({k: v.double() if v.is_floating_point() else v for k, v in pool.items()})
+    centre = scene_frame(scenes.image, scenes.gbuffer).centre
+    generator = torch.Generator().manual_seed(0)
+    hypotheses = centre[:, None] + torch.randn(8, 5, 3, generator=generator, dtype=torch.float64)
+    hypotheses[:, :, 1] -= 1.0  # mostly above the scene: the fitted intensities are positive
+    fast = hypothesis_costs(hypotheses, scenes, "inverse_square", stride=1)
+    g, m, image = scenes.gbuffer, scenes.material, scenes.image
+    mask = g.mask[:, None].double().expand_as(image)
+    exposure = scene_frame(image, g).exposure
+    for j in range(5):
+        diffuse = light_transport(g, Material(kd=m.kd), hypotheses[:, j:j + 1], shadows="none", specular=False).diffuse
+        cols = m.kd.permute(0, 3, 1, 2)[:, :, None] * diffuse[:, None]
+        intensity, ambient, model = solve_intensities(cols, m.kd, image, mask, ridge=1e-12)
+        explicit = (((model - image) * mask) ** 2).sum((1, 2, 3)) / mask.sum((1, 2, 3)) / exposure**2
+        unconstrained = (intensity > 0).all(-1).all(-1) & (ambient > 0).all(-1)
+        torch.testing.assert_close(fast[unconstrained, j], explicit[unconstrained], rtol=1e-6, atol=1e-9)
+        assert bool((fast[:, j] <= explicit * (1 + 1e-6) + 1e-9).all())  # non-negative optimum: never worse
+
+
+def test_loss_reads_no_ground_truth_unless_the_ablation_switch_is_on(pool):
+    scenes = scene_batch(pool)
+    network = LightNet(max_lights=2)
+    prediction = network(scenes.image, scenes.gbuffer, scenes.material.kd)
+    renderer = ShadowedBlinnPhong(check_finite=False)
+    garbage = dict(pool, light_pos=torch.randn_like(pool["light_pos"]) * 50,
+                   light_intensity=torch.rand_like(pool["light_intensity"]))
+    self_supervised = LossOptions()
+    a = reconstruction_loss(prediction, scenes, renderer, self_supervised, pool).total
+    b = reconstruction_loss(prediction, scenes, renderer, self_supervised, garbage).total
+    c = reconstruction_loss(prediction, scenes, renderer, self_supervised, None).total
+    assert a.item() == b.item() == c.item()
+    ablation = LossOptions(supervised_weight=1.0)
+    assert reconstruction_loss(prediction, scenes, renderer, ablation, pool).total.item() != \
+        reconstruction_loss(prediction, scenes, renderer, ablation, garbage).total.item()
+    with pytest.raises(ValueError, match="ground-truth"):
+        reconstruction_loss(prediction, scenes, renderer, ablation, None)
+
+
+def test_loss_gradient_reaches_every_trained_head(pool):
+    scenes = scene_batch(pool)
+    network = LightNet(max_lights=2)
+    prediction = network(scenes.image, scenes.gbuffer, scenes.material.kd)
+    reconstruction_loss(prediction, scenes, ShadowedBlinnPhong(check_finite=False), LossOptions()).total.backward()
+    for name in ("out.weight", "anchor_out.weight", "backbone.0.0.weight"):
+        grad = dict(network.named_parameters())[name].grad
+        assert grad is not None and torch.isfinite(grad).all() and grad.abs().sum() > 0, name
+
+
+def test_config_composes_every_group_and_overrides():
+    cfg = _cfg()
+    assert cfg.mode == "train"
+    for group in ("data", "model", "renderer", "optim", "trainer", "logger", "loss", "eval"):
+        assert group in cfg, group
+    assert cfg.model.falloff == cfg.renderer.falloff == "inverse_square"
+    cfg = _cfg("experiment=smoke", "optim.lr=1e-4", "model.hidden=64", "trainer.out_dir=x")
+    assert cfg.trainer.max_steps == 4 and cfg.optim.lr == 1e-4 and cfg.loss.supervised_weight == 0
+    trainer = build_trainer(cfg)
+    assert trainer.model_config["hidden"] == 64 and trainer.sampler.height == 24
+    with pytest.raises(ValueError, match="max_lights=1"):
+        build_trainer(_cfg("experiment=smoke", "model.max_lights=1", "trainer.out_dir=x"))
+    with pytest.raises(ValueError, match="unknown mode 'fly'"):
+        run(_cfg("mode=fly"))
+
+
+def test_a_few_training_steps_lower_the_loss_on_a_tiny_set(tmp_path, pool):
+    cfg = _smoke(tmp_path, "data.pool.train_scenes=8", "trainer.batch_size=8", "trainer.max_steps=25",
+                 "trainer.val_every=25", "optim.lr=3e-3", "optim.warmup=0.2")
+    trainer = build_trainer(cfg)
+    scenes = scene_batch(trainer._pool(0, "train"))
+
+    def loss_of(network):
+        with torch.no_grad():
+            return reconstruction_loss(network(scenes.image, scenes.gbuffer, scenes.material.kd), scenes,
+                                       trainer.renderer, trainer.loss).total.item()
+
+    torch.manual_seed(cfg.seed)
+    before = loss_of(LightNet(**trainer.model_config))
+    result = trainer.fit()
+    after = loss_of(load_network(result["last"])[0].train())
+    assert result["step"] == 25 and after < 0.8 * before
+
+
+def test_resume_continues_exactly_where_the_run_stopped(tmp_path):
+    straight = run(_smoke(tmp_path / "a"))
+    # Stop after the first step (the time cap), then resume to the end.
+    stopped = run(_smoke(tmp_path / "b", "trainer.max_minutes=1e-9"))
+    assert stopped["step"] == 1
+    resumed = run(_smoke(tmp_path / "b"))
+    assert resumed["step"] == 4
+    a, b = torch.load(straight["last"], weights_only=False), torch.load(resumed["last"], weights_only=False)
+    for key in a["model"]:
+        assert torch.equal(a["model"][key], b["model"][key]), key
+    assert a["optimizer"]["state"][0]["step"] == b["optimizer"]["state"][0]["step"]
+    assert json.loads((tmp_path / "b" / "result.json").read_text())["step"] == 4
+
+
+def test_tensorboard_gets_scalars_and_image_grids(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run(_cfg("experiment=smoke", f"trainer.out_dir={tmp_path}"))
+    events = EventAccumulator(str(tmp_path / "tensorboard"))
+    events.Reload()
+    tags = events.Tags()
+    for tag in ("train/total", "train/lr", "train/scenes_per_second", "val/median_position_error",
+                "val/success_rate"):
+        assert tag in tags["scalars"], tag
+    assert "val/input|render|residual|shadow" in tags["images"]
+
+
+def test_ddp_smoke_run_with_two_gloo_processes(tmp_path):
+    if shutil.which("torchrun") is None:
+        pytest.skip("torchrun not on PATH")
+    env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+    command = ["torchrun", "--standalone", "--nproc_per_node=2", str(ROOT / "train.py"), "experiment=smoke",
+               f"trainer.out_dir={tmp_path}", "trainer.device=cpu", "logger.tensorboard=false",
+               f"hydra.run.dir={tmp_path}/hydra"]
+    done = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    result = json.loads((tmp_path / "result.json").read_text())
+    assert result["step"] == 4 and result["validation"]["scenes"] == 8
+
+
+def test_shipped_checkpoint_loads_small_and_within_budget():
+    from selfsup.checkpoint import DEFAULT_CHECKPOINT
+
+    if not DEFAULT_CHECKPOINT.is_file():
+        pytest.fail(f"the shipped checkpoint {DEFAULT_CHECKPOINT} is missing")
+    assert DEFAULT_CHECKPOINT.stat().st_size <= 20 * 2**20
+    network, state = load_network()
+    assert sum(p.numel() for p in network.parameters()) <= 2_000_000
+    assert state["metrics"]["median_position_error"] < 0.10
+
+
+def test_missing_checkpoint_is_a_clear_error(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        load_network(tmp_path / "nope.pt")
+    torch.save({"weights": 1}, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match="not a LightNet checkpoint"):
+        load_network(tmp_path / "bad.pt")
