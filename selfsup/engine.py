@@ -71,7 +71,7 @@ class DataOptions:
 class OptimOptions:
     """AdamW with a one-cycle learning rate (mirrors the ``optim`` group)."""
 
-    lr: float = 2e-3
+    lr: float = 1e-3
     weight_decay: float = 1e-4
     betas: tuple[float, float] = (0.9, 0.999)
     warmup: float = 0.1  # share of the steps spent rising to lr

@@ -52,6 +52,8 @@ class EstimateOptions:
 
     method: str = "cnn+refine"
     checkpoint: str | None = None  # None: the shipped network
+    cnn_grid: tuple[int, int, int] = (7, 6, 7)  # cnn+refine: the grid searched beside the network's slots
+    cnn_starts: int = 8
     max_lights: int = 2
     block_px: int = 8
     min_light_share: float = 0.1
@@ -59,6 +61,9 @@ class EstimateOptions:
     refine: RefineOptions = field(default_factory=RefineOptions)
 
     def __post_init__(self):
+        self.cnn_grid = tuple(self.cnn_grid)
+        if len(self.cnn_grid) != 3 or min(self.cnn_grid) < 2 or self.cnn_starts < 1:
+            raise ValueError(f"cnn_grid needs 3 sizes >= 2 and cnn_starts >= 1, got {self.cnn_grid}, {self.cnn_starts}")
         if self.method not in METHODS:
             raise ValueError(f"estimate.method must be one of {METHODS}, got {self.method!r}")
         if self.max_lights < 1:
@@ -150,16 +155,13 @@ def estimate_scene(scene: Scene, options: EstimateOptions) -> dict:
     def first_light(opts: RefineOptions) -> Fit:
         if slots is None:
             return search(problem, 1, opts)
-        each = refine(problem.select(torch.zeros(slots.shape[1], dtype=torch.long)), slots[0][:, None], opts)
-        loss = robust_loss(problem.select(torch.zeros(slots.shape[1], dtype=torch.long)), each.model, opts)
-        best = int(loss.argmin())
-        return Fit(*(getattr(each, f.name)[best:best + 1] for f in dataclasses.fields(Fit)))
+        return search(problem, 1, opts, extra_starts=slots, per_axis=options.cnn_grid, starts=options.cnn_starts)
 
     def more_lights(n_lights: int, fixed: Tensor, opts: RefineOptions) -> Fit:
-        if slots is None or slots.shape[1] < n_lights:
+        if slots is None:
             return search(problem, n_lights, opts, fixed=fixed)
-        used = torch.cdist(slots[0], fixed[0]).amin(1).argsort(descending=True)  # the slot farthest from the lights
-        return refine(problem, torch.cat([fixed, slots[:, used[:1]]], 1), opts)
+        return search(problem, n_lights, opts, fixed=fixed, extra_starts=slots, per_axis=options.cnn_grid,
+                      starts=options.cnn_starts)
 
     first = first_light(replace(options.refine, specular=has_specular))
     tried = [candidate(first, 1, has_specular)]

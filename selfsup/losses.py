@@ -18,11 +18,11 @@ network's own intensity, ambient and presence heads learn from the same fit:
   needed slots (log-L1), treated as constants.
 
 The first slot's position hypotheses (:class:`selfsup.model.LightNet`) are
-scored by the same photometric error: each hypothesis is re-rendered alone
-(without cast shadows and every ``hypothesis_stride``-th pixel, for speed), its
-intensity solved in closed form, and the scores learn the softmax of the
-negative errors (temperature ``hypothesis_temperature`` times the best error),
-while the offsets of the likely hypotheses descend their error.
+scored by the same robust photometric error: each hypothesis is re-rendered
+alone (without cast shadows and every ``hypothesis_stride``-th pixel, for
+speed), its intensity solved in closed form, and the scores learn the softmax
+of the negative errors (temperature ``hypothesis_temperature`` times the best
+error). The first slot's learned offset follows the shadowed photometric error.
 """
 
 from __future__ import annotations
@@ -57,9 +57,9 @@ class LossOptions:
     intensity_weight: float = 0.05
     need_ratio: float = 0.1
     need_floor: float = 0.002
-    hypothesis_weight: float = 1.0
+    hypothesis_weight: float = 0.1
     hypothesis_stride: int = 3
-    hypothesis_temperature: float = 0.1
+    hypothesis_temperature: float = 0.05
     supervised_weight: float = 0.0
 
     def __post_init__(self):
@@ -164,13 +164,12 @@ def reconstruction_loss(prediction: LightPrediction, scenes: SceneBatch, rendere
     intensity, ambient, model, cost_needed = fit(needed.to(image.dtype))
     photometric = 0.5 * (cost_all.mean() + cost_needed.mean())
 
-    costs = hypothesis_costs(prediction.anchor_position, scenes, renderer.falloff, options.hypothesis_stride,
-                             options.robust_scale)
-    best = costs.detach().amin(1, keepdim=True)
-    target = torch.softmax(-(costs.detach() - best) / (options.hypothesis_temperature * best.clamp_min(1e-8)), 1)
-    score_term = -(target * torch.log_softmax(prediction.anchor_logits, 1)).sum(1).mean()
-    offset_term = ((target * costs).sum(1) / best[:, 0].clamp_min(1e-8)).mean()
-    hypotheses = score_term + offset_term
+    with torch.no_grad():
+        costs = hypothesis_costs(prediction.anchor_position.detach(), scenes, renderer.falloff,
+                                 options.hypothesis_stride, options.robust_scale)
+        best = costs.amin(1, keepdim=True)
+        target = torch.softmax(-(costs - best) / (options.hypothesis_temperature * best.clamp_min(1e-8)), 1)
+    hypotheses = -(target * torch.log_softmax(prediction.anchor_logits, 1)).sum(1).mean()
 
     presence = F.binary_cross_entropy(prediction.presence.clamp(1e-6, 1 - 1e-6), needed.to(image.dtype))
     s = frame.exposure

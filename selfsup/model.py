@@ -56,8 +56,8 @@ class LightPrediction:
         ambient: ``(B, 3)``.
         normalised_position: ``(B, K, 3)`` ``(position - c) / r`` (see module doc).
         anchor_logits: ``(B, M)`` scores of the first slot's M position hypotheses.
-        anchor_position: ``(B, M, 3)`` metres: the hypotheses (anchors plus offsets);
-            the first slot is the best-scored one.
+        anchor_position: ``(B, M, 3)`` metres: the hypotheses (anchors moved to the
+            vertex of their cost parabola); slot 0 refines the best-scored one.
     """
 
     position: Tensor
@@ -196,35 +196,56 @@ class LightNet(nn.Module):
         grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
         self.register_buffer("anchors", grid, persistent=False)
         self.anchors_per_axis = anchors_per_axis
+        fine = torch.arange(-2.0, 3.0)
+        self.register_buffer("fine_grid", torch.stack(torch.meshgrid(fine, fine, fine, indexing="ij"), -1).reshape(-1, 3),
+                             persistent=False)
         self.anchor_step = 2 * anchor_extent / max(anchors_per_axis - 1, 1)
         anchors = grid.shape[0]
         self.evidence_in = nn.Sequential(nn.Linear(anchors, hidden), nn.SiLU())
-        self.evidence_weight = nn.Parameter(torch.tensor(20.0))  # prior logits: -20 x relative excess error
+        # Prior logits: -20 x the relative excess error (fixed: the learned scores add to it).
+        self.register_buffer("evidence_weight", torch.tensor(20.0), persistent=False)
         self.out = nn.Linear(2 * hidden, max_lights * 7 + 3)
-        self.anchor_out = nn.Linear(2 * hidden, anchors * 4)
-        with torch.no_grad():
-            self.anchor_out.weight.mul_(0.1)
+        self.anchor_out = nn.Linear(2 * hidden, anchors)
+        with torch.no_grad():  # learned scores start at zero: the physics prior decides at first
+            self.anchor_out.weight.zero_()
             self.anchor_out.bias.zero_()
         with torch.no_grad():  # start every slot near the scene, slots slightly apart, half present
             self.out.weight.mul_(0.1)
             self.out.bias.zero_()
             generator = torch.Generator().manual_seed(0)
             bias = self.out.bias[: max_lights * 7].view(max_lights, 7)
-            bias[:, :3] = 0.2 * torch.randn(max_lights, 3, generator=generator)
+            bias[1:, :3] = 0.2 * torch.randn(max_lights - 1, 3, generator=generator)
+            self.out.weight[:3].zero_()  # slot 0's offset starts at zero
 
     @torch.no_grad()
-    def anchor_evidence(self, image: Tensor, gbuffer: GBuffer, kd: Tensor, frame: SceneFrame) -> Tensor:
-        """``(B, M)`` minus each anchor's relative excess photometric error (0 for the best)."""
+    def photometric_costs(self, normalised: Tensor, image: Tensor, gbuffer: GBuffer, kd: Tensor,
+                          frame: SceneFrame) -> Tensor:
+        """``(B, M)`` photometric error of single lights at normalised positions ``(B|1, M, 3)``."""
         step = max(1, round(min(image.shape[-2:]) / self.evidence_points))
-        position = frame.centre[:, None] + frame.size[:, None, None] * self.anchors.to(frame.centre)
+        position = frame.centre[:, None] + frame.size[:, None, None] * normalised.to(frame.centre)
         g = gbuffer
         with torch.autocast(image.device.type, enabled=False):  # sums of many small terms: keep float32
             costs = single_light_costs(position.float(), g.points[:, ::step, ::step].float(),
                                        g.normals[:, ::step, ::step].float(), g.mask[:, ::step, ::step],
                                        kd[:, ::step, ::step].float(), image[:, :, ::step, ::step].float(),
                                        frame.exposure.float(), self.falloff)
+        return costs
+
+    def anchor_evidence(self, image: Tensor, gbuffer: GBuffer, kd: Tensor, frame: SceneFrame) -> Tensor:
+        """``(B, M)`` minus each anchor's relative excess photometric error (0 for the best)."""
+        costs = self.photometric_costs(self.anchors[None], image, gbuffer, kd, frame)
         best = costs.amin(1, keepdim=True).clamp_min(1e-12)
         return -(costs / best - 1).clamp(0, 10).to(image.dtype)
+
+    def refine_anchor(self, centre: Tensor, image: Tensor, gbuffer: GBuffer, kd: Tensor, frame: SceneFrame) -> Tensor:
+        """Cascade stage: the best of a 5^3 grid of quarter steps around ``centre (B, 3)``
+        (normalised), moved to its parabola vertex; ``(B, 3)``, no gradient."""
+        fine = centre[:, None] + 0.25 * self.anchor_step * self.fine_grid.to(centre)  # (B, 125, 3)
+        costs = self.photometric_costs(fine, image, gbuffer, kd, frame)
+        shift = _parabola_vertex(costs, 5)
+        pick = costs.argmin(1)
+        rows = torch.arange(centre.shape[0], device=centre.device)
+        return (fine[rows, pick] + 0.25 * self.anchor_step * shift[rows, pick]).detach()
 
     def forward(self, image: Tensor, gbuffer: GBuffer, kd: Tensor) -> LightPrediction:
         frame = scene_frame(image, gbuffer)
@@ -233,13 +254,17 @@ class LightNet(nn.Module):
         features = torch.cat([self.head(self.backbone(x)), self.evidence_in(evidence)], 1)
         raw = self.out(features)
         slots = raw[:, : self.max_lights * 7].view(-1, self.max_lights, 7)
-        hypotheses = self.anchor_out(features).view(x.shape[0], -1, 4)
-        anchor_logits = hypotheses[..., 3] + self.evidence_weight * evidence
+        anchor_logits = self.anchor_out(features) + self.evidence_weight * evidence
         # Each anchor moves to the vertex of the parabola through its neighbours' errors
-        # (sub-grid refinement, as in stereo matching), then by the learned offset.
+        # (sub-grid refinement, as in stereo matching).
         shift = _parabola_vertex(-evidence.float(), self.anchors_per_axis).to(evidence.dtype)
-        anchor_normalised = self.anchors + self.anchor_step * (shift + 0.5 * torch.tanh(hypotheses[..., :3]))
-        best = anchor_normalised[torch.arange(x.shape[0], device=x.device), anchor_logits.argmax(1)]
+        anchor_normalised = self.anchors + self.anchor_step * shift
+        chosen = anchor_logits.argmax(1)
+        # Slot 0: the chosen anchor refined on a finer cost volume around it (a cascade,
+        # as in multi-view stereo networks), plus a learned offset (within a quarter step)
+        # that the shadowed photometric loss trains.
+        best = self.refine_anchor(self.anchors[chosen], image, gbuffer, kd, frame) + \
+            0.25 * self.anchor_step * torch.tanh(slots[:, 0, :3])
         # Slot 0: the best hypothesis; the others: regressed, within 1.5 scene sizes of the centroid.
         normalised = torch.cat([best[:, None], 1.5 * torch.tanh(slots[:, 1:, :3] / 1.5)], 1)
         position = frame.centre[:, None] + frame.size[:, None, None] * normalised

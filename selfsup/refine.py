@@ -373,7 +373,7 @@ def _spread_best(cands: Tensor, score: Tensor, size: float, count: int, min_gap:
 
 def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = None, fixed: Tensor | None = None,
            per_axis: tuple[int, int, int] = (7, 6, 7), starts: int = 8, finalists: int = 2,
-           unshadowed_first: bool = True) -> Fit:
+           unshadowed_first: bool = True, extra_starts: Tensor | None = None) -> Fit:
     """Fit ``n_lights`` lights with no initial guess, one image at a time.
 
     The last light is searched (the others, ``fixed (B, n_lights - 1, 3)``, start
@@ -381,7 +381,8 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
     with intensities solved; the ``starts`` best well-spread ones run a short LM
     there, from where they are and (``unshadowed_first``) from where a shadow-free
     LM, whose landscape is smoother, took them; the ``finalists`` best of those run the full coarse-to-fine refinement;
-    the lowest robust loss wins.
+    the lowest robust loss wins. ``extra_starts (B, S, 3)`` (e.g. a network's
+    guesses for the searched light) join the grid's best as starts.
     """
     options = options or RefineOptions()
     if fixed is None and n_lights != 1:
@@ -402,9 +403,12 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
         pick = _spread_best(cands, score, size, starts, 0.15)
         quick = dataclasses.replace(options, strides=(1,), max_iters=(12,))
         starts_at = positions[pick]
+        if extra_starts is not None:
+            guesses = extra_starts[b][:, None]  # (S, 1, 3)
+            starts_at = torch.cat([torch.cat([base.expand(guesses.shape[0], -1, -1), guesses], 1), starts_at])
         if unshadowed_first:
             # Shading alone gives a smoother landscape: also start from where a shadow-free descent went.
-            smooth = refine(dataclasses.replace(coarse.select(torch.zeros(len(pick), dtype=torch.long)), shadows="none"),
+            smooth = refine(dataclasses.replace(coarse.select(torch.zeros(starts_at.shape[0], dtype=torch.long)), shadows="none"),
                             starts_at, quick)
             starts_at = torch.cat([starts_at, smooth.position])
         tiled = coarse.select(torch.zeros(starts_at.shape[0], dtype=torch.long))

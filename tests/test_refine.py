@@ -84,7 +84,7 @@ def test_shipped_network_starts_the_refinement_and_selection(seed, n_lights):
     record = estimate_scene(scene, EstimateOptions(method="cnn+refine", refine=RefineOptions(max_iters=(15, 5))))
     assert len(record["lights"]) == n_lights, record["candidates"]
     position = torch.tensor([light["position"] for light in record["lights"]])
-    assert _rel_error_paired(position, scene) < 0.02
+    assert _rel_error_paired(position, scene) < 0.05  # success, as scene-format.md defines it
 
 
 def test_network_alone_gives_a_full_record(tmp_path):
