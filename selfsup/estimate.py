@@ -117,6 +117,7 @@ def _network(checkpoint: str | None):
     return load_network(checkpoint)[0]
 
 
+@torch.no_grad()
 def network_slots(scene: Scene, problem: FitProblem, checkpoint: str | None = None) -> tuple[Tensor, Tensor]:
     """The network's light slots for one scene: positions ``(1, K, 3)`` and presence ``(K,)``,
     most present first."""

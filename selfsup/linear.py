@@ -95,10 +95,13 @@ def single_light_costs(position: Tensor, points: Tensor, normals: Tensor, mask: 
     kd = kd.flatten(1, 2)  # (B, P, 3)
     observed = image.flatten(2).transpose(1, 2)  # (B, P, 3)
 
-    offset = position[:, :, None] - points[:, None]  # (B, M, P, 3)
-    distance = offset.norm(dim=-1).clamp_min(1e-6 * points.norm(dim=-1).amax(1)[:, None, None])
-    cosine = ((offset * normals[:, None]).sum(-1) / distance).clamp_min(0)
-    diffuse = cosine * falloff_factor(distance, falloff)  # (B, M, P)
+    # Distances and n.(l - p) from matrix products: no (B, M, P, 3) tensor is formed.
+    squared = ((position * position).sum(-1)[:, :, None] - 2 * position @ points.transpose(1, 2)
+               + (points * points).sum(-1)[:, None])  # (B, M, P)
+    floor = 1e-6 * points.norm(dim=-1).amax(1)[:, None, None]
+    distance = squared.clamp_min(0).sqrt().clamp_min(floor)
+    facing = position @ normals.transpose(1, 2) - (normals * points).sum(-1)[:, None]
+    diffuse = (facing / distance).clamp_min(0) * falloff_factor(distance, falloff)  # (B, M, P)
 
     albedo_weight = weight * kd * kd  # (B, P, 3)
     target_weight = weight * kd * observed

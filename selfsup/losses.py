@@ -83,8 +83,22 @@ class SceneBatch:
 
 
 def scene_batch(batch: dict[str, Tensor]) -> SceneBatch:
-    """From a collated batch of :func:`selfsup.scenes.dataset.scene_to_item` dicts."""
-    gbuffer = GBuffer.from_depth(batch["depth"], batch["K"], normals=batch["normals"])
+    """From a collated batch of :func:`selfsup.scenes.dataset.scene_to_item` dicts.
+
+    Images whose normals are unknown (all zero: sensor depth) get normals estimated
+    from the depth, as :meth:`render.GBuffer.from_depth` does for a scene file.
+    """
+    known = batch["normals"].flatten(1).abs().amax(1) > 0
+    if bool(known.all()):
+        gbuffer = GBuffer.from_depth(batch["depth"], batch["K"], normals=batch["normals"])
+    elif not bool(known.any()):
+        gbuffer = GBuffer.from_depth(batch["depth"], batch["K"])
+    else:
+        given = GBuffer.from_depth(batch["depth"], batch["K"], normals=batch["normals"])
+        estimated = GBuffer.from_depth(batch["depth"], batch["K"])
+        pick = lambda a, b: torch.where(known.view(-1, *[1] * (a.dim() - 1)), a, b)  # noqa: E731
+        gbuffer = GBuffer(pick(given.points, estimated.points), pick(given.normals, estimated.normals),
+                          pick(given.mask, estimated.mask))
     material = Material(kd=batch["kd"], ks=batch["ks"], shininess=batch["shininess"])
     return SceneBatch(image=batch["image"].permute(0, 3, 1, 2), gbuffer=gbuffer, material=material)
 
