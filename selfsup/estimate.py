@@ -232,6 +232,8 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
     files = scene_files(input)
     if not files:
         raise FileNotFoundError(f"no .npz scene files in {input}")
+    if options.method in ("cnn", "cnn+refine"):
+        _network(options.checkpoint)  # a missing or bad checkpoint stops here, before any file
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
     failed, seconds = {}, []

@@ -100,6 +100,14 @@ def test_network_alone_gives_a_full_record(tmp_path):
     assert all(math.isfinite(v) for v in light["position"] + light["intensity"] + record["ambient"])
 
 
+def test_missing_checkpoint_stops_before_any_file(tmp_path):
+    write_scene(tmp_path / "a.npz", _scene(6))
+    options = EstimateOptions(method="cnn+refine", checkpoint=str(tmp_path / "none.pt"))
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        estimate_files(tmp_path, tmp_path / "out.jsonl", options, progress=False)
+    assert not (tmp_path / "out.jsonl").exists()
+
+
 def test_unknown_method_is_named():
     with pytest.raises(ValueError, match="estimate.method must be one of"):
         EstimateOptions(method="magic")
