@@ -4,6 +4,7 @@
     python train.py mode=eval eval.checkpoint=outputs/<run>/best.pt
     python train.py mode=generate generate.out=data/test generate.count=200
     python train.py mode=estimate estimate.input=scenes/ estimate.output=lights.jsonl
+    python train.py mode=insert insert.scene=scene.npz insert.estimates=lights.jsonl insert.output=insert.png
     python train.py mode=benchmark benchmark=render_speed benchmark.quick=true
 """
 
@@ -17,7 +18,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 log = logging.getLogger(__name__)
-MODES = ("train", "eval", "generate", "estimate", "benchmark")
+MODES = ("train", "eval", "generate", "estimate", "insert", "benchmark")
 
 
 def _plain(node) -> dict:
@@ -77,6 +78,12 @@ def run(cfg: DictConfig):
             log.info("%s", row)
         log.info("results: %s", path)
         return rows, path
+    if cfg.mode == "insert":
+        from selfsup.insert import insert_files
+
+        path = insert_files(**{k: tuple(v) if isinstance(v, list) else v for k, v in _plain(cfg.insert).items()})
+        log.info("wrote %s", path)
+        return path
     if cfg.mode == "benchmark":
         result = instantiate(cfg.benchmark)
         log.info("benchmark %s done", cfg.benchmark._target_)

@@ -1,0 +1,65 @@
+"""Virtual object insertion by differential rendering (mode=insert)."""
+
+import json
+
+import pytest
+import torch
+
+from selfsup.insert import default_sphere, insert_sphere, lights_from_record
+from selfsup.scenes.exact import render_spec
+from selfsup.scenes.io import render_inputs, write_scene
+from selfsup.scenes.sampler import SamplerConfig, sample_scene
+from train import run
+from tests.test_train import _cfg
+
+SMALL = SamplerConfig(height=48, width=64, specular_prob=0.0)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return render_spec(sample_scene(3, SMALL, n_lights=1), samples=1).scene
+
+
+def test_insertion_changes_only_the_object_and_its_shadow(scene):
+    gbuffer, _, _ = render_inputs(scene)
+    sphere = default_sphere(gbuffer)
+    ambient = scene.ambient if scene.ambient is not None else torch.zeros(3)
+    composite, on_object = insert_sphere(scene, scene.light_pos, scene.light_intensity, ambient, sphere)
+    assert composite.shape == scene.image.shape and torch.isfinite(composite).all()
+    assert 0 < int(on_object.sum()) < on_object.numel() // 4
+    changed = ((composite - scene.image).abs().amax(-1) > 1e-4) & ~on_object
+    darker = ((composite - scene.image).sum(-1) < -1e-4) & ~on_object
+    assert int(changed.sum()) < 0.5 * int((~on_object).sum())  # the rest of the picture is the real image
+    assert int(darker.sum()) > 0  # the sphere casts a shadow on the real geometry
+
+
+def test_sphere_sits_on_an_upward_surface(scene):
+    gbuffer, _, _ = render_inputs(scene)
+    sphere = default_sphere(gbuffer, size=0.05)
+    valid = gbuffer.points[0][gbuffer.mask[0]]
+    assert sphere.radius == pytest.approx(0.05 * float((valid.amax(0) - valid.amin(0)).norm()))
+    # The centre is one radius above a visible point, towards the camera's up (-y).
+    nearest = (valid - sphere.centre).norm(dim=-1).min()
+    assert float(nearest) == pytest.approx(sphere.radius, rel=0.05)
+
+
+def test_bad_estimate_record_is_named():
+    with pytest.raises(ValueError, match="scene_9 lacks lights"):
+        lights_from_record({"id": "scene_9", "lights": [{"intensity": [1, 1, 1]}]})
+
+
+def test_insert_mode_writes_a_picture(tmp_path, scene):
+    write_scene(tmp_path / "s.npz", scene)
+    record = {"id": scene.id, "ambient": [0.0, 0.0, 0.0],
+              "lights": [{"position": scene.light_pos[0].tolist(), "intensity": scene.light_intensity[0].tolist()}]}
+    (tmp_path / "e.jsonl").write_text(json.dumps(record) + "\n")
+    path = run(_cfg("mode=insert", f"insert.scene={tmp_path}/s.npz", f"insert.estimates={tmp_path}/e.jsonl",
+                    f"insert.output={tmp_path}/out/i.png"))
+    from skimage.io import imread
+
+    picture = imread(path)
+    assert picture.shape == (48, 3 * 64 + 2 * 4, 3)  # real | estimated | true
+    (tmp_path / "other.jsonl").write_text(json.dumps(dict(record, id="other")) + "\n")
+    with pytest.raises(ValueError, match="no estimate for scene id"):
+        run(_cfg("mode=insert", f"insert.scene={tmp_path}/s.npz", f"insert.estimates={tmp_path}/other.jsonl",
+                 f"insert.output={tmp_path}/x.png"))
