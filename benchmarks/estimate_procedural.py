@@ -69,8 +69,8 @@ def run_set(name: str, degradations: dict, lights: list, count: int, seed: int, 
 
 
 def run(scenes: int = 20, method: str = "cnn+refine", seed: int = 9100, sets: list[str] | None = None,
-        write: bool = True):
-    options = EstimateOptions(method=method)
+        write: bool = True, shadows: str = "epipolar"):
+    options = EstimateOptions(method=method, shadows=shadows)
     rows = []
     for name, (degradations, lights) in SETS.items():
         if sets and name not in sets:
@@ -80,11 +80,11 @@ def run(scenes: int = 20, method: str = "cnn+refine", seed: int = 9100, sets: li
     path = None
     if write:
         header = (f"{scenes} scenes per set (seeds {seed}*1000003+i), 160x120, 2x2 AA; estimate.method={method}, "
-                  "defaults otherwise. Position error: worst light per scene, of the scene size; success: every "
+                  f"estimate.shadows={shadows}, defaults otherwise. Position error: worst light per scene, of the scene size; success: every "
                   "light < 0.05; two_sigma_coverage: share of true lights inside their 2-sigma ellipsoid "
                   f"(Mahalanobis^2 < {CHI2_3D_2SIGMA}); seconds per scene on this device.")
-        path = write_results(f"estimate_procedural_{method.replace('+', '_')}", torch.device("cpu"), rows, header,
-                             COLUMNS)
+        name = f"estimate_procedural_{method.replace('+', '_')}" + ("" if shadows == "epipolar" else f"_shadows_{shadows}")
+        path = write_results(name, torch.device("cpu"), rows, header, COLUMNS)
     return rows, path
 
 
@@ -93,6 +93,7 @@ if __name__ == "__main__":
     parser.add_argument("--scenes", type=int, default=20)
     parser.add_argument("--method", default="cnn+refine")
     parser.add_argument("--seed", type=int, default=9100)
+    parser.add_argument("--shadows", default="epipolar")
     args = parser.parse_args()
     torch.set_num_threads(2)
-    print(run(args.scenes, args.method, args.seed)[1])
+    print(run(args.scenes, args.method, args.seed, shadows=args.shadows)[1])
