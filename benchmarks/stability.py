@@ -11,7 +11,7 @@ and the position error.
     python -m benchmarks.stability --method refine
 
 Results: benchmarks/results/stability_<device>_<date>.{md,json}. The fast test
-(tests/test_stability.py) runs every case small and asserts finite outputs and
+(tests/test_hard_cases.py) runs every case small and asserts finite outputs and
 a bounded error.
 """
 
