@@ -41,7 +41,7 @@ from render import ShadowedBlinnPhong
 from selfsup.checkpoint import save_network
 from selfsup.evaluate import evaluate_network, summarise
 from selfsup.losses import LossOptions, reconstruction_loss, scene_batch
-from selfsup.model import LightNet, LightPrediction
+from selfsup.model import LightNet, LightPrediction, scene_frame
 
 __all__ = ["DataOptions", "OptimOptions", "TrainerOptions", "LoggerOptions", "Trainer"]
 
@@ -357,8 +357,6 @@ class Trainer:
         prediction = network(scenes.image, scenes.gbuffer, scenes.material.kd)
         network.train()
         terms = reconstruction_loss(prediction, scenes, renderer, self.loss)
-        from selfsup.model import scene_frame
-
         exposure = scene_frame(scenes.image, scenes.gbuffer).exposure
         shadow = terms.visibility[:, :1].expand(-1, 3, -1, -1)
         tiles = [_display(scenes.image, exposure), _display(terms.render, exposure),

@@ -54,7 +54,6 @@ class LightPrediction:
         presence: ``(B, K)`` in (0, 1): how much the slot is needed; slot 0 is
             always present (1): every scene has at least one light.
         ambient: ``(B, 3)``.
-        normalised_position: ``(B, K, 3)`` ``(position - c) / r`` (see module doc).
         anchor_logits: ``(B, M)`` scores of the first slot's M position hypotheses.
         anchor_position: ``(B, M, 3)`` metres: the hypotheses (anchors moved to the
             vertex of their cost parabola); slot 0 refines the best-scored one.
@@ -64,13 +63,8 @@ class LightPrediction:
     intensity: Tensor
     presence: Tensor
     ambient: Tensor
-    normalised_position: Tensor
     anchor_logits: Tensor
     anchor_position: Tensor
-
-    def gated_intensity(self) -> Tensor:
-        """``(B, K, 3)`` intensity times presence: what a render of all slots uses."""
-        return self.intensity * self.presence[..., None]
 
     def lights_of(self, index: int, threshold: float = 0.5) -> tuple[Tensor, Tensor]:
         """Positions and intensities ``(n, 3)`` of image ``index``'s slots with presence
@@ -274,5 +268,5 @@ class LightNet(nn.Module):
         ambient = F.softplus(raw[:, -3:]) * frame.exposure[:, None] * 0.1
         anchor_position = frame.centre[:, None] + frame.size[:, None, None] * anchor_normalised
         return LightPrediction(position=position, intensity=intensity, presence=presence, ambient=ambient,
-                               normalised_position=normalised, anchor_logits=anchor_logits,
+                               anchor_logits=anchor_logits,
                                anchor_position=anchor_position)
