@@ -198,3 +198,15 @@ def test_missing_checkpoint_is_a_clear_error(tmp_path):
     torch.save({"weights": 1}, tmp_path / "bad.pt")
     with pytest.raises(ValueError, match="not a LightNet checkpoint"):
         load_network(tmp_path / "bad.pt")
+
+
+def test_exposure_is_the_99th_percentile_of_valid_pixels():
+    generator = torch.Generator().manual_seed(1)
+    image = torch.rand(2, 3, 20, 30, generator=generator)
+    depth = torch.rand(2, 20, 30, generator=generator) + 1
+    depth[0, :5] = 0  # invalid pixels must not count
+    K = torch.tensor([[20.0, 0, 15], [0, 20.0, 10], [0, 0, 1]]).expand(2, 3, 3)
+    g = GBuffer.from_depth(depth, K)
+    brightest = image.amax(1).flatten(1)
+    expected = torch.nanquantile(torch.where(g.mask.flatten(1), brightest, torch.nan), 0.99, dim=1)
+    torch.testing.assert_close(scene_frame(image, g).exposure, expected, rtol=0, atol=0)
