@@ -40,11 +40,11 @@ COLUMNS = ["method", "scenes", "median_position_error", "success_rate", "median_
 
 def _methods(caps: list[int]):
     def cnn(scene, problem):
-        return network_slots(scene, problem)[0][:, :1]
+        return network_slots(problem)[0][:, :1]
 
     def capped(k):
         def run(scene, problem):
-            start = network_slots(scene, problem)[0][:, :1]
+            start = network_slots(problem)[0][:, :1]
             return refine(problem, start, RefineOptions(max_iters=(k, max(1, k // 3)), strides=(2, 1))).position
         return run
 

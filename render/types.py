@@ -99,6 +99,24 @@ class GBuffer:
         """``(H, W)``."""
         return self.points.shape[1], self.points.shape[2]
 
+    def extent(self) -> tuple[Tensor, Tensor, Tensor]:
+        """Centroid ``(B, 3)`` and bounding-box corners ``lo, hi (B, 3)`` of the valid
+        points; all three are zeros for an image without a valid pixel.
+
+        Example:
+            >>> g = GBuffer.from_depth(torch.full((1, 2, 2), 2.0), torch.tensor([[[1.0, 0, 0.5], [0, 1.0, 0.5], [0, 0, 1]]]))
+            >>> [t.tolist() for t in g.extent()]
+            [[[0.0, 0.0, 2.0]], [[-1.0, -1.0, 2.0]], [[1.0, 1.0, 2.0]]]
+        """
+        mask = self.mask[..., None]
+        count = mask.sum((1, 2))
+        centre = (self.points * mask).sum((1, 2)) / count.clamp_min(1)
+        big = torch.finfo(self.points.dtype).max
+        lo = torch.where(mask, self.points, torch.full_like(self.points, big)).amin((1, 2))
+        hi = torch.where(mask, self.points, torch.full_like(self.points, -big)).amax((1, 2))
+        empty = count == 0
+        return centre, torch.where(empty, torch.zeros_like(lo), lo), torch.where(empty, torch.zeros_like(hi), hi)
+
     @classmethod
     def from_depth(
         cls,

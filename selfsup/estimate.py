@@ -118,13 +118,21 @@ def _network(checkpoint: str | None):
 
 
 @torch.no_grad()
-def network_slots(scene: Scene, problem: FitProblem, checkpoint: str | None = None) -> tuple[Tensor, Tensor]:
-    """The network's light slots for one scene: positions ``(1, K, 3)`` and presence ``(K,)``,
-    most present first."""
+def network_slots(problem: FitProblem, checkpoint: str | None = None) -> tuple[Tensor, Tensor]:
+    """The network's light slots for a batch-of-one problem: positions ``(1, K, 3)`` and
+    presence ``(K,)``, most present first."""
     network = _network(checkpoint)
     prediction = network(problem.image.float(), problem.gbuffer, problem.material.kd.float())
     order = prediction.presence[0].argsort(descending=True)
     return prediction.position[:, order].to(problem.image.dtype), prediction.presence[0, order]
+
+
+def _candidate(problem: FitProblem, fit: Fit, n_lights: int, specular: bool, options: EstimateOptions) -> Candidate:
+    # A fitted model and its criterion: robust loss, 6 parameters per light, the
+    # unknown ambient (3) and the specular switch.
+    loss = float(robust_loss(problem, fit.model, replace(options.refine, specular=specular))[0])
+    k = 6 * n_lights + (3 if problem.ambient is None else 0) + int(specular)
+    return Candidate(fit, n_lights, specular, bic(loss, int(problem.gbuffer.mask.sum()) * 3, k, options.block_px))
 
 
 def estimate_scene(scene: Scene, options: EstimateOptions) -> dict:
@@ -134,44 +142,29 @@ def estimate_scene(scene: Scene, options: EstimateOptions) -> dict:
     the same light refined without it, then more lights with the better of the two
     while each added light lowers :func:`bic` and carries at least
     ``min_light_share`` of the rendered direct light. With ``cnn+refine`` the
-    searches start from the network's slots (each slot alone for one light, the
-    chosen lights plus the next slot for more); ``cnn`` keeps the slots as they are.
+    network's slots join the grid's best candidates as starts of every search;
+    ``cnn`` keeps the slots as they are (no refinement).
     """
     problem = problem_of(scene, options.shadows)
     has_specular = scene.ks is not None and bool((scene.ks > 0).any())
-    n_values = int(problem.gbuffer.mask.sum()) * 3
-    unknown_ambient = 3 if problem.ambient is None else 0
+    if options.method == "refine":
+        starts = {}
+    else:
+        slots, presence = network_slots(problem, options.checkpoint)
+        if options.method == "cnn":
+            return _network_record(scene, problem, slots, presence, has_specular, options)
+        starts = dict(extra_starts=slots, per_axis=options.cnn_grid, starts=options.cnn_starts)
 
-    def candidate(fit: Fit, n_lights: int, specular: bool) -> Candidate:
-        loss = float(robust_loss(problem, fit.model, replace(options.refine, specular=specular))[0])
-        k = 6 * n_lights + unknown_ambient + int(specular)
-        return Candidate(fit, n_lights, specular, bic(loss, n_values, k, options.block_px))
-
-    slots = presence = None
-    if options.method in ("cnn", "cnn+refine"):
-        slots, presence = network_slots(scene, problem, options.checkpoint)
-    if options.method == "cnn":
-        return _network_record(scene, problem, slots, presence, has_specular, options)
-
-    def first_light(opts: RefineOptions) -> Fit:
-        if slots is None:
-            return search(problem, 1, opts)
-        return search(problem, 1, opts, extra_starts=slots, per_axis=options.cnn_grid, starts=options.cnn_starts)
-
-    def more_lights(n_lights: int, fixed: Tensor, opts: RefineOptions) -> Fit:
-        if slots is None:
-            return search(problem, n_lights, opts, fixed=fixed)
-        return search(problem, n_lights, opts, fixed=fixed, extra_starts=slots, per_axis=options.cnn_grid,
-                      starts=options.cnn_starts)
-
-    first = first_light(replace(options.refine, specular=has_specular))
-    tried = [candidate(first, 1, has_specular)]
+    first = search(problem, 1, replace(options.refine, specular=has_specular), **starts)
+    tried = [_candidate(problem, first, 1, has_specular, options)]
     if has_specular:
-        tried.append(candidate(refine(problem, first.position, replace(options.refine, specular=False)), 1, False))
+        unspecular = refine(problem, first.position, replace(options.refine, specular=False))
+        tried.append(_candidate(problem, unspecular, 1, False, options))
     best = min(tried, key=lambda c: c.criterion)
     for n_lights in range(2, options.max_lights + 1):
         opts = replace(options.refine, specular=best.specular)
-        more = candidate(more_lights(n_lights, best.fit.position, opts), n_lights, best.specular)
+        more = _candidate(problem, search(problem, n_lights, opts, fixed=best.fit.position, **starts), n_lights,
+                          best.specular, options)
         tried.append(more)
         share = float(light_shares(problem, more.fit, best.specular).min())
         if more.criterion >= best.criterion or share < options.min_light_share:
@@ -182,17 +175,11 @@ def estimate_scene(scene: Scene, options: EstimateOptions) -> dict:
 
 def _network_record(scene: Scene, problem: FitProblem, slots: Tensor, presence: Tensor, has_specular: bool,
                     options: EstimateOptions) -> dict:
-    # The network's present slots (at least one), intensities and ambient solved there.
+    # The network's present slots (at least one); refine with no iterations solves
+    # their intensities and ambient and evaluates the fit.
     keep = max(1, min(int((presence > 0.5).sum()), options.max_lights))
-    opts = replace(options.refine, specular=has_specular)
-    cost, intensity, ambient, model, _, _, _ = evaluate(problem, slots[:, :keep], opts)
-    fit = Fit(slots[:, :keep], intensity, ambient, cost, model, torch.zeros(1, dtype=torch.long),
-              ((model - problem.image) ** 2 * problem.gbuffer.mask[:, None]).flatten(1).sum(1),
-              problem.gbuffer.mask.flatten(1).sum(1) * 3)
-    n_values = int(problem.gbuffer.mask.sum()) * 3
-    loss = float(robust_loss(problem, model, opts)[0])
-    k = 6 * keep + (3 if problem.ambient is None else 0) + int(has_specular)
-    chosen = Candidate(fit, keep, has_specular, bic(loss, n_values, k, options.block_px))
+    fit = refine(problem, slots[:, :keep], replace(options.refine, specular=has_specular, max_iters=(0,), strides=(1,)))
+    chosen = _candidate(problem, fit, keep, has_specular, options)
     return _record(scene, problem, chosen, [chosen], options)
 
 

@@ -116,10 +116,6 @@ def insert_sphere(scene: Scene, position: Tensor, intensity: Tensor, ambient: Te
     return composite, on_object
 
 
-def _to_rgb8(image: Tensor, exposure: float) -> np.ndarray:
-    return ((image / exposure).clamp(0, 1) ** (1 / 2.2) * 255).round().to(torch.uint8).numpy()
-
-
 def insert_files(scene: str, output: str, estimates: str | None = None, size: float = 0.05,
                  pixel: tuple[float, float] = (0.5, 0.7), shadows: str = "epipolar") -> Path:
     """Write ``output`` (PNG): the real image, the sphere inserted under the estimated
@@ -128,6 +124,8 @@ def insert_files(scene: str, output: str, estimates: str | None = None, size: fl
     from skimage.io import imsave
 
     from selfsup.estimate import EstimateOptions, estimate_scene
+    from selfsup.model import scene_frame
+    from selfsup.scenes.generate import to_rgb8
     from selfsup.scenes.io import read_scene
 
     scene = read_scene(scene)
@@ -149,10 +147,9 @@ def insert_files(scene: str, output: str, estimates: str | None = None, size: fl
         ambient = scene.ambient if scene.ambient is not None else torch.zeros(3)
         truth, _ = insert_sphere(scene, scene.light_pos, scene.light_intensity, ambient, sphere, shadows)
         panels.append(truth)
-    valid = scene.image[gbuffer.mask[0]]
-    exposure = float(torch.quantile(valid.amax(-1), 0.99).clamp_min(1e-8))
+    exposure = scene_frame(scene.image.permute(2, 0, 1)[None], gbuffer).exposure[0]
     gap = np.full((scene.image.shape[0], 4, 3), 255, np.uint8)
-    row = [part for panel in panels for part in (_to_rgb8(panel, exposure), gap)][:-1]
+    row = [part for panel in panels for part in (to_rgb8((panel / exposure).clamp(0, 1) ** (1 / 2.2)), gap)][:-1]
     path = Path(output)
     path.parent.mkdir(parents=True, exist_ok=True)
     imsave(str(path), np.concatenate(row, 1), check_contrast=False)

@@ -14,7 +14,7 @@ from torch import Tensor
 
 from render.shading import falloff_factor
 
-__all__ = ["basis_images", "solve_intensities", "single_light_costs"]
+__all__ = ["basis_images", "solve_intensities", "single_light_costs", "pseudo_huber"]
 
 
 def basis_images(kd: Tensor, ks: Tensor | None, diffuse: Tensor, specular: Tensor | None) -> Tensor:
@@ -71,6 +71,11 @@ def solve_intensities(cols: Tensor, kd: Tensor, image: Tensor, weights: Tensor, 
     else:
         ambient = x[:, :, L]
     return x[:, :, :L].transpose(1, 2), ambient, model
+
+
+def pseudo_huber(residual: Tensor, scale: float) -> Tensor:
+    """``sqrt(r^2 + c^2) - c`` elementwise: quadratic below ``c = scale``, linear above."""
+    return torch.sqrt(residual * residual + scale * scale) - scale
 
 
 def single_light_costs(position: Tensor, points: Tensor, normals: Tensor, mask: Tensor, kd: Tensor, image: Tensor,
@@ -132,6 +137,4 @@ def single_light_costs(position: Tensor, points: Tensor, normals: Tensor, mask: 
     light, ambient = light.to(image.dtype), ambient.to(image.dtype)  # (B, M, 3)
     model = kd[:, None] * (light[:, :, None] * diffuse[..., None] + ambient[:, :, None])  # (B, M, P, 3)
     residual = (model - observed[:, None]) / exposure[:, None, None, None]
-    c = robust_scale
-    cost = (torch.sqrt(residual * residual + c * c) - c) * weight[:, None]
-    return cost.sum((2, 3)) / count[:, None]
+    return (pseudo_huber(residual, robust_scale) * weight[:, None]).sum((2, 3)) / count[:, None]

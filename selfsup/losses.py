@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from render import GBuffer, Material, ShadowedBlinnPhong
-from selfsup.linear import basis_images, single_light_costs, solve_intensities
+from selfsup.linear import basis_images, pseudo_huber, single_light_costs, solve_intensities
 from selfsup.model import LightPrediction, scene_frame
 
 __all__ = ["LossOptions", "LossTerms", "SceneBatch", "scene_batch", "reconstruction_loss"]
@@ -130,16 +130,16 @@ def _supervised(prediction: LightPrediction, batch: dict[str, Tensor], size: Ten
 def _robust_cost(model: Tensor, image: Tensor, mask: Tensor, exposure: Tensor, c: float) -> Tensor:
     # Per-image mean pseudo-Huber of the exposure-normalised residual over valid values: (B,).
     residual = (model - image) / exposure[:, None, None, None]
-    per_value = (torch.sqrt(residual**2 + c * c) - c) * mask
+    per_value = pseudo_huber(residual, c) * mask
     return per_value.sum((1, 2, 3)) / (3 * mask.sum((1, 2, 3)).clamp_min(1))
 
 
-def hypothesis_costs(anchor_position: Tensor, scenes: SceneBatch, falloff, stride: int,
+def hypothesis_costs(anchor_position: Tensor, scenes: SceneBatch, exposure: Tensor, falloff, stride: int,
                      robust_scale: float | None = None) -> Tensor:
     """Error ``(B, M)`` of each hypothesis ``(B, M, 3)`` as the only light, unshadowed,
-    on every ``stride``-th pixel (:func:`selfsup.linear.single_light_costs`)."""
+    on every ``stride``-th pixel, residuals divided by ``exposure (B,)``
+    (:func:`selfsup.linear.single_light_costs`)."""
     g, s = scenes.gbuffer, stride
-    exposure = scene_frame(scenes.image, g).exposure
     return single_light_costs(anchor_position, g.points[:, ::s, ::s], g.normals[:, ::s, ::s], g.mask[:, ::s, ::s],
                               scenes.material.kd[:, ::s, ::s], scenes.image[:, :, ::s, ::s], exposure, falloff,
                               robust_scale)
@@ -179,7 +179,7 @@ def reconstruction_loss(prediction: LightPrediction, scenes: SceneBatch, rendere
     photometric = 0.5 * (cost_all.mean() + cost_needed.mean())
 
     with torch.no_grad():
-        costs = hypothesis_costs(prediction.anchor_position.detach(), scenes, renderer.falloff,
+        costs = hypothesis_costs(prediction.anchor_position.detach(), scenes, frame.exposure, renderer.falloff,
                                  options.hypothesis_stride, options.robust_scale)
         best = costs.amin(1, keepdim=True)
         target = torch.softmax(-(costs - best) / (options.hypothesis_temperature * best.clamp_min(1e-8)), 1)

@@ -94,12 +94,7 @@ def scene_frame(image: Tensor, gbuffer: GBuffer) -> SceneFrame:
     count = mask.flatten(1).sum(1)
     if bool((count == 0).any()):
         raise ValueError(f"image(s) {(count == 0).nonzero().flatten().tolist()} have no valid pixel")
-    points = gbuffer.points
-    m = mask[..., None].to(points.dtype)
-    centre = (points * m).flatten(1, 2).sum(1) / count[:, None]
-    big = torch.finfo(points.dtype).max
-    lo = torch.where(mask[..., None], points, torch.full_like(points, big)).flatten(1, 2).amin(1)
-    hi = torch.where(mask[..., None], points, torch.full_like(points, -big)).flatten(1, 2).amax(1)
+    centre, lo, hi = gbuffer.extent()
     size = (hi - lo).norm(dim=-1).clamp_min(1e-6)
     # The 99th percentile of the valid pixels' brightest channel, linearly interpolated
     # between order statistics (as torch.nanquantile), from the top 1% alone (topk, not a sort).

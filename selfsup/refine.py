@@ -137,13 +137,7 @@ class Fit:
 
 def _scene_frame(problem: FitProblem) -> tuple[Tensor, Tensor]:
     # Centroid (B, 3) and size (B,) (bounding-box diagonal) of the valid points.
-    g = problem.gbuffer
-    m = g.mask[..., None]
-    count = m.sum((1, 2)).clamp_min(1)
-    centre = (g.points * m).sum((1, 2)) / count
-    big = torch.finfo(g.points.dtype).max
-    lo = torch.where(m, g.points, torch.full_like(g.points, big)).amin((1, 2))
-    hi = torch.where(m, g.points, torch.full_like(g.points, -big)).amax((1, 2))
+    centre, lo, hi = problem.gbuffer.extent()
     return centre, (hi - lo).norm(dim=-1).clamp_min(1e-6)
 
 
@@ -315,6 +309,8 @@ def refine(problem: FitProblem, position: Tensor, options: RefineOptions | None 
     position = position.detach().clone()
     total = torch.zeros(problem.batch, dtype=torch.long, device=position.device)
     for stride, iters in zip(options.strides, options.max_iters):
+        if iters == 0:
+            continue  # nothing to descend: the final evaluation below is all there is
         level = subsample(problem, stride)
         if options.method == "lm":
             position, iterations = _lm(level, position, options, iters)
@@ -333,11 +329,7 @@ def grid_candidates(problem: FitProblem, per_axis: tuple[int, int, int] = (5, 5,
     """Candidate light positions ``(B, G, 3)`` on a grid over the valid points' box,
     grown by half its size sideways and upwards (lights hang above what a camera
     sees), and reaching towards the camera (never behind it)."""
-    g = problem.gbuffer
-    m = g.mask[..., None]
-    big = torch.finfo(g.points.dtype).max
-    lo = torch.where(m, g.points, torch.full_like(g.points, big)).amin((1, 2))
-    hi = torch.where(m, g.points, torch.full_like(g.points, -big)).amax((1, 2))
+    _, lo, hi = problem.gbuffer.extent()
     span = hi - lo
     lo = torch.stack([lo[:, 0] - 0.5 * span[:, 0], lo[:, 1] - 0.5 * span[:, 1], 0.1 * lo[:, 2]], 1)
     hi = torch.stack([hi[:, 0] + 0.5 * span[:, 0], hi[:, 1], hi[:, 2]], 1)

@@ -64,7 +64,8 @@ def test_hypothesis_costs_match_an_explicit_least_squares_fit(pool):
     generator = torch.Generator().manual_seed(0)
     hypotheses = centre[:, None] + torch.randn(8, 5, 3, generator=generator, dtype=torch.float64)
     hypotheses[:, :, 1] -= 1.0  # mostly above the scene: the fitted intensities are positive
-    fast = hypothesis_costs(hypotheses, scenes, "inverse_square", stride=1)
+    fast = hypothesis_costs(hypotheses, scenes, scene_frame(scenes.image, scenes.gbuffer).exposure, "inverse_square",
+                            stride=1)
     g, m, image = scenes.gbuffer, scenes.material, scenes.image
     mask = g.mask[:, None].double().expand_as(image)
     exposure = scene_frame(image, g).exposure

@@ -15,12 +15,13 @@ from selfsup.scenes.exact import RenderedScene, render_spec
 from selfsup.scenes.io import write_scene
 from selfsup.scenes.sampler import SamplerConfig, sample_scene
 
-__all__ = ["generate_set", "contact_sheet"]
+__all__ = ["generate_set", "contact_sheet", "to_rgb8"]
 
 log = logging.getLogger(__name__)
 
 
-def _to_rgb8(x: Tensor) -> np.ndarray:
+def to_rgb8(x: Tensor) -> np.ndarray:
+    """``(H, W, 3)`` values in [0, 1] (clamped) as 8-bit RGB."""
     return (x.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
 
 
@@ -32,11 +33,11 @@ def _panels(rendered: RenderedScene, inputs) -> list[np.ndarray]:
     depth_vis = torch.where(depth > 0, 1 - (depth - near) / (far - near).clamp_min(1e-6), torch.zeros_like(depth))
     shadow = rendered.visibility.amin(-1) if rendered.visibility.shape[-1] else torch.ones_like(depth)
     return [
-        _to_rgb8(inputs.image ** (1 / 2.2)),
-        _to_rgb8(depth_vis[..., None].expand(-1, -1, 3)),
-        _to_rgb8((0.5 + 0.5 * scene.normals * torch.tensor([1.0, -1.0, -1.0])) * valid),
-        _to_rgb8(inputs.kd),
-        _to_rgb8((shadow * valid[..., 0])[..., None].expand(-1, -1, 3)),
+        to_rgb8(inputs.image ** (1 / 2.2)),
+        to_rgb8(depth_vis[..., None].expand(-1, -1, 3)),
+        to_rgb8((0.5 + 0.5 * scene.normals * torch.tensor([1.0, -1.0, -1.0])) * valid),
+        to_rgb8(inputs.kd),
+        to_rgb8((shadow * valid[..., 0])[..., None].expand(-1, -1, 3)),
     ]
 
 
