@@ -56,7 +56,7 @@ class LossOptions:
     presence_weight: float = 0.05
     intensity_weight: float = 0.05
     need_ratio: float = 0.1
-    need_floor: float = 0.002
+    need_floor: float = 0.006
     hypothesis_weight: float = 0.1
     hypothesis_stride: int = 3
     hypothesis_temperature: float = 0.05
@@ -131,7 +131,7 @@ def _robust_cost(model: Tensor, image: Tensor, mask: Tensor, exposure: Tensor, c
     # Per-image mean pseudo-Huber of the exposure-normalised residual over valid values: (B,).
     residual = (model - image) / exposure[:, None, None, None]
     per_value = pseudo_huber(residual, c) * mask
-    return per_value.sum((1, 2, 3)) / (3 * mask.sum((1, 2, 3)).clamp_min(1))
+    return per_value.sum((1, 2, 3)) / mask.sum((1, 2, 3)).clamp_min(1)  # mask holds the 3 channels already
 
 
 def hypothesis_costs(anchor_position: Tensor, scenes: SceneBatch, exposure: Tensor, falloff, stride: int,
