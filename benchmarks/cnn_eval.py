@@ -57,6 +57,20 @@ def inference_ms(network, device, height: int = 128, width: int = 128, batch: in
     return 1000 * seconds / batch
 
 
+def cost_volume_only(network):
+    """A copy of ``network`` whose first light comes from its cost volumes alone: the
+    learned anchor scores and slot 0's learned offset are zero (the rest is unchanged)."""
+    import copy
+
+    plain = copy.deepcopy(network)
+    with torch.no_grad():
+        plain.anchor_out.weight.zero_()
+        plain.anchor_out.bias.zero_()
+        plain.out.weight[:3].zero_()
+        plain.out.bias[:3].zero_()
+    return plain
+
+
 def run(checkpoint: str | None = None, sets: dict | None = None, files: dict | None = None, scenes: int = 200,
         seed: int = 9000, height: int = 120, width: int = 160, samples: int = 2,
         n_lights_probs: tuple = (0.75, 0.25), workers: int = 2, device: str = "auto", write: bool = True):
@@ -78,6 +92,9 @@ def run(checkpoint: str | None = None, sets: dict | None = None, files: dict | N
         summary = summarise(evaluate_network(network, pool))
         rows.append({"set": name, **_rounded(summary),
                      "ms_per_image": round(1000 * (time.perf_counter() - started) / scenes, 2)})
+        if len(rows) == 1:  # ablation on the first set: what the cost volume alone gives
+            rows.append({"set": f"{name}, cost volume alone (learned scores and offset zeroed)",
+                         **_rounded(summarise(evaluate_network(cost_volume_only(network), pool)))})
     for name, directory in (files or {}).items():
         if not Path(directory).exists():
             log.warning("eval set %r skipped: no directory %s", name, directory)
@@ -105,4 +122,4 @@ def _rounded(summary: dict) -> dict:
     return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in summary.items()}
 
 
-__all__ = ["run", "inference_ms"]
+__all__ = ["run", "inference_ms", "cost_volume_only"]
