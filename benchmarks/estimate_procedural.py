@@ -8,9 +8,9 @@ m = 0.1 .. 0.3) success >= 90%; two-light scenes the right light count >= 90%;
 (Mahalanobis distance^2 under the 3x3 ``position_cov`` below 8.03, the 3-D
 chi-square 95.4% point).
 
-    python -m benchmarks.estimate_procedural --scenes 20 --method cnn+refine
+    python -m benchmarks.estimate_procedural --scenes 20 --method cnn+refine [--shadows none --search-shadows none]
 
-Results: benchmarks/results/estimate_procedural_<device>_<date>.{md,json}.
+Results: benchmarks/results/estimate_procedural_<method>_shadows_<s>_search_<s>_<device>_<date>.{md,json}.
 """
 
 from __future__ import annotations
@@ -69,8 +69,8 @@ def run_set(name: str, degradations: dict, lights: list, count: int, seed: int, 
 
 
 def run(scenes: int = 20, method: str = "cnn+refine", seed: int = 9100, sets: list[str] | None = None,
-        write: bool = True, shadows: str = "epipolar"):
-    options = EstimateOptions(method=method, shadows=shadows)
+        write: bool = True, shadows: str = "none", search_shadows: str = "none"):
+    options = EstimateOptions(method=method, shadows=shadows, search_shadows=search_shadows)
     rows = []
     for name, (degradations, lights) in SETS.items():
         if sets and name not in sets:
@@ -80,10 +80,10 @@ def run(scenes: int = 20, method: str = "cnn+refine", seed: int = 9100, sets: li
     path = None
     if write:
         header = (f"{scenes} scenes per set (seeds {seed}*1000003+i), 160x120, 2x2 AA; estimate.method={method}, "
-                  f"estimate.shadows={shadows}, defaults otherwise. Position error: worst light per scene, of the scene size; success: every "
+                  f"estimate.shadows={shadows}, estimate.search_shadows={search_shadows}, defaults otherwise. Position error: worst light per scene, of the scene size; success: every "
                   "light < 0.05; two_sigma_coverage: share of true lights inside their 2-sigma ellipsoid "
                   f"(Mahalanobis^2 < {CHI2_3D_2SIGMA}); seconds per scene on this device.")
-        name = f"estimate_procedural_{method.replace('+', '_')}" + ("" if shadows == "epipolar" else f"_shadows_{shadows}")
+        name = f"estimate_procedural_{method.replace('+', '_')}_shadows_{shadows}_search_{search_shadows}"
         path = write_results(name, torch.device("cpu"), rows, header, COLUMNS)
     return rows, path
 
@@ -93,7 +93,8 @@ if __name__ == "__main__":
     parser.add_argument("--scenes", type=int, default=20)
     parser.add_argument("--method", default="cnn+refine")
     parser.add_argument("--seed", type=int, default=9100)
-    parser.add_argument("--shadows", default="epipolar")
+    parser.add_argument("--shadows", default="none")
+    parser.add_argument("--search-shadows", default="none")
     args = parser.parse_args()
     torch.set_num_threads(2)
-    print(run(args.scenes, args.method, args.seed, shadows=args.shadows)[1])
+    print(run(args.scenes, args.method, args.seed, shadows=args.shadows, search_shadows=args.search_shadows)[1])

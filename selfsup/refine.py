@@ -398,7 +398,7 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
         if extra_starts is not None:
             guesses = extra_starts[b][:, None]  # (S, 1, 3)
             starts_at = torch.cat([torch.cat([base.expand(guesses.shape[0], -1, -1), guesses], 1), starts_at])
-        if unshadowed_first:
+        if unshadowed_first and one.shadows != "none":
             # Shading alone gives a smoother landscape: also start from where a shadow-free descent went.
             smooth = refine(dataclasses.replace(coarse.select(torch.zeros(starts_at.shape[0], dtype=torch.long)), shadows="none"),
                             starts_at, quick)

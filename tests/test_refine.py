@@ -78,6 +78,24 @@ def test_model_selection_picks_the_number_of_lights(seed, n_lights):
     assert len(record["lights"]) == n_lights, record["candidates"]
 
 
+@pytest.mark.parametrize("shadows", ["epipolar", "paper"])
+def test_shadowed_selection_refines_the_shadow_free_search(shadows):
+    # estimate.shadows=epipolar|paper: the search runs on shading alone, each
+    # candidate is refined and judged with the shadows; two lights stay two.
+    scene = _scene(11, 2, config=MEDIUM)
+    record = estimate_scene(scene, EstimateOptions(method="refine", shadows=shadows,
+                                                   refine=RefineOptions(max_iters=(15, 5))))
+    assert len(record["lights"]) == 2, record["candidates"]
+    position = torch.tensor([light["position"] for light in record["lights"]])
+    assert _rel_error_paired(position, scene) < 0.05
+
+
+@pytest.mark.parametrize("name", ["shadows", "search_shadows"])
+def test_unknown_shadow_model_is_named(name):
+    with pytest.raises(ValueError, match=f"estimate.{name} must be one of"):
+        EstimateOptions(**{name: "raytraced"})
+
+
 @pytest.mark.parametrize("seed, n_lights", [(4, 1), (11, 2)])
 def test_shipped_network_starts_the_refinement_and_selection(seed, n_lights):
     scene = _scene(seed, n_lights, config=MEDIUM)

@@ -1,5 +1,6 @@
 import pytest
 from hydra import compose, initialize_config_dir
+from hydra.errors import InstantiationException
 
 from tests.test_readme import ROOT
 from train import run
@@ -14,6 +15,23 @@ def test_benchmark_mode_runs_the_shadow_benchmark_shrunk():
     rows, path = run(_cfg("mode=benchmark", "benchmark.height=30", "benchmark.width=40", "benchmark.write=false"))
     assert path is None and rows[-1]["light"] == "**mean**"
     assert 0.8 < rows[-1]["epipolar_agree"] <= 1.0
+
+
+def test_paper_table_runs_shrunk_with_the_published_numbers_beside():
+    rows, path = run(_cfg("mode=benchmark", "benchmark=paper_table", "benchmark.scenes=1", "benchmark.height=24",
+                          "benchmark.width=32", "benchmark.gd_max_iters=3", "benchmark.reflectance=[ideal]",
+                          "benchmark.models=[boom,epipolar_shadows]",
+                          "benchmark.write=false"))
+    assert path is None and len(rows) == 4  # 2 models x 2 optimisers
+    assert {r["optimiser"] for r in rows} == {"gd (paper)", "search + LM"} and all(r["experiments"] == 6 for r in rows)
+    assert rows[0]["paper_median"] == 0.0792  # Boom et al., true reflectance, as published
+    assert all(0 <= r["median_error"] < 10 for r in rows)
+
+
+def test_paper_table_names_an_unknown_row():
+    # Hydra wraps the benchmark's ValueError; the message still names the row.
+    with pytest.raises(InstantiationException, match="unknown reflectance \\['shiny'\\]"):
+        run(_cfg("mode=benchmark", "benchmark=paper_table", "benchmark.reflectance=[shiny]", "benchmark.write=false"))
 
 
 def test_unknown_mode_is_a_clear_error():

@@ -1,0 +1,212 @@
+"""The paper's protocol table on our procedural scenes (issue 6, item 1).
+
+The protocol of "Robust Point Light Source Estimation Using Differentiable
+Rendering" (its Table 2): 9 scenes x 6 light positions spread around each
+scene = 54 one-light experiments (:func:`selfsup.scenes.dataset.protocol_specs`,
+rendered exactly, 2x2 anti-aliased), estimated with the reflectance given as
+
+- ``ideal``: the generator's true kd and ks;
+- ``m = 0.0``: kd = ks = 0.5 everywhere (the paper's "no noise but wrong value");
+- ``m = 0.1 / 0.2 / 0.3``: fractal-noise reflectance of that magnitude;
+
+by four image models:
+
+- Boom et al.: ambient + diffuse, no cast shadows;
+- Neverova et al.: + specular, no cast shadows;
+- ours, ``paper`` shadows: + specular + cube shadow maps of point splats (the paper's method);
+- ours, ``epipolar`` shadows: + specular + the watertight heightfield shadows;
+
+and two optimisers:
+
+- ``gd``: the paper's gradient descent (rate 0.02 in scene-size units, plain
+  squared error, stop at relative energy change 1e-4, at most ``gd_max_iters``
+  steps) from one fixed start for every experiment: above the middle of the
+  scene's bounding box (the paper only says "initialised somewhere");
+- ``search + LM``: our grid search on shading alone and robust LM, then the
+  model's own robust LM from there (the pipeline of ``mode=estimate`` with one
+  light and the specular switch fixed by the model).
+
+Errors are of the scene size; success is every light within 0.05 of it (the
+paper does not state its success criterion, so its success column is not
+comparable one to one). The paper's published numbers (its scenes: 3-D scans
+rendered by Unity, kd = ks = 1, alpha = 10, grey images) sit beside ours.
+
+    python train.py mode=benchmark benchmark=paper_table [benchmark.scenes=9 benchmark.gd_max_iters=300]
+
+Results: benchmarks/results/paper_table.md (the file the README links) and
+paper_table_<device>_<date>.{md,json}.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import statistics
+import time
+
+import torch
+
+from benchmarks.common import RESULTS, device_name, write_results
+from render import GBuffer, Material
+from selfsup.estimate import problem_of
+from selfsup.metrics import SUCCESS_THRESHOLD
+from selfsup.refine import FitProblem, RefineOptions, refine, search
+from selfsup.scenes.dataset import protocol_specs
+from selfsup.scenes.degrade import Degradations, degrade
+from selfsup.scenes.exact import render_spec
+from selfsup.scenes.io import Scene
+from selfsup.scenes.sampler import SamplerConfig
+
+log = logging.getLogger(__name__)
+
+# key (as configs name it): (label, what the estimator is given)
+REFLECTANCE = {
+    "ideal": ("true (ideal)", Degradations()),
+    "half": ("m = 0.0 (kd = ks = 0.5)", Degradations(reflectance="half")),
+    "m0.1": ("m = 0.1", Degradations(reflectance="noise", reflectance_noise=0.1)),
+    "m0.2": ("m = 0.2", Degradations(reflectance="noise", reflectance_noise=0.2)),
+    "m0.3": ("m = 0.3", Degradations(reflectance="noise", reflectance_noise=0.3)),
+}
+# key: (label, specular term, shadow method, column of the published table)
+MODELS = {
+    "boom": ("Boom et al. (ambient + diffuse)", False, "none", 0),
+    "neverova": ("Neverova et al. (+ specular)", True, "none", 1),
+    "paper_shadows": ("ours, paper shadow maps", True, "paper", 2),
+    "epipolar_shadows": ("ours, epipolar shadows", True, "epipolar", 2),
+}
+OPTIMISERS = {"gd": "gd (paper)", "search_lm": "search + LM"}
+# The paper's Table 2: (mean error, median error, success %) per reflectance row,
+# in the column order Boom, Neverova, ours (cube shadow maps).
+PUBLISHED = {
+    "ideal": ((0.0944, 0.0792, 20.37), (0.0720, 0.0552, 57.41), (0.0928, 0.1136, 22.22)),
+    "half": ((0.2600, 0.2468, 5.56), (0.2379, 0.2266, 14.81), (0.2100, 0.2111, 79.63)),
+    "m0.1": ((0.2433, 0.2429, 3.70), (0.2281, 0.2275, 11.11), (0.1940, 0.2040, 85.19)),
+    "m0.2": ((0.2245, 0.2362, 5.56), (0.2164, 0.2284, 7.41), (0.1782, 0.1911, 87.04)),
+    "m0.3": ((0.2015, 0.2121, 11.11), (0.1964, 0.2089, 12.96), (0.1678, 0.1863, 75.93)),
+}
+COLUMNS = ["reflectance", "model", "optimiser", "experiments", "mean_error", "median_error", "success_rate",
+           "median_seconds", "paper_mean", "paper_median", "paper_success"]
+
+
+def protocol_scenes(scenes: int, height: int, width: int, seed: int) -> list[Scene]:
+    """The exact (undegraded) protocol scenes, ``scenes x 6`` of them."""
+    sampler = SamplerConfig(height=height, width=width, n_lights_probs=(1.0,))
+    return [render_spec(spec, samples=2).scene for spec in protocol_specs(sampler, seed=seed, scenes=scenes)]
+
+
+def _batch(problems: list[FitProblem]) -> FitProblem:
+    # One FitProblem of several same-sized batch-of-one problems (the gd runs are batched).
+    def per_pixel(m: Material, value, channels: int | None = None) -> torch.Tensor:
+        H, W = m.kd.shape[1:3]
+        if channels is not None:  # ks: None is zero; 1 or 3 channels become 3
+            return torch.zeros(1, H, W, channels) if value is None else value.expand(1, H, W, channels)
+        return value.reshape(-1, 1, 1).expand(1, H, W) if value.dim() < 3 else value
+
+    g = [p.gbuffer for p in problems]
+    m = [p.material for p in problems]
+    material = Material(kd=torch.cat([x.kd for x in m]), ks=torch.cat([per_pixel(x, x.ks, 3) for x in m]),
+                        shininess=torch.cat([per_pixel(x, x.shininess) for x in m]))
+    first = problems[0]
+    return FitProblem(
+        GBuffer(torch.cat([x.points for x in g]), torch.cat([x.normals for x in g]), torch.cat([x.mask for x in g]),
+                torch.cat([x.intrinsics for x in g])),
+        material, torch.cat([p.image for p in problems]),
+        None if first.ambient is None else torch.cat([p.ambient for p in problems]), first.falloff, first.shadows)
+
+
+def fixed_start(problem: FitProblem) -> torch.Tensor:
+    """The gd start ``(B, 1, 3)``: above the middle of the valid points' bounding box
+    (y is down: the box's top is its least y)."""
+    centre, lo, hi = problem.gbuffer.extent()
+    return torch.stack([(lo[:, 0] + hi[:, 0]) / 2, lo[:, 1], (lo[:, 2] + hi[:, 2]) / 2], -1)[:, None]
+
+
+def _errors(position: torch.Tensor, scenes: list[Scene]) -> list[float]:
+    return [float((position[i, 0] - s.light_pos[0]).norm() / s.scene_scale) for i, s in enumerate(scenes)]
+
+
+def _row(reflectance: str, model: str, optimiser: str, errors: list[float], seconds: list[float]) -> dict:
+    published = PUBLISHED[reflectance][MODELS[model][3]]
+    return {"reflectance": REFLECTANCE[reflectance][0], "model": MODELS[model][0], "optimiser": OPTIMISERS[optimiser],
+            "experiments": len(errors),
+            "mean_error": round(statistics.fmean(errors), 4), "median_error": round(statistics.median(errors), 4),
+            "success_rate": round(sum(e < SUCCESS_THRESHOLD for e in errors) / len(errors), 3),
+            "median_seconds": round(statistics.median(seconds), 3),
+            "paper_mean": published[0], "paper_median": published[1], "paper_success": round(published[2] / 100, 3)}
+
+
+def run(scenes: int = 9, height: int = 120, width: int = 160, seed: int = 7000, gd_max_iters: int = 300,
+        reflectance: list[str] | None = None, models: list[str] | None = None,
+        optimisers: list[str] | None = None, write: bool = True):
+    """Fill the table; returns ``(rows, path of the markdown file or None)``.
+
+    ``reflectance``, ``models``, ``optimisers``: subsets by key (None: all) of
+    :data:`REFLECTANCE`, :data:`MODELS`, :data:`OPTIMISERS`.
+    """
+    for name, chosen, known in (("reflectance", reflectance, REFLECTANCE), ("models", models, MODELS),
+                                ("optimisers", optimisers, OPTIMISERS)):
+        unknown = sorted(set(chosen or []) - set(known))
+        if unknown:
+            raise ValueError(f"unknown {name} {unknown}; choose from {list(known)}")
+    exact = protocol_scenes(scenes, height, width, seed)
+    rows = []
+    for row_name, (_, degradations) in REFLECTANCE.items():
+        if reflectance and row_name not in reflectance:
+            continue
+        inputs = [degrade(s, degradations, 1000 + i) for i, s in enumerate(exact)]
+        for model, (_, specular, shadows, _) in MODELS.items():
+            if models and model not in models:
+                continue
+            problems = [problem_of(s, shadows) for s in inputs]
+            for optimiser in OPTIMISERS:
+                if optimisers and optimiser not in optimisers:
+                    continue
+                if optimiser == "gd":
+                    errors, seconds = _gd(problems, specular, gd_max_iters, exact)
+                else:
+                    errors, seconds = _search_lm(problems, specular, exact)
+                rows.append(_row(row_name, model, optimiser, errors, seconds))
+                log.info("%s", rows[-1])
+    path = _write(rows, scenes, height, width, seed, gd_max_iters) if write else None
+    return rows, path
+
+
+def _gd(problems: list[FitProblem], specular: bool, max_iters: int, exact: list[Scene]):
+    # All experiments in one batch, each stopping on its own; the time per
+    # experiment is the batch's time over its size.
+    batch = _batch(problems)
+    options = RefineOptions(method="gd", learning_rate=0.02, robust=False, max_iters=(max_iters,), strides=(1,),
+                            specular=specular)
+    started = time.perf_counter()
+    fit = refine(batch, fixed_start(batch), options)
+    per = (time.perf_counter() - started) / batch.batch
+    return _errors(fit.position, exact), [per] * batch.batch
+
+
+def _search_lm(problems: list[FitProblem], specular: bool, exact: list[Scene]):
+    errors, seconds = [], []
+    options = RefineOptions(specular=specular)
+    for problem, scene in zip(problems, exact):
+        started = time.perf_counter()
+        with torch.no_grad():
+            fit = search(dataclasses.replace(problem, shadows="none"), 1, options)
+            if problem.shadows != "none":
+                fit = refine(problem, fit.position, options)
+        seconds.append(time.perf_counter() - started)
+        errors.extend(_errors(fit.position, [scene]))
+    return errors, seconds
+
+
+def _write(rows: list[dict], scenes: int, height: int, width: int, seed: int, gd_max_iters: int):
+    header = (f"{scenes} protocol scenes x 6 light positions = {scenes * 6} one-light experiments (seed {seed}), "
+              f"{width}x{height}, 2x2 AA, exact shadows in the images. Error: |L_est - L_true| / scene size, "
+              f"mean and median over the experiments; success: error < {SUCCESS_THRESHOLD}. gd: the paper's "
+              f"gradient descent (rate 0.02, plain squared error, stop at relative change 1e-4, at most {gd_max_iters} "
+              "steps) from a fixed start above the middle of the scene, batched (seconds = batch time / experiments); "
+              "search + LM: grid search on shading alone + robust LM, then the model's LM, per experiment. "
+              "paper_*: the paper's published Table 2 (its own scenes and success criterion; its 'ours' is the "
+              "cube-shadow-map model with gd).")
+    path = write_results("paper_table", torch.device("cpu"), rows, header, COLUMNS)
+    text = path.read_text()
+    (RESULTS / "paper_table.md").write_text(text + f"\nCopied from {path.name} ({device_name(torch.device('cpu'))}).\n")
+    return path
