@@ -96,12 +96,12 @@ def evaluate_case(name: str, scene: Scene, options: EstimateOptions) -> dict:
 
 
 def run(method: str = "cnn+refine", height: int = 120, width: int = 160, write: bool = True,
-        max_iters: tuple[int, int] = (30, 10)):
-    options = EstimateOptions(method=method, refine=RefineOptions(max_iters=tuple(max_iters)))
+        max_iters: tuple[int, int] = (30, 10), shadows: str = "none"):
+    options = EstimateOptions(method=method, shadows=shadows, refine=RefineOptions(max_iters=tuple(max_iters)))
     rows = [evaluate_case(name, scene, options) for name, scene in cases(height, width)]
     path = None
     if write:
-        header = (f"estimate.method={method}, {width}x{height}, one light per scene; position error of the "
+        header = (f"estimate.method={method}, estimate.shadows={shadows}, {width}x{height}, one light per scene; position error of the "
                   "scene size, angular error in degrees; a case that raises a clear error is listed with it.")
         path = write_results("stability", torch.device("cpu"), rows, header, COLUMNS)
     return rows, path

@@ -1,11 +1,12 @@
 """Virtual object insertion by differential rendering (mode=insert)."""
 
+import dataclasses
 import json
 
 import pytest
 import torch
 
-from selfsup.insert import default_sphere, insert_sphere, lights_from_record
+from selfsup.insert import Mesh, Sphere, default_sphere, insert_object, insert_sphere, lights_from_record, load_obj, place_object
 from selfsup.scenes.exact import render_spec
 from selfsup.scenes.io import render_inputs, write_scene
 from selfsup.scenes.sampler import SamplerConfig, sample_scene
@@ -31,6 +32,51 @@ def test_insertion_changes_only_the_object_and_its_shadow(scene):
     darker = ((composite - scene.image).sum(-1) < -1e-4) & ~on_object
     assert int(changed.sum()) < 0.5 * int((~on_object).sum())  # the rest of the picture is the real image
     assert int(darker.sum()) > 0  # the sphere casts a shadow on the real geometry
+
+
+@pytest.mark.parametrize("shape", ["cube", "obj"])
+def test_mesh_insertion_changes_only_the_object_and_its_shadow(scene, shape, tmp_path):
+    if shape == "obj":  # a square pyramid: four triangles and a quad base
+        (tmp_path / "p.obj").write_text("v -1 0 -1\nv 1 0 -1\nv 1 0 1\nv -1 0 1\nv 0 2 0\n"
+                                        "f 1 2 5\nf 2 3 5\nf 3 4 5\nf 4 1 5\nf 1/1 4/4 3/3 2/2\n")
+        mesh = load_obj(tmp_path / "p.obj")
+        assert mesh.faces.shape == (6, 3)
+    else:
+        mesh = Mesh.cube()
+    gbuffer, _, _ = render_inputs(scene)
+    placed = place_object(gbuffer, mesh, size=0.03)
+    ambient = scene.ambient if scene.ambient is not None else torch.zeros(3)
+    composite, on_object = insert_object(scene, scene.light_pos, scene.light_intensity, ambient, placed)
+    assert torch.isfinite(composite).all() and 0 < int(on_object.sum()) < on_object.numel() // 4
+    changed = ((composite - scene.image).abs().amax(-1) > 1e-4) & ~on_object
+    darker = ((composite - scene.image).sum(-1) < -1e-4) & ~on_object
+    assert int(changed.sum()) < 0.5 * int((~on_object).sum()) and int(darker.sum()) > 0
+
+
+def test_cube_hits_match_the_analytic_front_face():
+    # A unit cube 3 m ahead: the centre pixel sees its front face at z = 2.5, normal -z.
+    K = torch.tensor([[50.0, 0, 16], [0, 50.0, 12], [0, 0, 1]])
+    cube = dataclasses.replace(Mesh.cube(), vertices=Mesh.cube().vertices * 0.5 + torch.tensor([0.0, 0.0, 3.0]))
+    depth, normals = cube.hits(K, 25, 33)
+    assert float(depth[12, 16]) == pytest.approx(2.5, abs=1e-5)
+    assert torch.allclose(normals[12, 16], torch.tensor([0.0, 0.0, -1.0]))
+    half_width_px = 50.0 * 0.5 / 2.5  # 10 px either side of the centre column
+    row = torch.isfinite(depth[12])
+    assert int(row.sum()) == pytest.approx(2 * half_width_px + 1, abs=1)
+    assert not torch.isfinite(depth[0, 0])
+
+
+def test_bad_meshes_are_named(tmp_path):
+    (tmp_path / "empty.obj").write_text("# nothing\n")
+    with pytest.raises(ValueError, match="has no triangles"):
+        load_obj(tmp_path / "empty.obj")
+    (tmp_path / "bad.obj").write_text("v 0 0 0\nv 1 x 0\n")
+    with pytest.raises(ValueError, match="bad.obj:2: cannot read"):
+        load_obj(tmp_path / "bad.obj")
+    with pytest.raises(ValueError, match="faces index vertices outside"):
+        Mesh(torch.zeros(3, 3), torch.tensor([[0, 1, 3]]))
+    with pytest.raises(ValueError, match="insert.object must be sphere, cube or an .obj file"):
+        run(_cfg("mode=insert", "insert.scene=x.npz", "insert.output=x.png", "insert.object=teapot"))
 
 
 def test_sphere_sits_on_an_upward_surface(scene):
