@@ -59,10 +59,16 @@ def solve_intensities(cols: Tensor, kd: Tensor, image: Tensor, weights: Tensor, 
     w = weights.flatten(2)[:, :, None]  # (B, 3, 1, N)
     normal = (a * w) @ a.transpose(-1, -2)  # (B, 3, k, k)
     rhs = ((a * w) @ target.flatten(2)[..., None]).squeeze(-1)  # (B, 3, k)
-    # The ridge keeps a light that lights nothing solvable (intensity -> 0).
-    scale = ridge * normal.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(1e-30)
-    eye = torch.eye(k, dtype=a.dtype, device=a.device)
-    x, info = torch.linalg.solve_ex(normal + scale[..., None, None] * eye, rhs[..., None])
+    # The ridge keeps a nearly dark light solvable (intensity -> 0). A light that lights
+    # nothing at all (an all-zero column) gets a unit-scale diagonal instead: its
+    # intensity is then exactly 0 and, unlike a 1e-9 ridge in float32, the solve's
+    # backward stays finite (a gradient step may carry a light behind a wall).
+    # With a known ambient and every light dark the whole system is zero: scale 1 then.
+    diagonal = normal.diagonal(dim1=-2, dim2=-1)
+    trace = diagonal.sum(-1)
+    trace = torch.where(trace > 0, trace, torch.ones_like(trace))
+    dead = (diagonal <= 1e-12 * trace[..., None]).to(a.dtype)
+    x, info = torch.linalg.solve_ex(normal + torch.diag_embed((ridge + dead) * trace[..., None]), rhs[..., None])
     # A singular system (no lit pixel at all) gives no light rather than an exception.
     x = torch.where((info == 0)[..., None, None] & torch.isfinite(x), x, torch.zeros_like(x)).squeeze(-1).clamp_min(0)
     model = (x[..., None, None] * cols).sum(2)
