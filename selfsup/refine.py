@@ -286,11 +286,15 @@ def _first_order(problem: FitProblem, position: Tensor, options: RefineOptions, 
         energy = (weights * (model - problem.image) ** 2).flatten(1).sum(1) / norm
         (energy * active).sum().backward()
         unit.grad[~active] = 0
+        before = unit.detach().clone()
         optimiser.step()
         iterations += active
         with torch.no_grad():
+            # A non-finite gradient or step stops that image where it was, never at NaN.
+            broken = ~torch.isfinite(unit).all(-1).all(-1) | ~torch.isfinite(energy)
+            unit[broken] = before[broken]
             change = (previous - energy).abs() / energy.clamp_min(1e-30)
-            active &= ~(change < tol)
+            active &= ~(change < tol) & ~broken
             previous = energy.detach()
     return (centre[:, None] + unit.detach() * size[:, None, None]), iterations
 

@@ -201,6 +201,25 @@ def test_a_light_that_lights_nothing_has_a_finite_gradient(known_ambient):
     assert torch.isfinite(diffuse.grad).all()
 
 
+@pytest.mark.parametrize("method", ["gd", "adam"])
+def test_first_order_steps_never_leave_a_nan_position(method, monkeypatch):
+    import selfsup.refine as refine_module
+
+    scene = _scene(5)
+    problem = problem_of(scene, shadows="none")
+    original, calls = refine_module._transport, [0]
+
+    def poisoned(problem, position, specular):  # from the third render on, NaN maps
+        calls[0] += 1
+        diffuse, spec = original(problem, position, specular)
+        return (diffuse * float("nan") if calls[0] >= 3 else diffuse), spec
+
+    monkeypatch.setattr(refine_module, "_transport", poisoned)
+    start = scene.light_pos[None] + 0.05 * scene.scene_scale
+    fit = refine(problem, start, RefineOptions(method=method, max_iters=(8,), strides=(1,)))
+    assert torch.isfinite(fit.position).all() and int(fit.iterations[0]) < 8
+
+
 def test_bad_refine_inputs_are_named():
     problem = problem_of(_scene(8))
     with pytest.raises(ValueError, match="position must have shape"):
