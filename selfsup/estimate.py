@@ -9,7 +9,7 @@ Shadow models (``shadows``, ``search_shadows``): the default is shading alone
 (``none``) for both. Cast shadows from one depth map guess what lies behind
 the visible surfaces; the Cauchy-robust fit of shading alone treats real
 shadows as outliers and was as accurate or more on every set measured, at half
-the time (README, "Per-image estimation"). With ``shadows=epipolar|paper`` the
+the time (README, "Estimating lights from scene files"). With ``shadows=epipolar|paper`` the
 global search still runs on shading alone (``search_shadows``), whose landscape
 is smooth, and every candidate it finds is refined and judged with the shadows:
 a search with shadows stopped, on two-light scenes especially, in basins whose
