@@ -23,20 +23,25 @@ from torch import Tensor
 from render import GBuffer, Material, PointLights, render_image
 from selfsup.scenes.io import Scene, render_inputs
 
-__all__ = ["Sphere", "Mesh", "load_obj", "default_sphere", "place_object", "insert_object", "insert_sphere",
+__all__ = ["Surface", "Sphere", "Mesh", "load_obj", "default_sphere", "place_object", "insert_object", "insert_sphere",
            "lights_from_record", "insert_files"]
 
 
-@dataclass
-class Sphere:
-    """``centre (3,)`` camera-frame metres, ``radius`` metres, diffuse ``albedo (3,)``,
-    specular ``ks`` and ``shininess``."""
+@dataclass(kw_only=True)
+class Surface:
+    """The inserted object's Blinn-Phong material: diffuse ``albedo (3,)``, specular ``ks``, ``shininess``."""
 
-    centre: Tensor
-    radius: float
     albedo: tuple[float, float, float] = (0.8, 0.8, 0.8)
     ks: float = 0.2
     shininess: float = 40.0
+
+
+@dataclass
+class Sphere(Surface):
+    """``centre (3,)`` camera-frame metres, ``radius`` metres, and its :class:`Surface`."""
+
+    centre: Tensor
+    radius: float
 
     def __post_init__(self):
         if not self.radius > 0 or not bool(torch.isfinite(self.centre).all()):
@@ -57,16 +62,13 @@ class Sphere:
 
 
 @dataclass
-class Mesh:
+class Mesh(Surface):
     """A triangle mesh in the camera frame: ``vertices (V, 3)`` metres, ``faces (F, 3)``
-    vertex indices; diffuse ``albedo (3,)``, specular ``ks`` and ``shininess``.
-    Shading uses flat face normals turned towards the camera."""
+    vertex indices, and its :class:`Surface`. Shading uses flat face normals turned
+    towards the camera."""
 
     vertices: Tensor
     faces: Tensor
-    albedo: tuple[float, float, float] = (0.8, 0.8, 0.8)
-    ks: float = 0.2
-    shininess: float = 40.0
 
     def __post_init__(self):
         if self.vertices.dim() != 2 or self.vertices.shape[-1] != 3 or self.vertices.shape[0] < 3:
@@ -179,8 +181,8 @@ def place_object(gbuffer: GBuffer, obj: Sphere | Mesh, pixel: tuple[float, float
     scene's bounding-box diagonal in radius (a mesh: half its largest side). A mesh's
     own +y axis (the OBJ convention's up) is turned along the surface normal."""
     if isinstance(obj, Sphere):
-        return dataclasses.replace(default_sphere(gbuffer, pixel, size), albedo=obj.albedo, ks=obj.ks,
-                                   shininess=obj.shininess)
+        placed = default_sphere(gbuffer, pixel, size)
+        return dataclasses.replace(obj, centre=placed.centre, radius=placed.radius)
     point, normal, diagonal = _resting_point(gbuffer, pixel)
     lo, hi = obj.vertices.amin(0), obj.vertices.amax(0)
     scale = size * diagonal / float((hi - lo).max().clamp_min(1e-12) / 2)
