@@ -47,7 +47,6 @@ import time
 import torch
 
 from benchmarks.common import RESULTS, device_name, write_results
-from render import GBuffer, Material
 from selfsup.estimate import problem_of
 from selfsup.metrics import SUCCESS_THRESHOLD
 from selfsup.refine import FitProblem, RefineOptions, refine, search
@@ -94,30 +93,10 @@ def protocol_scenes(scenes: int, height: int, width: int, seed: int) -> list[Sce
     return [render_spec(spec, samples=2).scene for spec in protocol_specs(sampler, seed=seed, scenes=scenes)]
 
 
-def _batch(problems: list[FitProblem]) -> FitProblem:
-    # One FitProblem of several same-sized batch-of-one problems (the gd runs are batched).
-    def per_pixel(m: Material, value, channels: int | None = None) -> torch.Tensor:
-        H, W = m.kd.shape[1:3]
-        if channels is not None:  # ks: None is zero; 1 or 3 channels become 3
-            return torch.zeros(1, H, W, channels) if value is None else value.expand(1, H, W, channels)
-        return value.reshape(-1, 1, 1).expand(1, H, W) if value.dim() < 3 else value
-
-    g = [p.gbuffer for p in problems]
-    m = [p.material for p in problems]
-    material = Material(kd=torch.cat([x.kd for x in m]), ks=torch.cat([per_pixel(x, x.ks, 3) for x in m]),
-                        shininess=torch.cat([per_pixel(x, x.shininess) for x in m]))
-    first = problems[0]
-    return FitProblem(
-        GBuffer(torch.cat([x.points for x in g]), torch.cat([x.normals for x in g]), torch.cat([x.mask for x in g]),
-                torch.cat([x.intrinsics for x in g])),
-        material, torch.cat([p.image for p in problems]),
-        None if first.ambient is None else torch.cat([p.ambient for p in problems]), first.falloff, first.shadows)
-
-
 def fixed_start(problem: FitProblem) -> torch.Tensor:
     """The gd start ``(B, 1, 3)``: above the middle of the valid points' bounding box
     (y is down: the box's top is its least y)."""
-    centre, lo, hi = problem.gbuffer.extent()
+    _, lo, hi = problem.gbuffer.extent()
     return torch.stack([(lo[:, 0] + hi[:, 0]) / 2, lo[:, 1], (lo[:, 2] + hi[:, 2]) / 2], -1)[:, None]
 
 
@@ -174,7 +153,7 @@ def run(scenes: int = 9, height: int = 120, width: int = 160, seed: int = 7000, 
 def _gd(problems: list[FitProblem], specular: bool, max_iters: int, exact: list[Scene]):
     # All experiments in one batch, each stopping on its own; the time per
     # experiment is the batch's time over its size.
-    batch = _batch(problems)
+    batch = FitProblem.cat(problems)
     options = RefineOptions(method="gd", learning_rate=0.02, robust=False, max_iters=(max_iters,), strides=(1,),
                             specular=specular)
     started = time.perf_counter()

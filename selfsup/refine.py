@@ -68,6 +68,29 @@ class FitProblem:
             self.image[index], None if self.ambient is None else self.ambient[index], self.falloff, self.shadows,
         )
 
+    @staticmethod
+    def cat(problems: list["FitProblem"]) -> "FitProblem":
+        """One batch of same-sized problems (the inverse of :meth:`select`); a missing ks
+        becomes zero, ks channels and shininess are broadcast per pixel. Falloff, shadows
+        and whether the ambient is known follow the first problem."""
+        def per_pixel(m: Material, value: Tensor | None, channels: int | None = None) -> Tensor:
+            B, H, W = m.kd.shape[:3]
+            if channels is not None:
+                return m.kd.new_zeros(B, H, W, channels) if value is None else value.expand(B, H, W, channels)
+            return value.reshape(-1, 1, 1).expand(B, H, W) if value.dim() < 3 else value
+
+        g = [p.gbuffer for p in problems]
+        m = [p.material for p in problems]
+        first = problems[0]
+        return FitProblem(
+            GBuffer(torch.cat([x.points for x in g]), torch.cat([x.normals for x in g]), torch.cat([x.mask for x in g]),
+                    None if g[0].intrinsics is None else torch.cat([x.intrinsics for x in g])),
+            Material(kd=torch.cat([x.kd for x in m]), ks=torch.cat([per_pixel(x, x.ks, 3) for x in m]),
+                     shininess=torch.cat([per_pixel(x, x.shininess) for x in m])),
+            torch.cat([p.image for p in problems]),
+            None if first.ambient is None else torch.cat([p.ambient for p in problems]), first.falloff, first.shadows,
+        )
+
 
 def subsample(problem: FitProblem, stride: int) -> FitProblem:
     """Every ``stride``-th pixel of every row and column (no averaging across edges); K follows."""

@@ -220,6 +220,16 @@ def test_first_order_steps_never_leave_a_nan_position(method, monkeypatch):
     assert torch.isfinite(fit.position).all() and int(fit.iterations[0]) < 8
 
 
+def test_cat_undoes_select():
+    from selfsup.refine import FitProblem
+
+    problem = FitProblem.cat([problem_of(_scene(4)), problem_of(_scene(5))])
+    assert problem.batch == 2 and problem.material.ks.shape[-1] == 3
+    again = FitProblem.cat([problem.select(torch.tensor([1])), problem.select(torch.tensor([0]))])
+    assert torch.equal(again.image, problem.image.flip(0)) and torch.equal(again.gbuffer.points, problem.gbuffer.points.flip(0))
+    assert torch.equal(again.material.shininess, problem.material.shininess.flip(0))
+
+
 def test_bad_refine_inputs_are_named():
     problem = problem_of(_scene(8))
     with pytest.raises(ValueError, match="position must have shape"):
