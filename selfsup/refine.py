@@ -118,7 +118,10 @@ class RefineOptions:
     ``method``: ``lm`` | ``adam`` | ``gd``. ``max_iters`` per pyramid level,
     ``strides``: coarse-to-fine pixel strides. ``tol``: stop when the relative cost
     decrease of an accepted step falls below it (``gd`` uses the paper's 1e-4).
-    ``robust``: Cauchy IRLS with scale ``robust_scale`` x median observed value.
+    ``robust``: Cauchy IRLS with scale ``robust_scale`` x median observed value;
+    ``irls_passes``: reweighting passes that solve the intensities and ambient of
+    a robust fit at fixed positions (one pass leaves the outliers' pull in the
+    closed-form solve, which skews every loss compared between candidates).
     ``fd_step``: forward-difference step, in scene sizes. ``learning_rate``: adam/gd.
     """
 
@@ -128,6 +131,7 @@ class RefineOptions:
     tol: float = 1e-5
     robust: bool = True
     robust_scale: float = 0.2
+    irls_passes: int = 4
     fd_step: float = 1e-3
     learning_rate: float = 0.02
     specular: bool = True
@@ -139,6 +143,8 @@ class RefineOptions:
             raise ValueError(f"max_iters {self.max_iters} and strides {self.strides} must have the same length")
         if any(s < 1 for s in self.strides) or any(i < 0 for i in self.max_iters):
             raise ValueError("strides must be >= 1 and max_iters >= 0")
+        if self.irls_passes < 1:
+            raise ValueError(f"irls_passes must be >= 1, got {self.irls_passes}")
 
 
 @dataclass
@@ -202,14 +208,20 @@ def _transport(problem: FitProblem, position: Tensor, specular: bool):
     return t.diffuse, t.specular
 
 
-def evaluate(problem: FitProblem, position: Tensor, options: RefineOptions, weights: Tensor | None = None):
+def evaluate(problem: FitProblem, position: Tensor, options: RefineOptions, weights: Tensor | None = None,
+             passes: int | None = None):
     """Solve intensities/ambient at ``position (B, L, 3)``; returns
-    ``(cost (B,), intensity, ambient, model, weights, diffuse, specular)``."""
+    ``(cost (B,), intensity, ambient, model, weights, diffuse, specular)``.
+
+    Given no ``weights``, the robust fit reweights ``passes`` times
+    (``options.irls_passes`` by default) from the plain least-squares solve.
+    """
     diffuse, specular = _transport(problem, position, options.specular)
     if weights is None:
-        base = _weights(problem, None, options)
-        _, _, model = solve_linear(problem, diffuse, specular, base)
-        weights = _weights(problem, model - problem.image, options)
+        weights = _weights(problem, None, options)
+        for _ in range((passes or options.irls_passes) if options.robust else 0):
+            _, _, model = solve_linear(problem, diffuse, specular, weights)
+            weights = _weights(problem, model - problem.image, options)
     intensity, ambient, model = solve_linear(problem, diffuse, specular, weights)
     cost = (weights * (model - problem.image) ** 2).flatten(1).sum(1)
     return cost, intensity, ambient, model, weights, diffuse, specular
@@ -241,7 +253,9 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
     damping = torch.full((B,), 1e-3, dtype=position.dtype, device=position.device)
     active = torch.ones(B, dtype=torch.bool, device=position.device)
     iterations = torch.zeros(B, dtype=torch.long, device=position.device)
-    cost, intensity, ambient, model, weights, diffuse, specular = evaluate(problem, position, options)
+    # One reweighting pass only: weights converged at a wrong start would silence the
+    # very residuals that say where the light should move.
+    cost, intensity, ambient, model, weights, diffuse, specular = evaluate(problem, position, options, passes=1)
     for _ in range(max_iters):
         idx = active.nonzero(as_tuple=True)[0]
         if idx.numel() == 0:
@@ -295,7 +309,7 @@ def _first_order(problem: FitProblem, position: Tensor, options: RefineOptions, 
     tol = 1e-4 if options.method == "gd" else options.tol
     optimiser = (torch.optim.SGD([unit], lr=options.learning_rate) if options.method == "gd"
                  else torch.optim.Adam([unit], lr=options.learning_rate))
-    _, _, _, _, weights, _, _ = evaluate(problem, position.detach(), options)
+    _, _, _, _, weights, _, _ = evaluate(problem, position.detach(), options, passes=1)  # as in _lm
     norm = (weights * problem.image**2).flatten(1).sum(1).clamp_min(1e-30)
     previous = torch.full((B,), float("inf"), dtype=position.dtype, device=position.device)
     active = torch.ones(B, dtype=torch.bool, device=position.device)
@@ -416,7 +430,7 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
         tiled = coarse.select(torch.zeros(G, dtype=torch.long))
         with torch.no_grad():
             positions = torch.cat([base.expand(G, -1, -1), cands[:, None]], 1)
-            _, _, _, model, _, _, _ = evaluate(tiled, positions, options)
+            _, _, _, model, _, _, _ = evaluate(tiled, positions, options, passes=1)  # a coarse ranking
             score = robust_loss(tiled, model, options)
         size = float(_scene_frame(coarse)[1][0])
         pick = _spread_best(cands, score, size, starts, 0.15)
