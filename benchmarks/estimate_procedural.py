@@ -9,6 +9,7 @@ m = 0.1 .. 0.3) success >= 90%; two-light scenes the right light count >= 90%;
 chi-square 95.4% point).
 
     python -m benchmarks.estimate_procedural --scenes 20 --method cnn+refine [--shadows none --search-shadows none]
+        [--normal-smoothing auto] [--sets "sensor depth and image noise"]  # a subset is printed, not written
 
 Results: benchmarks/results/estimate_procedural_<method>_shadows_<s>_search_<s>_<device>_<date>.{md,json}.
 """
@@ -36,6 +37,9 @@ SETS = {
     "fractal noise m=0.1": (dict(reflectance="noise", reflectance_noise=0.1), [1.0]),
     "fractal noise m=0.3": (dict(reflectance="noise", reflectance_noise=0.3), [1.0]),
     "true reflectance, 2 lights": (dict(), [0.0, 1.0]),
+    # configs/eval's sensor set: depth noise and quantisation growing with z^2, holes, image noise
+    "sensor depth and image noise": (dict(depth_noise=0.003, depth_quantisation=0.001, edge_hole_jump=0.05,
+                                          random_holes=0.01, image_noise=0.005), [1.0]),
 }
 COLUMNS = ["set", "method", "scenes", "median_position_error", "success_rate", "count_accuracy",
            "two_sigma_coverage", "median_seconds"]
@@ -69,8 +73,9 @@ def run_set(name: str, degradations: dict, lights: list, count: int, seed: int, 
 
 
 def run(scenes: int = 20, method: str = "cnn+refine", seed: int = 9100, sets: list[str] | None = None,
-        write: bool = True, shadows: str = "none", search_shadows: str = "none"):
-    options = EstimateOptions(method=method, shadows=shadows, search_shadows=search_shadows)
+        write: bool = True, shadows: str = "none", search_shadows: str = "none", normal_smoothing: str = "auto"):
+    options = EstimateOptions(method=method, shadows=shadows, search_shadows=search_shadows,
+                              normal_smoothing=normal_smoothing)
     rows = []
     for name, (degradations, lights) in SETS.items():
         if sets and name not in sets:
@@ -80,7 +85,8 @@ def run(scenes: int = 20, method: str = "cnn+refine", seed: int = 9100, sets: li
     path = None
     if write:
         header = (f"{scenes} scenes per set (seeds {seed}*1000003+i), 160x120, 2x2 AA; estimate.method={method}, "
-                  f"estimate.shadows={shadows}, estimate.search_shadows={search_shadows}, defaults otherwise. Position error: worst light per scene, of the scene size; success: every "
+                  f"estimate.shadows={shadows}, estimate.search_shadows={search_shadows}, "
+                  f"estimate.normal_smoothing={normal_smoothing}, defaults otherwise. Position error: worst light per scene, of the scene size; success: every "
                   "light < 0.05; two_sigma_coverage: share of true lights inside their 2-sigma ellipsoid "
                   f"(Mahalanobis^2 < {CHI2_3D_2SIGMA}); seconds per scene on this device.")
         name = f"estimate_procedural_{method.replace('+', '_')}_shadows_{shadows}_search_{search_shadows}"
@@ -95,6 +101,9 @@ if __name__ == "__main__":
     parser.add_argument("--seed", type=int, default=9100)
     parser.add_argument("--shadows", default="none")
     parser.add_argument("--search-shadows", default="none")
+    parser.add_argument("--normal-smoothing", default="auto")
+    parser.add_argument("--sets", nargs="*", help="names of the sets to run (default: all)")
     args = parser.parse_args()
     torch.set_num_threads(2)
-    print(run(args.scenes, args.method, args.seed, shadows=args.shadows, search_shadows=args.search_shadows)[1])
+    print(run(args.scenes, args.method, args.seed, sets=args.sets, write=not args.sets, shadows=args.shadows,
+              search_shadows=args.search_shadows, normal_smoothing=args.normal_smoothing)[1])

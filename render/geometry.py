@@ -10,7 +10,7 @@ import torch
 from kornia.geometry.depth import depth_to_3d_v2
 from torch import Tensor
 
-__all__ = ["unproject_depth", "normals_from_points", "fit_intrinsics", "pixel_grid"]
+__all__ = ["unproject_depth", "normals_from_points", "plane_normals", "smooth_normals", "normal_noise", "fit_intrinsics", "pixel_grid"]
 
 
 def pixel_grid(height: int, width: int, like: Tensor) -> tuple[Tensor, Tensor]:
@@ -107,6 +107,122 @@ def normals_from_points(
     n = torch.where(facing[..., None], -n, n)
     n = torch.where(has_normal[..., None], n, torch.zeros_like(n))
     return n, has_normal
+
+
+def plane_normals(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative_step: float = 0.1
+                  ) -> tuple[Tensor, Tensor]:
+    """Unit normals of least-squares planes fitted to each pixel's window, for noisy depth.
+
+    Differences of neighbouring pixels turn sensor noise of a few centimetres into
+    normals tens of degrees off; a plane through the ``(2 radius + 1)^2`` window
+    averages it away. Neighbours whose depth differs from the centre's by more
+    than ``max_relative_step * z`` are left out, so planes do not reach across
+    depth edges (they do round creases off within the window). The normal is the
+    eigenvector of the smallest eigenvalue of the window's point covariance,
+    turned to face the camera. Memory ``O(B H W)``.
+
+    Args:
+        points: ``(B, H, W, 3)`` camera-frame points.
+        mask: ``(B, H, W)`` bool validity.
+        radius: window half-size in pixels (>= 1).
+        max_relative_step: largest accepted depth difference to the centre, relative
+            to its depth.
+
+    Returns:
+        ``normals (B, H, W, 3)`` (zero where missing) and ``has_normal (B, H, W)``: at
+        least 3 neighbours and a well-defined plane.
+    """
+    if radius < 1:
+        raise ValueError(f"plane_normals needs radius >= 1, got {radius}")
+    B, H, W, _ = points.shape
+    pad = (0, 0, radius, radius, radius, radius)
+    padded_points = torch.nn.functional.pad(points, pad)
+    padded_mask = torch.nn.functional.pad(mask, pad[2:])
+    limit = max_relative_step * points[..., 2:].abs()
+    count = torch.zeros_like(points[..., :1])
+    first = torch.zeros_like(points)  # sums of offsets from the centre (better conditioned than raw points)
+    second = torch.zeros(B, H, W, 3, 3, dtype=points.dtype, device=points.device)
+    for di in range(2 * radius + 1):
+        for dj in range(2 * radius + 1):
+            offset = padded_points[:, di : di + H, dj : dj + W] - points
+            use = (padded_mask[:, di : di + H, dj : dj + W, None] & mask[..., None]
+                   & (offset[..., 2:].abs() <= limit)).to(points.dtype)
+            offset = offset * use
+            count = count + use
+            first = first + offset
+            second = second + offset[..., :, None] * offset[..., None, :]
+    mean = first / count.clamp_min(1)
+    covariance = second / count.clamp_min(1)[..., None] - mean[..., :, None] * mean[..., None, :]
+    eigenvalues, eigenvectors = torch.linalg.eigh(covariance)
+    n = eigenvectors[..., 0]  # smallest eigenvalue first
+    # A plane needs spread in two directions: the middle eigenvalue well above zero.
+    spread = eigenvalues[..., 1] > 1e-6 * eigenvalues[..., 2].clamp_min(torch.finfo(points.dtype).tiny)
+    has_normal = mask & (count[..., 0] >= 3) & spread & torch.isfinite(n).all(-1)
+    facing = (n * points).sum(-1) > 0
+    n = torch.where(facing[..., None], -n, n)
+    return torch.where(has_normal[..., None], n, torch.zeros_like(n)), has_normal
+
+
+def smooth_normals(
+    points: Tensor, normals: Tensor, mask: Tensor, *, radius: int = 3, passes: int = 2,
+    normal_sigma: float = 0.3, plane_sigma: float = 0.02,
+) -> Tensor:
+    """Edge-preserving (bilateral) smoothing of a normal map, for noisy depth sensors.
+
+    Each valid normal becomes the normalised weighted mean of the valid normals in
+    its ``(2 radius + 1)^2`` window, weighted by ``exp(-|n_j - n_i|^2 / normal_sigma^2)``
+    (creases keep their sides apart) times ``exp(-(d_j / (plane_sigma z_i))^2)``
+    where ``d_j`` is the neighbour's distance from the centre's tangent plane (a
+    depth edge keeps its sides apart; the scale grows with depth as sensor noise
+    does). A piecewise-smooth clean map barely changes; sensor noise (several
+    degrees per pixel) drops by about half per the devset's noisy scenes. Memory
+    ``O(B H W)``: the window is visited offset by offset.
+
+    Args:
+        points, normals: ``(B, H, W, 3)``; normals unit length where valid.
+        mask: ``(B, H, W)`` bool validity.
+        radius, passes: window half-size (pixels) and number of passes.
+        normal_sigma, plane_sigma: the two weights' scales (unit-vector distance;
+            fraction of the pixel's depth).
+
+    Returns:
+        ``(B, H, W, 3)`` unit normals (zeros where ``mask`` is false).
+    """
+    if radius < 1 or passes < 1 or normal_sigma <= 0 or plane_sigma <= 0:
+        raise ValueError(f"smooth_normals needs radius, passes >= 1 and positive sigmas, got "
+                         f"{radius}, {passes}, {normal_sigma}, {plane_sigma}")
+    B, H, W, _ = points.shape
+    pad = (0, 0, radius, radius, radius, radius)  # (C, W, H) of a channel-last tensor
+    valid = mask[..., None].to(points.dtype)
+    padded_points = torch.nn.functional.pad(points, pad)
+    padded_valid = torch.nn.functional.pad(valid, pad)
+    plane_scale = (plane_sigma * points[..., 2:].abs()).clamp_min(torch.finfo(points.dtype).tiny)
+    current = torch.where(mask[..., None], normals, torch.zeros_like(normals))
+    for _ in range(passes):
+        padded_normals = torch.nn.functional.pad(current, pad)
+        total = torch.zeros_like(current)
+        for di in range(2 * radius + 1):
+            for dj in range(2 * radius + 1):
+                n_j = padded_normals[:, di : di + H, dj : dj + W]
+                offset = padded_points[:, di : di + H, dj : dj + W] - points
+                plane = (offset * current).sum(-1, keepdim=True) / plane_scale
+                similarity = ((n_j - current) ** 2).sum(-1, keepdim=True) / normal_sigma**2
+                weight = padded_valid[:, di : di + H, dj : dj + W] * torch.exp(-similarity - plane**2)
+                total = total + weight * n_j
+        length = total.norm(dim=-1, keepdim=True)
+        current = torch.where(mask[..., None] & (length > 0), total / length.clamp_min(1e-30), current)
+    return current
+
+
+def normal_noise(points: Tensor, normals: Tensor, mask: Tensor) -> Tensor:
+    """Median angle (degrees) ``(B,)`` between each valid normal and its
+    :func:`smooth_normals` version with a one-pixel window: about zero for normals
+    of clean geometry, a few degrees for normals of a consumer depth sensor."""
+    smoothed = smooth_normals(points, normals, mask, radius=1, passes=1)
+    cos = (smoothed * normals).sum(-1).clamp(-1, 1)
+    angle = torch.rad2deg(torch.acos(cos))
+    angle = torch.where(mask, angle, torch.full_like(angle, float("nan")))
+    return angle.flatten(1).nanmedian(1).values
 
 
 def fit_intrinsics(points: Tensor, mask: Tensor) -> Tensor:

@@ -39,6 +39,7 @@ import torch
 from torch import Tensor
 
 from render import light_transport
+from render.geometry import normal_noise, plane_normals, smooth_normals
 from render.shadows import ShadowMethod
 from selfsup.refine import (Fit, FitProblem, RefineOptions, evaluate, position_covariance, refine, robust_loss,
                             search)
@@ -49,6 +50,7 @@ __all__ = ["EstimateOptions", "Candidate", "bic", "problem_of", "estimate_scene"
 log = logging.getLogger(__name__)
 METHODS = ("cnn+refine", "cnn", "refine")
 SHADOW_METHODS = tuple(m.value for m in ShadowMethod)
+NORMAL_SMOOTHING = ("auto", "always", "never")
 
 
 @dataclass
@@ -62,6 +64,10 @@ class EstimateOptions:
     the final refinement and the criterion; ``search_shadows``: that of the
     global search (``none``: shading alone, the smoother landscape).
     ``checkpoint``: the network of the ``cnn`` methods (None: the shipped one).
+    ``normal_smoothing``: ``auto`` smooths the normals (edge-preserving,
+    :func:`render.geometry.smooth_normals`) when their measured noise
+    (:func:`render.geometry.normal_noise`) exceeds ``normal_noise_threshold``
+    degrees, as normals of a consumer depth sensor do; ``always`` | ``never``.
     """
 
     method: str = "cnn+refine"
@@ -73,6 +79,8 @@ class EstimateOptions:
     min_light_share: float = 0.1
     shadows: str = "none"
     search_shadows: str = "none"
+    normal_smoothing: str = "auto"
+    normal_noise_threshold: float = 0.5
     refine: RefineOptions = field(default_factory=RefineOptions)
 
     def __post_init__(self):
@@ -83,6 +91,10 @@ class EstimateOptions:
             raise ValueError(f"estimate.method must be one of {METHODS}, got {self.method!r}")
         if self.max_lights < 1:
             raise ValueError(f"max_lights must be >= 1, got {self.max_lights}")
+        if self.normal_smoothing not in NORMAL_SMOOTHING:
+            raise ValueError(f"estimate.normal_smoothing must be one of {NORMAL_SMOOTHING}, got {self.normal_smoothing!r}")
+        if not self.normal_noise_threshold >= 0:
+            raise ValueError(f"estimate.normal_noise_threshold must be >= 0 degrees, got {self.normal_noise_threshold}")
         for name in ("shadows", "search_shadows"):
             if getattr(self, name) not in SHADOW_METHODS:
                 raise ValueError(f"estimate.{name} must be one of {SHADOW_METHODS}, got {getattr(self, name)!r}")
@@ -98,11 +110,22 @@ class Candidate:
     criterion: float
 
 
-def problem_of(scene: Scene, shadows: str = "epipolar", dtype=torch.float32) -> FitProblem:
-    """A batch-of-one :class:`FitProblem` from a scene file's contents."""
+def problem_of(scene: Scene, shadows: str = "epipolar", dtype=torch.float32, normal_smoothing: str = "never",
+               normal_noise_threshold: float = 0.5) -> FitProblem:
+    """A batch-of-one :class:`FitProblem` from a scene file's contents; the normals
+    smoothed as ``normal_smoothing`` says (see :class:`EstimateOptions`)."""
     gbuffer, material, _ = render_inputs(scene)
     if not bool(gbuffer.mask.any()):
         raise SceneFileError(scene.id, "no valid pixel left after estimating normals")
+    if normal_smoothing == "always" or (
+            normal_smoothing == "auto"
+            and float(normal_noise(gbuffer.points, gbuffer.normals, gbuffer.mask)[0]) > normal_noise_threshold):
+        normals, mask = gbuffer.normals, gbuffer.mask
+        if scene.normals is None:
+            # Differences of noisy neighbours are tens of degrees off: fit planes to 9x9 windows instead.
+            normals, has_normal = plane_normals(gbuffer.points, gbuffer.mask, radius=4)
+            mask = gbuffer.mask & has_normal
+        gbuffer = replace(gbuffer, normals=smooth_normals(gbuffer.points, normals, mask), mask=mask)
     return FitProblem(gbuffer, material, scene.image.permute(2, 0, 1)[None].to(dtype),
                       None if scene.ambient is None else scene.ambient[None], scene.falloff, shadows)
 
@@ -165,7 +188,8 @@ def estimate_scene(scene: Scene, options: EstimateOptions) -> dict:
     candidates as starts of every search; ``cnn`` keeps the slots as they are (no
     refinement).
     """
-    problem = problem_of(scene, options.shadows)
+    problem = problem_of(scene, options.shadows, normal_smoothing=options.normal_smoothing,
+                         normal_noise_threshold=options.normal_noise_threshold)
     searched = problem if options.search_shadows == options.shadows else replace(problem, shadows=options.search_shadows)
     has_specular = scene.ks is not None and bool((scene.ks > 0).any())
     if options.method == "refine":

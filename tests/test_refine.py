@@ -238,3 +238,38 @@ def test_bad_refine_inputs_are_named():
         refine(problem, torch.full((1, 1, 3), float("nan")))
     with pytest.raises(ValueError, match="method"):
         RefineOptions(method="newton")
+
+
+def test_sensor_noise_in_the_depth_is_taken_out_of_the_normals():
+    # Depth noise growing with z^2 (a consumer sensor) makes normals from neighbour
+    # differences tens of degrees off; auto replaces them by smoothed plane fits.
+    from selfsup.scenes.degrade import Degradations, degrade
+
+    scene = _scene(2, config=MEDIUM)
+    noisy = degrade(scene, Degradations(depth_noise=0.003, depth_quantisation=0.001), 2)
+    options = RefineOptions(max_iters=(20,), strides=(1,), specular=False)
+    errors = {mode: _rel_error(refine(problem_of(noisy, "none", normal_smoothing=mode), scene.light_pos[None],
+                                      options).position[0], scene)
+              for mode in ("never", "auto")}
+    assert errors["never"] > 0.015 and errors["auto"] < 0.4 * errors["never"], errors
+    # Clean normals are below the noise threshold: auto leaves them as they are.
+    assert torch.equal(problem_of(scene, normal_smoothing="auto").gbuffer.normals,
+                       problem_of(scene, normal_smoothing="never").gbuffer.normals)
+    with pytest.raises(ValueError, match="normal_smoothing"):
+        EstimateOptions(normal_smoothing="sometimes")
+
+
+def test_robust_solve_at_fixed_positions_converges():
+    # More reweighting passes never raise the robust loss of the solved intensities/ambient.
+    scene = _scene(6)
+    problem = problem_of(scene, "none")
+    image = problem.image.clone()
+    image[..., :16, :] += 2 * image.amax()  # outliers: a bright band the model cannot explain
+    problem = dataclasses.replace(problem, image=image)
+    options = RefineOptions(specular=False)
+    losses = [float(robust_loss(problem, evaluate(problem, scene.light_pos[None], options, passes=k)[3], options)[0])
+              for k in (1, 2, 4, 8)]
+    assert all(b <= a * (1 + 1e-5) for a, b in zip(losses, losses[1:])), losses
+    assert losses[2] < 0.99 * losses[0] and losses[3] > 0.99 * losses[2], losses
+    with pytest.raises(ValueError, match="irls_passes"):
+        RefineOptions(irls_passes=0)

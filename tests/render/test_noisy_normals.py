@@ -1,0 +1,83 @@
+"""Normals of noisy depth: plane fits, edge-preserving smoothing, the noise measure."""
+
+import math
+
+import pytest
+import torch
+
+from render import GBuffer
+from render.geometry import normal_noise, plane_normals, smooth_normals
+
+K = torch.tensor([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]], dtype=torch.float64)
+TILT = torch.tensor([0.0, 0.5, -1.0], dtype=torch.float64) / math.sqrt(1.25)  # plane z = 2 + 0.5 y, facing the camera
+
+
+def _tilted_plane(noise: float = 0.0, seed: int = 0) -> GBuffer:
+    H, W = 48, 64
+    v = torch.arange(H, dtype=torch.float64)[:, None].expand(H, W)
+    depth = 2.0 / (1 - 0.5 * (v - K[1, 2]) / K[1, 1])
+    depth = depth + noise * torch.randn(H, W, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    return GBuffer.from_depth(depth[None], K)
+
+
+def _angle(normals: torch.Tensor, expected: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    return torch.rad2deg(torch.acos((normals * expected).sum(-1).clamp(-1, 1)))[mask]
+
+
+def test_plane_fit_recovers_a_noisy_plane_that_differences_cannot():
+    g = _tilted_plane(noise=0.01)  # 1 cm at 2 m, about a third of the pixel spacing
+    fitted, has_normal = plane_normals(g.points, g.mask, radius=4)
+    assert has_normal.all()
+    assert float(_angle(g.normals, TILT, g.mask).median()) > 15  # neighbour differences
+    assert float(_angle(fitted, TILT, has_normal).median()) < 3
+    assert ((fitted * -g.points).sum(-1) > 0).all()  # facing the camera
+
+
+def test_plane_fit_is_exact_on_a_clean_plane_and_does_not_cross_depth_edges():
+    depth = torch.full((1, 20, 20), 4.0, dtype=torch.float64)
+    depth[:, :, 10:] = 2.0  # a step between two fronto-parallel planes
+    g = GBuffer.from_depth(depth, K)
+    fitted, has_normal = plane_normals(g.points, g.mask, radius=3)
+    assert has_normal.all()
+    torch.testing.assert_close(fitted[0], torch.tensor([0.0, 0, -1], dtype=torch.float64).expand(20, 20, 3),
+                               atol=1e-9, rtol=0)
+    clean = _tilted_plane()
+    torch.testing.assert_close(plane_normals(clean.points, clean.mask)[0][0], TILT.expand(48, 64, 3),
+                               atol=1e-9, rtol=0)
+
+
+def test_smoothing_halves_noise_and_keeps_a_crease():
+    g = _tilted_plane(noise=0.01)
+    fitted, has_normal = plane_normals(g.points, g.mask, radius=2)
+    before = float(_angle(fitted, TILT, has_normal).mean())
+    smoothed = smooth_normals(g.points, fitted, has_normal)
+    assert float(_angle(smoothed, TILT, has_normal).mean()) < 0.6 * before
+    # A crease: left half faces the camera, right half is tilted 60 degrees; smoothing keeps both.
+    normals = torch.zeros(1, 20, 20, 3, dtype=torch.float64)
+    normals[..., :10, 2] = -1
+    normals[..., 10:, :] = torch.tensor([math.sin(math.radians(60)), 0, -math.cos(math.radians(60))],
+                                        dtype=torch.float64)
+    flat = GBuffer.from_depth(torch.full((1, 20, 20), 2.0, dtype=torch.float64), K, normals)
+    out = smooth_normals(flat.points, flat.normals, flat.mask)
+    torch.testing.assert_close(out, flat.normals, atol=1e-4, rtol=0)  # exp(-11) leaks across 60 degrees
+
+
+def test_noise_measure_separates_clean_from_sensor_normals_and_skips_holes():
+    clean = _tilted_plane()
+    noisy = _tilted_plane(noise=0.01)
+    assert float(normal_noise(clean.points, clean.normals, clean.mask)[0]) < 0.01
+    assert float(normal_noise(noisy.points, noisy.normals, noisy.mask)[0]) > 2
+    depth = clean.points[..., 2].clone()
+    depth[:, ::3, ::3] = 0  # holes
+    holed = GBuffer.from_depth(depth, K)
+    assert torch.isfinite(normal_noise(holed.points, holed.normals, holed.mask)).all()
+    out = smooth_normals(holed.points, holed.normals, holed.mask)
+    assert torch.isfinite(out).all() and (out[~holed.mask] == 0).all()
+
+
+def test_absurd_window_settings_are_named():
+    g = _tilted_plane()
+    with pytest.raises(ValueError, match="radius"):
+        plane_normals(g.points, g.mask, radius=0)
+    with pytest.raises(ValueError, match="smooth_normals"):
+        smooth_normals(g.points, g.normals, g.mask, normal_sigma=0)
