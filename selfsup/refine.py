@@ -59,7 +59,10 @@ class FitProblem:
         return self.image.shape[0]
 
     def select(self, index: Tensor) -> "FitProblem":
-        """The images ``index`` (a 1-D long tensor), repeats allowed."""
+        """The images ``index`` (a 1-D long tensor), repeats allowed; ``self`` when
+        ``index`` is ``0 .. B-1`` in order (the usual case inside a solver loop)."""
+        if index.numel() == self.batch and bool((index == torch.arange(self.batch, device=index.device)).all()):
+            return self
         g, m = self.gbuffer, self.material
         shin = m.shininess if m.shininess.dim() == 0 else m.shininess[index]
         return FitProblem(
@@ -228,17 +231,19 @@ def evaluate(problem: FitProblem, position: Tensor, options: RefineOptions, weig
 
 
 def _position_jacobian(problem: FitProblem, position: Tensor, intensity: Tensor, cols: Tensor, h: Tensor,
-                       specular: bool) -> Tensor:
+                       specular: bool, tiled: FitProblem | None = None) -> Tensor:
     """Forward-difference Jacobian ``(B, 3L, 3*H*W)`` of the model image w.r.t. the positions.
 
     ``cols (B, 3, L, H, W)`` are the basis images at ``position (B, L, 3)``; ``h (B, 1, 1)``
     the step. Each light's maps depend on its own position only, so moving coordinate
-    j of every light at once gives all columns in 3 renders.
+    j of every light at once gives all columns in 3 renders. ``tiled``: the problem
+    repeated 3 times (``problem.select(arange(B).repeat(3))``), if the caller keeps one.
     """
     B, L, _ = position.shape
     eye3 = torch.eye(3, dtype=position.dtype, device=position.device)
     shifted = (position[None] + h[None] * eye3[:, None, None, :]).reshape(3 * B, L, 3)  # (3, B, L, 3) -> (3B, L, 3)
-    tiled = problem.select(torch.arange(B, device=position.device).repeat(3))
+    if tiled is None:
+        tiled = problem.select(torch.arange(B, device=position.device).repeat(3))
     d_sh, s_sh = _transport(tiled, shifted, specular)
     cols_sh = _columns(tiled, d_sh, s_sh).unflatten(0, (3, B))  # (3, B, 3, L, H, W)
     # d model / d p_ij = I_i . (cols(p + h e_j) - cols(p))_i / h
@@ -246,13 +251,37 @@ def _position_jacobian(problem: FitProblem, position: Tensor, intensity: Tensor,
     return deriv.permute(1, 3, 0, 2, 4, 5).reshape(B, 3 * L, -1)  # (B, L, 3, 3ch, H, W) -> (B, 3L, 3HW)
 
 
+def _linear_jacobian(problem: FitProblem, cols: Tensor) -> Tensor:
+    """Jacobian ``(B, 3L [+ 3], 3*H*W)`` of the model image w.r.t. the intensities (light i,
+    channel c lights channel c only: its basis image) and, when unknown, the ambient
+    (``kd_c``); the image is linear in both. ``cols (B, 3, L, H, W)``: the basis images."""
+    B, _, L, H, W = cols.shape
+    j_int = cols.new_zeros(B, L, 3, 3, H * W)
+    for c in range(3):
+        j_int[:, :, c, c] = cols[:, c].flatten(2)
+    blocks = [j_int.reshape(B, 3 * L, -1)]
+    if problem.ambient is None:
+        kd = problem.material.kd.permute(0, 3, 1, 2).flatten(2)  # (B, 3, HW)
+        j_amb = cols.new_zeros(B, 3, 3, H * W)
+        for c in range(3):
+            j_amb[:, c, c] = kd[:, c]
+        blocks.append(j_amb.reshape(B, 3, -1))
+    return torch.cat(blocks, 1)
+
+
 def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters: int) -> tuple[Tensor, Tensor]:
+    # Damped Gauss-Newton over positions, intensities and (unknown) ambient together,
+    # of which only the position step is kept (the linear ones are re-solved exactly at
+    # the trial): the step of the variable-projection problem. A step over positions
+    # alone, intensities held, ignores that the re-solve absorbs what a move does to
+    # brightness (inverse-square distance against intensity) and crept in tiny steps.
     B, L, _ = position.shape
     _, size = _scene_frame(problem)
     h = (options.fd_step * size)[:, None, None]  # (B, 1, 1)
     damping = torch.full((B,), 1e-3, dtype=position.dtype, device=position.device)
     active = torch.ones(B, dtype=torch.bool, device=position.device)
     iterations = torch.zeros(B, dtype=torch.long, device=position.device)
+    tiled_all = None  # the whole batch repeated 3 times for the Jacobian, built once
     # One reweighting pass only: weights converged at a wrong start would silence the
     # very residuals that say where the light should move.
     cost, intensity, ambient, model, weights, diffuse, specular = evaluate(problem, position, options, passes=1)
@@ -264,7 +293,11 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         pos, w = position[idx], weights[idx]
         n = idx.numel()
         cols_base = _columns(sub, diffuse[idx], None if specular is None else specular[idx])
-        jac = _position_jacobian(sub, pos, intensity[idx], cols_base, h[idx], options.specular)
+        if sub is problem and tiled_all is None:
+            tiled_all = problem.select(torch.arange(B, device=position.device).repeat(3))
+        jac = torch.cat([_position_jacobian(sub, pos, intensity[idx], cols_base, h[idx], options.specular,
+                                            tiled_all if sub is problem else None),
+                         _linear_jacobian(sub, cols_base)], 1)
         resid = (model[idx] - sub.image).flatten(1)
         wf = w.flatten(1)
         jtj = (jac * wf[:, None]) @ jac.transpose(1, 2)
@@ -274,12 +307,14 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         # curvature keeps the damped system positive definite (it then stays put).
         peak = diag.amax(-1, keepdim=True)
         diag = torch.where(peak > 0, diag.clamp_min(1e-6 * peak), torch.ones_like(diag))
-        system = jtj + damping[idx, None, None] * torch.diag_embed(diag) + torch.diag_embed(1e-9 * diag)
+        damped = torch.zeros_like(diag)
+        damped[:, : 3 * L] = diag[:, : 3 * L]  # damp the position block only: the linear block is exact
+        system = jtj + damping[idx, None, None] * torch.diag_embed(damped) + torch.diag_embed(1e-9 * diag)
         # solve_ex never raises: a singular or non-finite system gives a step that is rejected below.
         step = -torch.linalg.solve_ex(system, jtr[..., None])[0].squeeze(-1)
         # A failed solve (non-finite step) counts as a rejected step: more damping next time.
         finite = torch.isfinite(step).all(-1)
-        step = torch.where(finite[:, None], step, torch.zeros_like(step))
+        step = torch.where(finite[:, None], step, torch.zeros_like(step))[:, : 3 * L]
         trial = pos + step.reshape(n, L, 3)
         t_cost, t_int, t_amb, t_model, _, t_d, t_s = evaluate(sub, trial, options, weights=w)
         better = (t_cost < cost[idx]) & finite
@@ -291,7 +326,7 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
             specular[keep] = t_s[better]
         damping[idx] = torch.where(better, damping[idx] * 0.3, damping[idx] * 10).clamp(1e-9, 1e9)
         iterations[idx] += 1
-        moved = step.reshape(n, -1).norm(dim=-1) / (options.fd_step * _scene_frame(sub)[1])
+        moved = step.reshape(n, -1).norm(dim=-1) / (options.fd_step * size[idx])
         done = (better & ((rel < options.tol) | (moved < 1e-2))) | (damping[idx] >= 1e9)
         active[idx[done]] = False
         # Re-weight (IRLS) the images that moved.
@@ -468,19 +503,7 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     diffuse, specular = _transport(problem, fit.position, options.specular)
     cols = _columns(problem, diffuse, specular)  # (B, 3, L, H, W)
     j_pos = _position_jacobian(problem, fit.position, fit.intensity, cols, h, options.specular)
-    # Intensity columns: light i, channel c lights channel c only.
-    HW = cols.shape[-2] * cols.shape[-1]
-    j_int = torch.zeros(B, L, 3, 3, HW, dtype=cols.dtype, device=cols.device)
-    for c in range(3):
-        j_int[:, :, c, c] = cols[:, c].flatten(2)
-    blocks = [j_pos, j_int.reshape(B, 3 * L, -1)]
-    if problem.ambient is None:
-        kd = problem.material.kd.permute(0, 3, 1, 2).flatten(2)  # (B, 3, HW)
-        j_amb = torch.zeros(B, 3, 3, HW, dtype=cols.dtype, device=cols.device)
-        for c in range(3):
-            j_amb[:, c, c] = kd[:, c]
-        blocks.append(j_amb.reshape(B, 3, -1))
-    jac = torch.cat(blocks, 1)
+    jac = torch.cat([j_pos, _linear_jacobian(problem, cols)], 1)
     mask = problem.gbuffer.mask[:, None].expand_as(problem.image).flatten(1).to(jac.dtype)
     jac = jac * mask[:, None]
     k = jac.shape[1]
