@@ -109,6 +109,14 @@ def normals_from_points(
     return n, has_normal
 
 
+def _window(padded: list[Tensor], radius: int, height: int, width: int):
+    """For each offset of a ``(2 radius + 1)^2`` window, the views of the ``padded``
+    ``(B, H + 2 radius, W + 2 radius, ...)`` tensors shifted by it, each ``(B, H, W, ...)``."""
+    for di in range(2 * radius + 1):
+        for dj in range(2 * radius + 1):
+            yield [t[:, di : di + height, dj : dj + width] for t in padded]
+
+
 def plane_normals(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative_step: float = 0.1
                   ) -> tuple[Tensor, Tensor]:
     """Unit normals of least-squares planes fitted to each pixel's window, for noisy depth.
@@ -142,15 +150,13 @@ def plane_normals(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative
     count = torch.zeros_like(points[..., :1])
     first = torch.zeros_like(points)  # sums of offsets from the centre (better conditioned than raw points)
     second = torch.zeros(B, H, W, 3, 3, dtype=points.dtype, device=points.device)
-    for di in range(2 * radius + 1):
-        for dj in range(2 * radius + 1):
-            offset = padded_points[:, di : di + H, dj : dj + W] - points
-            use = (padded_mask[:, di : di + H, dj : dj + W, None] & mask[..., None]
-                   & (offset[..., 2:].abs() <= limit)).to(points.dtype)
-            offset = offset * use
-            count = count + use
-            first = first + offset
-            second = second + offset[..., :, None] * offset[..., None, :]
+    for neighbour, neighbour_valid in _window([padded_points, padded_mask], radius, H, W):
+        offset = neighbour - points
+        use = (neighbour_valid[..., None] & mask[..., None] & (offset[..., 2:].abs() <= limit)).to(points.dtype)
+        offset = offset * use
+        count = count + use
+        first = first + offset
+        second = second + offset[..., :, None] * offset[..., None, :]
     mean = first / count.clamp_min(1)
     covariance = second / count.clamp_min(1)[..., None] - mean[..., :, None] * mean[..., None, :]
     eigenvalues, eigenvectors = torch.linalg.eigh(covariance)
@@ -201,14 +207,10 @@ def smooth_normals(
     for _ in range(passes):
         padded_normals = torch.nn.functional.pad(current, pad)
         total = torch.zeros_like(current)
-        for di in range(2 * radius + 1):
-            for dj in range(2 * radius + 1):
-                n_j = padded_normals[:, di : di + H, dj : dj + W]
-                offset = padded_points[:, di : di + H, dj : dj + W] - points
-                plane = (offset * current).sum(-1, keepdim=True) / plane_scale
-                similarity = ((n_j - current) ** 2).sum(-1, keepdim=True) / normal_sigma**2
-                weight = padded_valid[:, di : di + H, dj : dj + W] * torch.exp(-similarity - plane**2)
-                total = total + weight * n_j
+        for n_j, neighbour, neighbour_valid in _window([padded_normals, padded_points, padded_valid], radius, H, W):
+            plane = ((neighbour - points) * current).sum(-1, keepdim=True) / plane_scale
+            similarity = ((n_j - current) ** 2).sum(-1, keepdim=True) / normal_sigma**2
+            total = total + neighbour_valid * torch.exp(-similarity - plane**2) * n_j
         length = total.norm(dim=-1, keepdim=True)
         current = torch.where(mask[..., None] & (length > 0), total / length.clamp_min(1e-30), current)
     return current
