@@ -178,13 +178,21 @@ def _columns(problem: FitProblem, diffuse: Tensor, specular: Tensor | None) -> T
     return basis_images(problem.material.kd, problem.material.ks, diffuse, specular)
 
 
-def _weights(problem: FitProblem, residual: Tensor | None, options: RefineOptions) -> Tensor:
-    # IRLS weights (B, 3, H, W): the valid mask, times Cauchy weights of the residual.
+def _cauchy_scale(problem: FitProblem, options: RefineOptions) -> Tensor:
+    # The robust loss's scale (B,): robust_scale x the median observed value on valid pixels.
+    mask = problem.gbuffer.mask[:, None].expand_as(problem.image)
+    observed = torch.where(mask, problem.image, torch.full_like(problem.image, float("nan")))
+    return options.robust_scale * observed.flatten(1).nanmedian(1).values.clamp_min(1e-6)
+
+
+def _weights(problem: FitProblem, residual: Tensor | None, options: RefineOptions, scale: Tensor | None = None
+             ) -> Tensor:
+    # IRLS weights (B, 3, H, W): the valid mask, times Cauchy weights of the residual;
+    # ``scale`` (B,): the problem's _cauchy_scale, if the caller already has it.
     mask = problem.gbuffer.mask[:, None].to(problem.image.dtype).expand_as(problem.image)
     if residual is None or not options.robust:
         return mask
-    observed = torch.where(mask > 0, problem.image, torch.full_like(problem.image, float("nan")))
-    scale = options.robust_scale * observed.flatten(1).nanmedian(1).values.clamp_min(1e-6)
+    scale = _cauchy_scale(problem, options) if scale is None else scale
     return mask / (1 + (residual / scale[:, None, None, None]) ** 2)
 
 
@@ -222,9 +230,10 @@ def evaluate(problem: FitProblem, position: Tensor, options: RefineOptions, weig
     diffuse, specular = _transport(problem, position, options.specular)
     if weights is None:
         weights = _weights(problem, None, options)
+        scale = _cauchy_scale(problem, options) if options.robust else None
         for _ in range((passes or options.irls_passes) if options.robust else 0):
             _, _, model = solve_linear(problem, diffuse, specular, weights)
-            weights = _weights(problem, model - problem.image, options)
+            weights = _weights(problem, model - problem.image, options, scale)
     intensity, ambient, model = solve_linear(problem, diffuse, specular, weights)
     cost = (weights * (model - problem.image) ** 2).flatten(1).sum(1)
     return cost, intensity, ambient, model, weights, diffuse, specular
@@ -281,7 +290,8 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
     damping = torch.full((B,), 1e-3, dtype=position.dtype, device=position.device)
     active = torch.ones(B, dtype=torch.bool, device=position.device)
     iterations = torch.zeros(B, dtype=torch.long, device=position.device)
-    tiled_all = None  # the whole batch repeated 3 times for the Jacobian, built once
+    tiled_all = problem.select(torch.arange(B, device=position.device).repeat(3))  # for the Jacobian, built once
+    scale = _cauchy_scale(problem, options)
     # One reweighting pass only: weights converged at a wrong start would silence the
     # very residuals that say where the light should move.
     cost, intensity, ambient, model, weights, diffuse, specular = evaluate(problem, position, options, passes=1)
@@ -293,8 +303,6 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         pos, w = position[idx], weights[idx]
         n = idx.numel()
         cols_base = _columns(sub, diffuse[idx], None if specular is None else specular[idx])
-        if sub is problem and tiled_all is None:
-            tiled_all = problem.select(torch.arange(B, device=position.device).repeat(3))
         jac = torch.cat([_position_jacobian(sub, pos, intensity[idx], cols_base, h[idx], options.specular,
                                             tiled_all if sub is problem else None),
                          _linear_jacobian(sub, cols_base)], 1)
@@ -331,7 +339,7 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         active[idx[done]] = False
         # Re-weight (IRLS) the images that moved.
         if options.robust and keep.numel():
-            new_w = _weights(problem.select(keep), model[keep] - problem.image[keep], options)
+            new_w = _weights(problem.select(keep), model[keep] - problem.image[keep], options, scale[keep])
             weights[keep] = new_w
             cost[keep] = (new_w * (model[keep] - problem.image[keep]) ** 2).flatten(1).sum(1)
     return position, iterations
@@ -421,8 +429,7 @@ def robust_loss(problem: FitProblem, model: Tensor, options: RefineOptions) -> T
     residual = (model - problem.image) * mask
     if not options.robust:
         return residual.pow(2).flatten(1).sum(1)
-    observed = torch.where(mask, problem.image, torch.full_like(problem.image, float("nan")))
-    c = options.robust_scale * observed.flatten(1).nanmedian(1).values.clamp_min(1e-6)
+    c = _cauchy_scale(problem, options)
     return (c[:, None] ** 2 * torch.log1p((residual.flatten(1) / c[:, None]) ** 2)).sum(1)
 
 
