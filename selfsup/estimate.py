@@ -200,26 +200,36 @@ def estimate_scene(scene: Scene, options: EstimateOptions) -> dict:
             return _network_record(scene, problem, slots, presence, has_specular, options)
         starts = dict(extra_starts=slots, per_axis=options.cnn_grid, starts=options.cnn_starts)
 
+    # Candidates are fitted on all pyramid levels but the finest; only the chosen one
+    # descends to it (the finest level costs as much as all the others together).
+    levels = len(options.refine.strides)
+    coarse = replace(options.refine, strides=options.refine.strides[: max(levels - 1, 1)],
+                     max_iters=options.refine.max_iters[: max(levels - 1, 1)])
+
     def polished(fit: Fit, n_lights: int, specular: bool) -> Candidate:
         # The search's answer refined and judged under the final shadow model.
         if searched is not problem:
-            fit = refine(problem, fit.position, replace(options.refine, specular=specular))
+            fit = refine(problem, fit.position, replace(coarse, specular=specular))
         return _candidate(problem, fit, n_lights, specular, options)
 
-    first = search(searched, 1, replace(options.refine, specular=has_specular), **starts)
+    first = search(searched, 1, replace(coarse, specular=has_specular), **starts)
     tried = [polished(first, 1, has_specular)]
     if has_specular:
-        unspecular = refine(searched, first.position, replace(options.refine, specular=False))
+        unspecular = refine(searched, first.position, replace(coarse, specular=False))
         tried.append(polished(unspecular, 1, False))
     best = min(tried, key=lambda c: c.criterion)
     for n_lights in range(2, options.max_lights + 1):
-        opts = replace(options.refine, specular=best.specular)
+        opts = replace(coarse, specular=best.specular)
         more = polished(search(searched, n_lights, opts, fixed=best.fit.position, **starts), n_lights, best.specular)
         tried.append(more)
         share = float(light_shares(problem, more.fit, best.specular).min())
         if more.criterion >= best.criterion or share < options.min_light_share:
             break  # a light that does not pay for itself: more would not either
         best = more
+    if levels > 1:
+        finest = replace(options.refine, specular=best.specular, strides=options.refine.strides[-1:],
+                         max_iters=options.refine.max_iters[-1:])
+        best = _candidate(problem, refine(problem, best.fit.position, finest), best.n_lights, best.specular, options)
     return _record(scene, problem, best, tried, options)
 
 

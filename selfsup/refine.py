@@ -23,6 +23,7 @@ an absolute scale.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import torch
@@ -433,30 +434,39 @@ def robust_loss(problem: FitProblem, model: Tensor, options: RefineOptions) -> T
     return (c[:, None] ** 2 * torch.log1p((residual.flatten(1) / c[:, None]) ** 2)).sum(1)
 
 
-def _spread_best(cands: Tensor, score: Tensor, size: float, count: int, min_gap: float) -> Tensor:
-    # Indices of up to `count` best candidates (G, 3) at least `min_gap * size` apart.
+def _spread_best(cands: Tensor, score: Tensor, size: float, count: int, min_gap: float, fill: bool = True) -> Tensor:
+    # Indices of up to `count` best candidates (G, D) at least `min_gap * size` apart;
+    # `fill`: repeat the last to make `count` when fewer are that far apart.
     chosen: list[int] = []
     for index in score.argsort().tolist():
         if all(float((cands[index] - cands[c]).norm()) > min_gap * size for c in chosen):
             chosen.append(index)
         if len(chosen) == count:
             break
-    while len(chosen) < count:
+    while fill and len(chosen) < count:
         chosen.append(chosen[-1])
     return torch.tensor(chosen, device=cands.device)
 
 
+def _stride_for(problem: FitProblem, pixels: int) -> int:
+    # The subsampling stride that leaves about ``pixels`` pixels of the image (at least 1).
+    H, W = problem.image.shape[-2:]
+    return max(1, int(math.sqrt(H * W / pixels)))
+
+
 def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = None, fixed: Tensor | None = None,
            per_axis: tuple[int, int, int] = (7, 6, 7), starts: int = 8, finalists: int = 2,
-           unshadowed_first: bool = True, extra_starts: Tensor | None = None) -> Fit:
+           unshadowed_first: bool = True, extra_starts: Tensor | None = None, rank_pixels: int = 300,
+           start_pixels: int = 1200) -> Fit:
     """Fit ``n_lights`` lights with no initial guess, one image at a time.
 
     The last light is searched (the others, ``fixed (B, n_lights - 1, 3)``, start
     where given): every grid candidate is scored at stride 4 by the robust loss
     with intensities solved; the ``starts`` best well-spread ones run a short LM
     there, from where they are and (``unshadowed_first``) from where a shadow-free
-    LM, whose landscape is smoother, took them; the ``finalists`` best of those run the full coarse-to-fine refinement;
-    the lowest robust loss wins. ``extra_starts (B, S, 3)`` (e.g. a network's
+    LM, whose landscape is smoother, took them; the ``finalists`` best of those that
+    ended at least 2% of the scene size apart run the full coarse-to-fine
+    refinement; the lowest robust loss wins. ``extra_starts (B, S, 3)`` (e.g. a network's
     guesses for the searched light) join the grid's best as starts.
     """
     options = options or RefineOptions()
@@ -466,10 +476,11 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
     for b in range(problem.batch):
         one = problem.select(torch.tensor([b]))
         base = torch.zeros(1, 0, 3, dtype=one.image.dtype) if fixed is None else fixed[b : b + 1]
-        coarse = subsample(one, 4)
+        coarse = subsample(one, _stride_for(one, start_pixels))
+        ranked = subsample(one, _stride_for(one, rank_pixels))
         cands = grid_candidates(coarse, per_axis)[0]  # (G, 3)
         G = cands.shape[0]
-        tiled = coarse.select(torch.zeros(G, dtype=torch.long))
+        tiled = ranked.select(torch.zeros(G, dtype=torch.long))
         with torch.no_grad():
             positions = torch.cat([base.expand(G, -1, -1), cands[:, None]], 1)
             _, _, _, model, _, _, _ = evaluate(tiled, positions, options, passes=1)  # a coarse ranking
@@ -489,7 +500,8 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
         tiled = coarse.select(torch.zeros(starts_at.shape[0], dtype=torch.long))
         short = refine(tiled, starts_at, quick)
         score = robust_loss(tiled, short.model, options)
-        final = short.position[score.argsort()[:finalists]]
+        # Starts that the short LM took to one place are one finalist, not several.
+        final = short.position[_spread_best(short.position.flatten(1), score, size, finalists, 0.02, fill=False)]
         full = refine(one.select(torch.zeros(final.shape[0], dtype=torch.long)), final, options)
         best = int(robust_loss(one.select(torch.zeros(final.shape[0], dtype=torch.long)), full.model, options).argmin())
         fits.append(Fit(*(getattr(full, f.name)[best : best + 1] for f in dataclasses.fields(Fit))))
