@@ -132,7 +132,7 @@ class RefineOptions:
     method: str = "lm"
     max_iters: tuple[int, ...] = (30, 10)
     strides: tuple[int, ...] = (2, 1)
-    tol: float = 1e-5
+    tol: float = 1e-4
     robust: bool = True
     robust_scale: float = 0.2
     irls_passes: int = 4
@@ -291,7 +291,7 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
     damping = torch.full((B,), 1e-3, dtype=position.dtype, device=position.device)
     active = torch.ones(B, dtype=torch.bool, device=position.device)
     iterations = torch.zeros(B, dtype=torch.long, device=position.device)
-    tiled_all = problem.select(torch.arange(B, device=position.device).repeat(3))  # for the Jacobian, built once
+    sub, tiled, selected = problem, None, B  # the active images' problem, and it three times (Jacobian)
     scale = _cauchy_scale(problem, options)
     # One reweighting pass only: weights converged at a wrong start would silence the
     # very residuals that say where the light should move.
@@ -300,12 +300,12 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         idx = active.nonzero(as_tuple=True)[0]
         if idx.numel() == 0:
             break
-        sub = problem.select(idx)
-        pos, w = position[idx], weights[idx]
         n = idx.numel()
+        if tiled is None or n != selected:  # the active set only shrinks: select again only when it did
+            sub, tiled, selected = problem.select(idx), problem.select(idx.repeat(3)), n
+        pos, w = position[idx], weights[idx]
         cols_base = _columns(sub, diffuse[idx], None if specular is None else specular[idx])
-        jac = torch.cat([_position_jacobian(sub, pos, intensity[idx], cols_base, h[idx], options.specular,
-                                            tiled_all if sub is problem else None),
+        jac = torch.cat([_position_jacobian(sub, pos, intensity[idx], cols_base, h[idx], options.specular, tiled),
                          _linear_jacobian(sub, cols_base)], 1)
         resid = (model[idx] - sub.image).flatten(1)
         wf = w.flatten(1)
