@@ -19,7 +19,8 @@ Conventions, stated once for the whole package:
 - dtype and device follow the inputs; nothing here reads files or configs.
 """
 
-from render.functional import LightTransport, RenderOutput, light_transport, render, render_image
+from render.functional import (LightTransport, RenderOutput, TransportJacobian, light_transport, light_transport_jacobian,
+                               render, render_image)
 from render.layer import ShadowedBlinnPhong
 from render.shading import Falloff
 from render.shadows import CubeShadowOptions, EpipolarShadowOptions, ShadowMethod
@@ -35,6 +36,8 @@ __all__ = [
     "render_image",
     "light_transport",
     "LightTransport",
+    "light_transport_jacobian",
+    "TransportJacobian",
     "Falloff",
     "ShadowMethod",
     "EpipolarShadowOptions",

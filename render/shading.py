@@ -12,7 +12,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-__all__ = ["Falloff", "LightGeometry", "light_geometry", "falloff_factor", "blinn_phong_lobe"]
+__all__ = ["Falloff", "LightGeometry", "light_geometry", "falloff_factor", "blinn_phong_lobe", "shading_position_gradients"]
 
 
 class Falloff(str, Enum):
@@ -99,3 +99,47 @@ def blinn_phong_lobe(normals: Tensor, to_light: Tensor, to_viewer: Tensor, shini
     # masked branch gets a safe base of 1 so its (discarded) gradient stays finite.
     safe = torch.where(lit, n_dot_h, torch.ones_like(n_dot_h))
     return torch.where(lit, safe.pow(shininess), torch.zeros_like(n_dot_h))
+
+
+def shading_position_gradients(normals: Tensor, geometry: LightGeometry, shininess: Tensor, falloff: Falloff | str,
+                               with_specular: bool = True) -> tuple[Tensor, Tensor | None]:
+    """Exact derivatives, with respect to each light's position, of the unshadowed
+    diffuse ``f(d) max(0, n.l)`` and specular ``f(d) max(0, n.h)^alpha`` transport.
+
+    With ``o = p - X``, ``d = |o|``, ``l = o / d`` and ``h = (l + v) / |l + v|``:
+    ``dl/dp = (I - l l^T) / d``, ``dh/dp = (I - h h^T) / |l + v| dl/dp`` and
+    ``df/dp = f'(d) l``. Where a term is clamped to 0 its derivative is 0.
+
+    Args:
+        normals: ``(B, 1, H, W, 3)``; geometry: :func:`light_geometry` of the lights.
+        shininess: alpha, broadcastable to ``(B, L, H, W)``.
+        with_specular: False skips the specular derivative (returned as None).
+
+    Returns:
+        ``d diffuse_i / d p_i`` and ``d specular_i / d p_i``, ``(B, L, H, W, 3)`` each.
+    """
+    to_light, distance, to_viewer = geometry
+    f = falloff_factor(distance, falloff)
+    # f'(d) / f: -2/d for 1/d^2, 0 for no falloff.
+    log_slope = -2.0 / distance if Falloff(falloff) is Falloff.INVERSE_SQUARE else torch.zeros_like(distance)
+    n_dot_l = (normals * to_light).sum(-1)
+    d_n_dot_l = (normals - n_dot_l[..., None] * to_light) / distance[..., None]
+    d_diffuse = f[..., None] * (d_n_dot_l + (n_dot_l * log_slope)[..., None] * to_light)
+    d_diffuse = torch.where((n_dot_l > 0)[..., None], d_diffuse, torch.zeros_like(d_diffuse))
+    if not with_specular:
+        return d_diffuse, None
+    half = to_light + to_viewer
+    length = half.norm(dim=-1)
+    ok = length > 1e-6  # as in blinn_phong_lobe: no half vector when l = -v
+    length = torch.where(ok, length, torch.ones_like(length))
+    half = half / length[..., None]
+    n_dot_h = (normals * half).sum(-1)
+    lit = ok & (n_dot_h > 1e-12)
+    safe = torch.where(lit, n_dot_h, torch.ones_like(n_dot_h))
+    lobe = torch.where(lit, safe.pow(shininess), torch.zeros_like(n_dot_h))
+    # d(n.h)/dp = (I - l l^T)(n - (n.h) h) / (d |l + v|)
+    tangent = normals - n_dot_h[..., None] * half
+    d_n_dot_h = (tangent - (tangent * to_light).sum(-1, keepdim=True) * to_light) / (distance * length)[..., None]
+    d_lobe = (shininess * lobe / safe)[..., None] * d_n_dot_h
+    d_specular = f[..., None] * (d_lobe + (lobe * log_slope)[..., None] * to_light)
+    return d_diffuse, d_specular

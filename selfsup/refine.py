@@ -6,10 +6,11 @@ that: the intensities and (unknown) ambient are re-solved in closed form by
 weighted least squares at every position (variable projection), so the
 non-linear search runs over the ``3 L`` position coordinates only.
 
-- ``lm``: damped Gauss-Newton on the positions. The Jacobian of the image with
-  respect to a coordinate is a forward difference of the transport maps; each
-  light's maps depend on its own position only, so moving coordinate ``j`` of all
-  lights at once gives every column in 3 renders, whatever ``L``.
+- ``lm``: damped Gauss-Newton on the positions (the step of the variable-projection
+  problem). The Jacobian of the image with respect to the positions is exact for
+  the shading and a forward difference for cast shadows
+  (:func:`render.light_transport_jacobian`); each light's maps depend on its own
+  position only, so the shadow differences take 3 sweeps whatever ``L``.
 - ``adam`` / ``gd``: first-order steps on the same projected objective, its
   gradient by autograd through the renderer (shadows included); ``gd`` is the
   paper's (rate 0.02 in scene-scale units, stop at relative energy change 1e-4).
@@ -29,11 +30,14 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from render import GBuffer, Material, light_transport
+from render import GBuffer, Material, light_transport, light_transport_jacobian
 from selfsup.linear import basis_images, solve_intensities
 
 __all__ = ["FitProblem", "RefineOptions", "Fit", "refine", "search", "solve_linear", "evaluate", "grid_candidates",
            "robust_loss", "position_covariance", "subsample"]
+
+
+RUNAWAY_SIZES = 10.0  # the LM stops an image whose light is this many scene sizes from the centre
 
 
 @dataclass
@@ -121,7 +125,8 @@ class RefineOptions:
 
     ``method``: ``lm`` | ``adam`` | ``gd``. ``max_iters`` per pyramid level,
     ``strides``: coarse-to-fine pixel strides. ``tol``: stop when the relative cost
-    decrease of an accepted step falls below it (``gd`` uses the paper's 1e-4).
+    decrease of an accepted step falls below it (``gd`` uses the paper's 1e-4);
+    ``step_tol`` (``lm``): or when it moves every light less than this, in scene sizes.
     ``robust``: Cauchy IRLS with scale ``robust_scale`` x median observed value;
     ``irls_passes``: reweighting passes that solve the intensities and ambient of
     a robust fit at fixed positions (one pass leaves the outliers' pull in the
@@ -133,6 +138,7 @@ class RefineOptions:
     max_iters: tuple[int, ...] = (30, 10)
     strides: tuple[int, ...] = (2, 1)
     tol: float = 1e-4
+    step_tol: float = 1e-4
     robust: bool = True
     robust_scale: float = 0.2
     irls_passes: int = 4
@@ -147,6 +153,8 @@ class RefineOptions:
             raise ValueError(f"max_iters {self.max_iters} and strides {self.strides} must have the same length")
         if any(s < 1 for s in self.strides) or any(i < 0 for i in self.max_iters):
             raise ValueError("strides must be >= 1 and max_iters >= 0")
+        if not (self.tol >= 0 and self.step_tol >= 0):
+            raise ValueError(f"tol and step_tol must be >= 0, got {self.tol}, {self.step_tol}")
         if self.irls_passes < 1:
             raise ValueError(f"irls_passes must be >= 1, got {self.irls_passes}")
 
@@ -240,25 +248,27 @@ def evaluate(problem: FitProblem, position: Tensor, options: RefineOptions, weig
     return cost, intensity, ambient, model, weights, diffuse, specular
 
 
-def _position_jacobian(problem: FitProblem, position: Tensor, intensity: Tensor, cols: Tensor, h: Tensor,
-                       specular: bool, tiled: FitProblem | None = None) -> Tensor:
-    """Forward-difference Jacobian ``(B, 3L, 3*H*W)`` of the model image w.r.t. the positions.
+def _jacobians(problem: FitProblem, position: Tensor, intensity: Tensor, h: Tensor, specular: bool
+               ) -> tuple[Tensor, Tensor]:
+    """The basis images ``(B, 3, L, H, W)`` at ``position (B, L, 3)`` and the Jacobian
+    ``(B, 3L, 3*H*W)`` of the model image with respect to the positions, at ``intensity``.
 
-    ``cols (B, 3, L, H, W)`` are the basis images at ``position (B, L, 3)``; ``h (B, 1, 1)``
-    the step. Each light's maps depend on its own position only, so moving coordinate
-    j of every light at once gives all columns in 3 renders. ``tiled``: the problem
-    repeated 3 times (``problem.select(arange(B).repeat(3))``), if the caller keeps one.
+    Shading is differentiated exactly, cast shadows by forward differences of step
+    ``h (B, 1, 1)`` (:func:`render.light_transport_jacobian`).
     """
     B, L, _ = position.shape
-    eye3 = torch.eye(3, dtype=position.dtype, device=position.device)
-    shifted = (position[None] + h[None] * eye3[:, None, None, :]).reshape(3 * B, L, 3)  # (3, B, L, 3) -> (3B, L, 3)
-    if tiled is None:
-        tiled = problem.select(torch.arange(B, device=position.device).repeat(3))
-    d_sh, s_sh = _transport(tiled, shifted, specular)
-    cols_sh = _columns(tiled, d_sh, s_sh).unflatten(0, (3, B))  # (3, B, 3, L, H, W)
-    # d model / d p_ij = I_i . (cols(p + h e_j) - cols(p))_i / h
-    deriv = (cols_sh - cols[None]) * intensity.transpose(1, 2)[None, :, :, :, None, None] / h.reshape(1, B, 1, 1, 1, 1)
-    return deriv.permute(1, 3, 0, 2, 4, 5).reshape(B, 3 * L, -1)  # (B, L, 3, 3ch, H, W) -> (B, 3L, 3HW)
+    jac = light_transport_jacobian(problem.gbuffer, problem.material, position, h.reshape(B), falloff=problem.falloff,
+                                   shadows=problem.shadows, specular=specular)
+    t = jac.transport
+    cols = _columns(problem, t.diffuse, t.specular)
+    # d model_c / d p_ij = I_ic (kd_c dD_i/dp_j + ks_c dS_i/dp_j): (B, L, 3 coords, 3 channels, H, W)
+    kd = problem.material.kd.permute(0, 3, 1, 2)[:, None, None]  # (B, 1, 1, 3, H, W)
+    deriv = kd * jac.diffuse.permute(0, 1, 4, 2, 3)[:, :, :, None]
+    if jac.specular is not None:
+        ks = problem.material.ks.permute(0, 3, 1, 2)[:, None, None]
+        deriv = deriv + ks * jac.specular.permute(0, 1, 4, 2, 3)[:, :, :, None]
+    deriv = deriv * intensity[:, :, None, :, None, None]
+    return cols, deriv.reshape(B, 3 * L, -1)
 
 
 def _linear_jacobian(problem: FitProblem, cols: Tensor) -> Tensor:
@@ -286,27 +296,26 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
     # alone, intensities held, ignores that the re-solve absorbs what a move does to
     # brightness (inverse-square distance against intensity) and crept in tiny steps.
     B, L, _ = position.shape
-    _, size = _scene_frame(problem)
+    centre, size = _scene_frame(problem)
     h = (options.fd_step * size)[:, None, None]  # (B, 1, 1)
     damping = torch.full((B,), 1e-3, dtype=position.dtype, device=position.device)
     active = torch.ones(B, dtype=torch.bool, device=position.device)
     iterations = torch.zeros(B, dtype=torch.long, device=position.device)
-    sub, tiled, selected = problem, None, B  # the active images' problem, and it three times (Jacobian)
+    sub, selected = problem, B  # the active images' problem
     scale = _cauchy_scale(problem, options)
     # One reweighting pass only: weights converged at a wrong start would silence the
     # very residuals that say where the light should move.
-    cost, intensity, ambient, model, weights, diffuse, specular = evaluate(problem, position, options, passes=1)
+    cost, intensity, ambient, model, weights, _, _ = evaluate(problem, position, options, passes=1)
     for _ in range(max_iters):
         idx = active.nonzero(as_tuple=True)[0]
         if idx.numel() == 0:
             break
         n = idx.numel()
-        if tiled is None or n != selected:  # the active set only shrinks: select again only when it did
-            sub, tiled, selected = problem.select(idx), problem.select(idx.repeat(3)), n
+        if n != selected:  # the active set only shrinks: select again only when it did
+            sub, selected = problem.select(idx), n
         pos, w = position[idx], weights[idx]
-        cols_base = _columns(sub, diffuse[idx], None if specular is None else specular[idx])
-        jac = torch.cat([_position_jacobian(sub, pos, intensity[idx], cols_base, h[idx], options.specular, tiled),
-                         _linear_jacobian(sub, cols_base)], 1)
+        cols_base, j_pos = _jacobians(sub, pos, intensity[idx], h[idx], options.specular)
+        jac = torch.cat([j_pos, _linear_jacobian(sub, cols_base)], 1)
         resid = (model[idx] - sub.image).flatten(1)
         wf = w.flatten(1)
         jtj = (jac * wf[:, None]) @ jac.transpose(1, 2)
@@ -325,18 +334,19 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         finite = torch.isfinite(step).all(-1)
         step = torch.where(finite[:, None], step, torch.zeros_like(step))[:, : 3 * L]
         trial = pos + step.reshape(n, L, 3)
-        t_cost, t_int, t_amb, t_model, _, t_d, t_s = evaluate(sub, trial, options, weights=w)
+        t_cost, t_int, t_amb, t_model, _, _, _ = evaluate(sub, trial, options, weights=w)
         better = (t_cost < cost[idx]) & finite
         rel = (cost[idx] - t_cost) / cost[idx].clamp_min(1e-30)
         keep = idx[better]
         position[keep], cost[keep], intensity[keep], ambient[keep] = trial[better], t_cost[better], t_int[better], t_amb[better]
-        model[keep], diffuse[keep] = t_model[better], t_d[better]
-        if specular is not None:
-            specular[keep] = t_s[better]
+        model[keep] = t_model[better]
         damping[idx] = torch.where(better, damping[idx] * 0.3, damping[idx] * 10).clamp(1e-9, 1e9)
         iterations[idx] += 1
-        moved = step.reshape(n, -1).norm(dim=-1) / (options.fd_step * size[idx])
-        done = (better & ((rel < options.tol) | (moved < 1e-2))) | (damping[idx] >= 1e9)
+        moved = step.reshape(n, L, 3).norm(dim=-1).amax(-1) / size[idx]
+        # A light that ran off beyond RUNAWAY_SIZES scene sizes is fitting a direction, not
+        # a point: its cost creeps down for ever; it stops there (and loses to the others).
+        away = (position[idx] - centre[idx, None]).norm(dim=-1).amax(-1) / size[idx] > RUNAWAY_SIZES
+        done = (better & ((rel < options.tol) | (moved < options.step_tol) | away)) | (damping[idx] >= 1e9)
         active[idx[done]] = False
         # Re-weight (IRLS) the images that moved.
         if options.robust and keep.numel():
@@ -487,7 +497,8 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
             score = robust_loss(tiled, model, options)
         size = float(_scene_frame(coarse)[1][0])
         pick = _spread_best(cands, score, size, starts, 0.15)
-        quick = dataclasses.replace(options, strides=(1,), max_iters=(12,))
+        # The starts need their basin, not its bottom: millimetre steps end them.
+        quick = dataclasses.replace(options, strides=(1,), max_iters=(12,), step_tol=max(options.step_tol, 1e-3))
         starts_at = positions[pick]
         if extra_starts is not None:
             guesses = extra_starts[b][:, None]  # (S, 1, 3)
@@ -519,9 +530,7 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     B, L, _ = fit.position.shape
     _, size = _scene_frame(problem)
     h = (options.fd_step * size)[:, None, None]
-    diffuse, specular = _transport(problem, fit.position, options.specular)
-    cols = _columns(problem, diffuse, specular)  # (B, 3, L, H, W)
-    j_pos = _position_jacobian(problem, fit.position, fit.intensity, cols, h, options.specular)
+    cols, j_pos = _jacobians(problem, fit.position, fit.intensity, h, options.specular)  # (B, 3, L, H, W), (B, 3L, 3HW)
     jac = torch.cat([j_pos, _linear_jacobian(problem, cols)], 1)
     mask = problem.gbuffer.mask[:, None].expand_as(problem.image).flatten(1).to(jac.dtype)
     jac = jac * mask[:, None]
