@@ -45,7 +45,8 @@ from selfsup.refine import (Fit, FitProblem, RefineOptions, evaluate, position_c
                             search)
 from selfsup.scenes.io import Scene, SceneFileError, read_scene, render_inputs
 
-__all__ = ["EstimateOptions", "Candidate", "bic", "problem_of", "estimate_scene", "estimate_files", "scene_files"]
+__all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "estimate_scene", "estimate_files",
+           "scene_files"]
 
 log = logging.getLogger(__name__)
 METHODS = ("cnn+refine", "cnn", "refine")
@@ -68,6 +69,8 @@ class EstimateOptions:
     :func:`render.geometry.smooth_normals`) when their measured noise
     (:func:`render.geometry.normal_noise`) exceeds ``normal_noise_threshold``
     degrees, as normals of a consumer depth sensor do; ``always`` | ``never``.
+    ``mask_saturated``: leave clipped pixels out (:func:`saturated_pixels`); the
+    model cannot explain a highlight cut flat, and fitted it with a second light.
     """
 
     method: str = "cnn+refine"
@@ -81,6 +84,7 @@ class EstimateOptions:
     search_shadows: str = "none"
     normal_smoothing: str = "auto"
     normal_noise_threshold: float = 0.5
+    mask_saturated: bool = True
     refine: RefineOptions = field(default_factory=RefineOptions)
 
     def __post_init__(self):
@@ -110,13 +114,37 @@ class Candidate:
     criterion: float
 
 
+def saturated_pixels(image: Tensor, mask: Tensor, min_share: float = 0.002) -> Tensor:
+    """Pixels ``(B, H, W)`` with a clipped channel.
+
+    A channel is clipped when at least ``min_share`` of the valid pixels (and at
+    least 3) hold exactly its largest value, as a sensor's or a tone mapper's
+    clipping leaves them; an unclipped image has its maximum at one pixel.
+
+    Args:
+        image: ``(B, 3, H, W)``; mask: ``(B, H, W)`` valid pixels.
+    """
+    masked = torch.where(mask[:, None], image, torch.full_like(image, -torch.inf))
+    peak = masked.flatten(2).amax(-1)[..., None, None]  # (B, 3, 1, 1)
+    at_peak = (masked == peak) & mask[:, None]
+    count = at_peak.flatten(2).sum(-1)  # (B, 3)
+    clipped = (count >= 3) & (count >= min_share * mask.flatten(1).sum(-1, keepdim=True))
+    return (at_peak & clipped[..., None, None]).any(1)
+
+
 def problem_of(scene: Scene, shadows: str = "epipolar", dtype=torch.float32, normal_smoothing: str = "never",
-               normal_noise_threshold: float = 0.5) -> FitProblem:
+               normal_noise_threshold: float = 0.5, mask_saturated: bool = False) -> FitProblem:
     """A batch-of-one :class:`FitProblem` from a scene file's contents; the normals
-    smoothed as ``normal_smoothing`` says (see :class:`EstimateOptions`)."""
+    smoothed as ``normal_smoothing`` says (see :class:`EstimateOptions`), clipped
+    pixels (:func:`saturated_pixels`) left out when ``mask_saturated``."""
     gbuffer, material, _ = render_inputs(scene)
+    if mask_saturated:
+        clipped = saturated_pixels(scene.image.permute(2, 0, 1)[None], gbuffer.mask)
+        if bool(clipped.any()):
+            log.info("%s: %d clipped pixels left out", scene.id, int(clipped.sum()))
+            gbuffer = replace(gbuffer, mask=gbuffer.mask & ~clipped)
     if not bool(gbuffer.mask.any()):
-        raise SceneFileError(scene.id, "no valid pixel left after estimating normals")
+        raise SceneFileError(scene.id, "no valid pixel left after estimating normals and leaving out clipped pixels")
     if normal_smoothing == "always" or (
             normal_smoothing == "auto"
             and float(normal_noise(gbuffer.points, gbuffer.normals, gbuffer.mask)[0]) > normal_noise_threshold):
@@ -189,7 +217,7 @@ def estimate_scene(scene: Scene, options: EstimateOptions) -> dict:
     refinement).
     """
     problem = problem_of(scene, options.shadows, normal_smoothing=options.normal_smoothing,
-                         normal_noise_threshold=options.normal_noise_threshold)
+                         normal_noise_threshold=options.normal_noise_threshold, mask_saturated=options.mask_saturated)
     searched = problem if options.search_shadows == options.shadows else replace(problem, shadows=options.search_shadows)
     has_specular = scene.ks is not None and bool((scene.ks > 0).any())
     if options.method == "refine":
