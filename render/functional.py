@@ -78,6 +78,12 @@ def _shadow_intrinsics(gbuffer: GBuffer, shadows: ShadowMethod) -> Tensor | None
     return gbuffer.intrinsics
 
 
+def _shininess(material: Material) -> Tensor:
+    # alpha broadcastable to (B, L, H, W): (B|1, 1, H|1, W|1) or a scalar.
+    shininess = material.shininess_map()
+    return shininess[:, None] if shininess.dim() == 3 else shininess
+
+
 def _transport(gbuffer, material, light_position, falloff, shadows, shadow_options, with_specular) -> LightTransport:
     # Shapes: points/normals (B, 1, H, W, 3), lights (B, L, 1, 1, 3).
     points = gbuffer.points[:, None]
@@ -97,9 +103,7 @@ def _transport(gbuffer, material, light_position, falloff, shadows, shadow_optio
         weight = weight * visibility
     specular = None
     if with_specular:
-        shininess = material.shininess_map()
-        shininess = shininess[:, None] if shininess.dim() == 3 else shininess  # (B|1, 1, H|1, W|1)
-        specular = weight * blinn_phong_lobe(normals, to_light, to_viewer, shininess)
+        specular = weight * blinn_phong_lobe(normals, to_light, to_viewer, _shininess(material))
     return LightTransport(diffuse=weight * n_dot_l.clamp_min(0), specular=specular, visibility=visibility)
 
 
@@ -172,17 +176,13 @@ def light_transport_jacobian(
         raise ValueError(f"light_position must have shape ({B}, L, 3), got {tuple(light_position.shape)}")
     falloff, shadows = Falloff(falloff), ShadowMethod(shadows)
     with_specular = bool(specular) and material.ks is not None
-    points, normals = gbuffer.points[:, None], gbuffer.normals[:, None]
-    geometry = light_geometry(points, light_position[:, :, None, None, :])
-    weight = falloff_factor(geometry.distance, falloff)
-    n_dot_l = (normals * geometry.to_light).sum(-1)
-    diffuse = weight * n_dot_l.clamp_min(0)
-    shininess = material.shininess_map()
-    shininess = shininess[:, None] if shininess.dim() == 3 else shininess  # (B|1, 1, H|1, W|1)
-    spec = weight * blinn_phong_lobe(normals, geometry.to_light, geometry.to_viewer, shininess) if with_specular else None
-    d_diffuse, d_specular = shading_position_gradients(normals, geometry, shininess, falloff, with_specular)
+    unshadowed = _transport(gbuffer, material, light_position, falloff, ShadowMethod.NONE, None, with_specular)
+    diffuse, spec = unshadowed.diffuse, unshadowed.specular
+    normals = gbuffer.normals[:, None]
+    geometry = light_geometry(gbuffer.points[:, None], light_position[:, :, None, None, :])
+    d_diffuse, d_specular = shading_position_gradients(normals, geometry, _shininess(material), falloff, with_specular)
     if shadows is ShadowMethod.NONE:
-        return TransportJacobian(LightTransport(diffuse, spec, None), d_diffuse, d_specular)
+        return TransportJacobian(unshadowed, d_diffuse, d_specular)
 
     K = _shadow_intrinsics(gbuffer, shadows)
     cast = shadow_visibility(shadows, gbuffer.points, gbuffer.mask, K, light_position, shadow_options)
@@ -192,7 +192,7 @@ def light_transport_jacobian(
     cast_shifted = shadow_visibility(shadows, gbuffer.points.repeat(3, 1, 1, 1), gbuffer.mask.repeat(3, 1, 1),
                                      None if K is None else K.repeat(3, 1, 1), shifted, shadow_options)
     d_cast = ((cast_shifted.unflatten(0, (3, B)) - cast[None]) / step[None, :, None, None, None]).permute(1, 2, 3, 4, 0)
-    attached = (n_dot_l > 0).to(cast.dtype)
+    attached = ((normals * geometry.to_light).sum(-1) > 0).to(cast.dtype)
     visibility = cast * attached
 
     def shadowed(value: Tensor, derivative: Tensor) -> Tensor:

@@ -87,18 +87,24 @@ def blinn_phong_lobe(normals: Tensor, to_light: Tensor, to_viewer: Tensor, shini
         >>> blinn_phong_lobe(n, n, n, torch.tensor(1000.0)).item()
         1.0
     """
+    _, _, safe, lit = _half_vector(normals, to_light, to_viewer)
+    return torch.where(lit, safe.pow(shininess), torch.zeros_like(safe))
+
+
+def _half_vector(normals: Tensor, to_light: Tensor, to_viewer: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    # h, |l + v| (1 where undefined), n.h (1 where unlit) and where the lobe is lit.
     half = to_light + to_viewer
     length = half.norm(dim=-1)
     # Guard: h is undefined when the light is exactly opposite the viewer (l = -v);
     # the lobe is then taken as 0 (n.h has no preferred value) with a zero gradient.
     ok = length > 1e-6
-    half = half / torch.where(ok, length, torch.ones_like(length))[..., None]
+    length = torch.where(ok, length, torch.ones_like(length))
+    half = half / length[..., None]
     n_dot_h = (normals * half).sum(-1)
     lit = ok & (n_dot_h > 1e-12)
     # Pow guard: for alpha < 1 the derivative of x^alpha is infinite at 0; the
     # masked branch gets a safe base of 1 so its (discarded) gradient stays finite.
-    safe = torch.where(lit, n_dot_h, torch.ones_like(n_dot_h))
-    return torch.where(lit, safe.pow(shininess), torch.zeros_like(n_dot_h))
+    return half, length, torch.where(lit, n_dot_h, torch.ones_like(n_dot_h)), lit
 
 
 def shading_position_gradients(normals: Tensor, geometry: LightGeometry, shininess: Tensor, falloff: Falloff | str,
@@ -128,17 +134,10 @@ def shading_position_gradients(normals: Tensor, geometry: LightGeometry, shinine
     d_diffuse = torch.where((n_dot_l > 0)[..., None], d_diffuse, torch.zeros_like(d_diffuse))
     if not with_specular:
         return d_diffuse, None
-    half = to_light + to_viewer
-    length = half.norm(dim=-1)
-    ok = length > 1e-6  # as in blinn_phong_lobe: no half vector when l = -v
-    length = torch.where(ok, length, torch.ones_like(length))
-    half = half / length[..., None]
-    n_dot_h = (normals * half).sum(-1)
-    lit = ok & (n_dot_h > 1e-12)
-    safe = torch.where(lit, n_dot_h, torch.ones_like(n_dot_h))
-    lobe = torch.where(lit, safe.pow(shininess), torch.zeros_like(n_dot_h))
-    # d(n.h)/dp = (I - l l^T)(n - (n.h) h) / (d |l + v|)
-    tangent = normals - n_dot_h[..., None] * half
+    half, length, safe, lit = _half_vector(normals, to_light, to_viewer)
+    lobe = torch.where(lit, safe.pow(shininess), torch.zeros_like(safe))
+    # d(n.h)/dp = (I - l l^T)(n - (n.h) h) / (d |l + v|); 0 where unlit (lobe = 0)
+    tangent = normals - safe[..., None] * half
     d_n_dot_h = (tangent - (tangent * to_light).sum(-1, keepdim=True) * to_light) / (distance * length)[..., None]
     d_lobe = (shininess * lobe / safe)[..., None] * d_n_dot_h
     d_specular = f[..., None] * (d_lobe + (lobe * log_slope)[..., None] * to_light)
