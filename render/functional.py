@@ -84,11 +84,16 @@ def _shininess(material: Material) -> Tensor:
     return shininess[:, None] if shininess.dim() == 3 else shininess
 
 
-def _transport(gbuffer, material, light_position, falloff, shadows, shadow_options, with_specular) -> LightTransport:
-    # Shapes: points/normals (B, 1, H, W, 3), lights (B, L, 1, 1, 3).
-    points = gbuffer.points[:, None]
+def _geometry(gbuffer: GBuffer, light_position: Tensor):
+    # light_geometry of every pixel and light: points (B, 1, H, W, 3), lights (B, L, 1, 1, 3).
+    return light_geometry(gbuffer.points[:, None], light_position[:, :, None, None, :])
+
+
+def _transport(gbuffer, material, light_position, falloff, shadows, shadow_options, with_specular,
+               geometry=None) -> LightTransport:
+    # geometry: _geometry(gbuffer, light_position) when the caller already has it.
     normals = gbuffer.normals[:, None]
-    to_light, distance, to_viewer = light_geometry(points, light_position[:, :, None, None, :])
+    to_light, distance, to_viewer = _geometry(gbuffer, light_position) if geometry is None else geometry
     # Per-light scalar weights (B, L, H, W); RGB enters only where the caller sums lights.
     weight = falloff_factor(distance, falloff)
     n_dot_l = (normals * to_light).sum(-1)
@@ -176,10 +181,11 @@ def light_transport_jacobian(
         raise ValueError(f"light_position must have shape ({B}, L, 3), got {tuple(light_position.shape)}")
     falloff, shadows = Falloff(falloff), ShadowMethod(shadows)
     with_specular = bool(specular) and material.ks is not None
-    unshadowed = _transport(gbuffer, material, light_position, falloff, ShadowMethod.NONE, None, with_specular)
+    geometry = _geometry(gbuffer, light_position)
+    unshadowed = _transport(gbuffer, material, light_position, falloff, ShadowMethod.NONE, None, with_specular,
+                            geometry)
     diffuse, spec = unshadowed.diffuse, unshadowed.specular
     normals = gbuffer.normals[:, None]
-    geometry = light_geometry(gbuffer.points[:, None], light_position[:, :, None, None, :])
     d_diffuse, d_specular = shading_position_gradients(normals, geometry, _shininess(material), falloff, with_specular)
     if shadows is ShadowMethod.NONE:
         return TransportJacobian(unshadowed, d_diffuse, d_specular)

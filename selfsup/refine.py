@@ -131,7 +131,7 @@ class RefineOptions:
     ``irls_passes``: reweighting passes that solve the intensities and ambient of
     a robust fit at fixed positions (one pass leaves the outliers' pull in the
     closed-form solve, which skews every loss compared between candidates).
-    ``fd_step``: forward-difference step, in scene sizes. ``learning_rate``: adam/gd.
+    ``fd_step``: forward-difference step of the shadow Jacobian, in scene sizes. ``learning_rate``: adam/gd.
     """
 
     method: str = "lm"
@@ -471,12 +471,13 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
     """Fit ``n_lights`` lights with no initial guess, one image at a time.
 
     The last light is searched (the others, ``fixed (B, n_lights - 1, 3)``, start
-    where given): every grid candidate is scored at stride 4 by the robust loss
-    with intensities solved; the ``starts`` best well-spread ones run a short LM
-    there, from where they are and (``unshadowed_first``) from where a shadow-free
-    LM, whose landscape is smoother, took them; the ``finalists`` best of those that
-    ended at least 2% of the scene size apart run the full coarse-to-fine
-    refinement; the lowest robust loss wins. ``extra_starts (B, S, 3)`` (e.g. a network's
+    where given): every grid candidate is scored on about ``rank_pixels`` pixels by
+    the robust loss with intensities solved; the ``starts`` best well-spread ones
+    run a short LM on about ``start_pixels`` pixels, from where they are and
+    (``unshadowed_first``) from where a shadow-free LM, whose landscape is
+    smoother, took them; the ``finalists`` best of those that ended at least 2% of
+    the scene size apart run ``options``' coarse-to-fine refinement; the lowest
+    robust loss wins. ``extra_starts (B, S, 3)`` (e.g. a network's
     guesses for the searched light) join the grid's best as starts.
     """
     options = options or RefineOptions()
