@@ -317,9 +317,9 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         cols_base, j_pos = _jacobians(sub, pos, intensity[idx], h[idx], options.specular)
         jac = torch.cat([j_pos, _linear_jacobian(sub, cols_base)], 1)
         resid = (model[idx] - sub.image).flatten(1)
-        wf = w.flatten(1)
-        jtj = (jac * wf[:, None]) @ jac.transpose(1, 2)
-        jtr = ((jac * wf[:, None]) @ resid[..., None]).squeeze(-1)
+        weighted = jac * w.flatten(1)[:, None]
+        jtj = weighted @ jac.transpose(1, 2)
+        jtr = (weighted @ resid[..., None]).squeeze(-1)
         diag = jtj.diagonal(dim1=-2, dim2=-1)
         # A light that lights nothing has zero columns: a floor of 1e-6 of the largest
         # curvature keeps the damped system positive definite (it then stays put).
@@ -337,9 +337,14 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         t_cost, t_int, t_amb, t_model, _, _, _ = evaluate(sub, trial, options, weights=w)
         better = (t_cost < cost[idx]) & finite
         rel = (cost[idx] - t_cost) / cost[idx].clamp_min(1e-30)
-        keep = idx[better]
-        position[keep], cost[keep], intensity[keep], ambient[keep] = trial[better], t_cost[better], t_int[better], t_amb[better]
-        model[keep] = t_model[better]
+        # Accepted steps replace the state, rejected ones leave it: selects, not boolean
+        # indexing, so nothing here waits for the device.
+        pick = better[:, None, None]
+        position[idx] = torch.where(pick, trial, pos)
+        intensity[idx] = torch.where(pick, t_int, intensity[idx])
+        ambient[idx] = torch.where(better[:, None], t_amb, ambient[idx])
+        model[idx] = torch.where(pick[..., None], t_model, model[idx])
+        cost[idx] = torch.where(better, t_cost, cost[idx])
         damping[idx] = torch.where(better, damping[idx] * 0.3, damping[idx] * 10).clamp(1e-9, 1e9)
         iterations[idx] += 1
         moved = step.reshape(n, L, 3).norm(dim=-1).amax(-1) / size[idx]
@@ -347,12 +352,13 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         # a point: its cost creeps down for ever; it stops there (and loses to the others).
         away = (position[idx] - centre[idx, None]).norm(dim=-1).amax(-1) / size[idx] > RUNAWAY_SIZES
         done = (better & ((rel < options.tol) | (moved < options.step_tol) | away)) | (damping[idx] >= 1e9)
-        active[idx[done]] = False
+        active[idx] = active[idx] & ~done
         # Re-weight (IRLS) the images that moved.
-        if options.robust and keep.numel():
-            new_w = _weights(problem.select(keep), model[keep] - problem.image[keep], options, scale[keep])
-            weights[keep] = new_w
-            cost[keep] = (new_w * (model[keep] - problem.image[keep]) ** 2).flatten(1).sum(1)
+        if options.robust:
+            residual = model[idx] - sub.image
+            new_w = _weights(sub, residual, options, scale[idx])
+            weights[idx] = torch.where(pick[..., None], new_w, w)
+            cost[idx] = torch.where(better, (new_w * residual**2).flatten(1).sum(1), cost[idx])
     return position, iterations
 
 
@@ -444,18 +450,31 @@ def robust_loss(problem: FitProblem, model: Tensor, options: RefineOptions) -> T
     return (c[:, None] ** 2 * torch.log1p((residual.flatten(1) / c[:, None]) ** 2)).sum(1)
 
 
-def _spread_best(cands: Tensor, score: Tensor, size: float, count: int, min_gap: float, fill: bool = True) -> Tensor:
-    # Indices of up to `count` best candidates (G, D) at least `min_gap * size` apart;
-    # `fill`: repeat the last to make `count` when fewer are that far apart.
-    chosen: list[int] = []
-    for index in score.argsort().tolist():
-        if all(float((cands[index] - cands[c]).norm()) > min_gap * size for c in chosen):
-            chosen.append(index)
-        if len(chosen) == count:
-            break
-    while fill and len(chosen) < count:
-        chosen.append(chosen[-1])
-    return torch.tensor(chosen, device=cands.device)
+def _spread_best(points: Tensor, score: Tensor, size: Tensor, count: int, min_gap: float) -> tuple[Tensor, Tensor]:
+    """The ``count`` best-scored of ``points (B, G, D)`` per image, each more than
+    ``min_gap * size (B,)`` from those chosen before it (greedy, best first).
+
+    Returns indices ``(B, count)`` into ``G``, the last distinct one repeated when
+    fewer are that far apart, and the number of distinct ones ``(B,)``.
+    """
+    B, G, D = points.shape
+    order = torch.nan_to_num(score, nan=math.inf).argsort(dim=1, stable=True)
+    ranks = torch.arange(G, device=points.device).expand(B, G)
+    rank = torch.empty_like(order).scatter_(1, order, ranks)  # each point's place in the order
+    available = torch.ones(B, G, dtype=torch.bool, device=points.device)
+    distinct = torch.zeros(B, dtype=torch.long, device=points.device)
+    chosen: list[Tensor] = []
+    for _ in range(count):
+        masked = torch.where(available, rank, G)
+        index = masked.argmin(1)
+        found = masked.gather(1, index[:, None])[:, 0] < G
+        if chosen:
+            index = torch.where(found, index, chosen[-1])
+        distinct += found
+        chosen.append(index)
+        gap = (points - points.gather(1, index[:, None, None].expand(B, 1, D))).norm(dim=-1)
+        available &= gap > min_gap * size[:, None]
+    return torch.stack(chosen, 1), distinct
 
 
 def _stride_for(problem: FitProblem, pixels: int) -> int:
@@ -464,11 +483,21 @@ def _stride_for(problem: FitProblem, pixels: int) -> int:
     return max(1, int(math.sqrt(H * W / pixels)))
 
 
+def _tiled(problem: FitProblem, count: int) -> FitProblem:
+    # Every image ``count`` times in a row: image b fills rows b*count .. (b+1)*count - 1.
+    return problem.select(torch.arange(problem.batch, device=problem.image.device).repeat_interleave(count))
+
+
+def _pick(positions: Tensor, index: Tensor) -> Tensor:
+    # positions (B, S, L, 3) at index (B, K): (B, K, L, 3).
+    return positions.gather(1, index[..., None, None].expand(-1, -1, *positions.shape[2:]))
+
+
 def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = None, fixed: Tensor | None = None,
            per_axis: tuple[int, int, int] = (7, 6, 7), starts: int = 8, finalists: int = 2,
            unshadowed_first: bool = True, extra_starts: Tensor | None = None, rank_pixels: int = 300,
            start_pixels: int = 1200) -> Fit:
-    """Fit ``n_lights`` lights with no initial guess, one image at a time.
+    """Fit ``n_lights`` lights with no initial guess, every image of the batch at once.
 
     The last light is searched (the others, ``fixed (B, n_lights - 1, 3)``, start
     where given): every grid candidate is scored on about ``rank_pixels`` pixels by
@@ -479,45 +508,51 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
     the scene size apart run ``options``' coarse-to-fine refinement; the lowest
     robust loss wins. ``extra_starts (B, S, 3)`` (e.g. a network's
     guesses for the searched light) join the grid's best as starts.
+
+    The batch runs as one: ``B x candidates`` images per step, each stopping on its
+    own, so a GPU fills up; an image's answer is the one it gets alone.
     """
     options = options or RefineOptions()
+    B = problem.batch
     if fixed is None and n_lights != 1:
         raise ValueError("without fixed lights only one light is searched")
-    fits = []
-    for b in range(problem.batch):
-        one = problem.select(torch.tensor([b]))
-        base = torch.zeros(1, 0, 3, dtype=one.image.dtype) if fixed is None else fixed[b : b + 1]
-        coarse = subsample(one, _stride_for(one, start_pixels))
-        ranked = subsample(one, _stride_for(one, rank_pixels))
-        cands = grid_candidates(coarse, per_axis)[0]  # (G, 3)
-        G = cands.shape[0]
-        tiled = ranked.select(torch.zeros(G, dtype=torch.long))
-        with torch.no_grad():
-            positions = torch.cat([base.expand(G, -1, -1), cands[:, None]], 1)
-            _, _, _, model, _, _, _ = evaluate(tiled, positions, options, passes=1)  # a coarse ranking
-            score = robust_loss(tiled, model, options)
-        size = float(_scene_frame(coarse)[1][0])
-        pick = _spread_best(cands, score, size, starts, 0.15)
-        # The starts need their basin, not its bottom: millimetre steps end them.
-        quick = dataclasses.replace(options, strides=(1,), max_iters=(12,), step_tol=max(options.step_tol, 1e-3))
-        starts_at = positions[pick]
-        if extra_starts is not None:
-            guesses = extra_starts[b][:, None]  # (S, 1, 3)
-            starts_at = torch.cat([torch.cat([base.expand(guesses.shape[0], -1, -1), guesses], 1), starts_at])
-        if unshadowed_first and one.shadows != "none":
-            # Shading alone gives a smoother landscape: also start from where a shadow-free descent went.
-            smooth = refine(dataclasses.replace(coarse.select(torch.zeros(starts_at.shape[0], dtype=torch.long)), shadows="none"),
-                            starts_at, quick)
-            starts_at = torch.cat([starts_at, smooth.position])
-        tiled = coarse.select(torch.zeros(starts_at.shape[0], dtype=torch.long))
-        short = refine(tiled, starts_at, quick)
-        score = robust_loss(tiled, short.model, options)
-        # Starts that the short LM took to one place are one finalist, not several.
-        final = short.position[_spread_best(short.position.flatten(1), score, size, finalists, 0.02, fill=False)]
-        full = refine(one.select(torch.zeros(final.shape[0], dtype=torch.long)), final, options)
-        best = int(robust_loss(one.select(torch.zeros(final.shape[0], dtype=torch.long)), full.model, options).argmin())
-        fits.append(Fit(*(getattr(full, f.name)[best : best + 1] for f in dataclasses.fields(Fit))))
-    return Fit(*(torch.cat([getattr(f, name.name) for f in fits]) for name in dataclasses.fields(Fit)))
+    base = problem.image.new_zeros(B, 0, 3) if fixed is None else fixed
+    if base.shape != (B, n_lights - 1, 3):
+        raise ValueError(f"fixed must have shape ({B}, {n_lights - 1}, 3), got {tuple(base.shape)}")
+    coarse = subsample(problem, _stride_for(problem, start_pixels))
+    ranked = subsample(problem, _stride_for(problem, rank_pixels))
+    cands = grid_candidates(coarse, per_axis)  # (B, G, 3)
+    G = cands.shape[1]
+    size = _scene_frame(coarse)[1]  # (B,)
+    with torch.no_grad():
+        positions = torch.cat([base[:, None].expand(B, G, -1, -1), cands[:, :, None]], 2)  # (B, G, L, 3)
+        tiled = _tiled(ranked, G)
+        _, _, _, model, _, _, _ = evaluate(tiled, positions.flatten(0, 1), options, passes=1)  # a coarse ranking
+        score = robust_loss(tiled, model, options).reshape(B, G)
+    starts_at = _pick(positions, _spread_best(cands, score, size, starts, 0.15)[0])  # (B, S, L, 3)
+    if extra_starts is not None:
+        guesses = torch.cat([base[:, None].expand(B, extra_starts.shape[1], -1, -1), extra_starts[:, :, None]], 2)
+        starts_at = torch.cat([guesses, starts_at], 1)
+    # The starts need their basin, not its bottom: millimetre steps end them.
+    quick = dataclasses.replace(options, strides=(1,), max_iters=(12,), step_tol=max(options.step_tol, 1e-3))
+    if unshadowed_first and problem.shadows != "none":
+        # Shading alone gives a smoother landscape: also start from where a shadow-free descent went.
+        S = starts_at.shape[1]
+        smooth = refine(dataclasses.replace(_tiled(coarse, S), shadows="none"), starts_at.flatten(0, 1), quick)
+        starts_at = torch.cat([starts_at, smooth.position.reshape(B, S, n_lights, 3)], 1)
+    S = starts_at.shape[1]
+    tiled = _tiled(coarse, S)
+    short = refine(tiled, starts_at.flatten(0, 1), quick)
+    score = robust_loss(tiled, short.model, options).reshape(B, S)
+    ends = short.position.reshape(B, S, n_lights, 3)
+    # Starts that the short LM took to one place are one finalist, not several.
+    index, distinct = _spread_best(ends.flatten(2), score, size, finalists, 0.02)
+    F = int(distinct.max())
+    tiled = _tiled(problem, F)
+    full = refine(tiled, _pick(ends, index[:, :F]).flatten(0, 1), options)
+    best = robust_loss(tiled, full.model, options).reshape(B, F).argmin(1)
+    rows = torch.arange(B, device=best.device) * F + best
+    return Fit(*(getattr(full, f.name)[rows] for f in dataclasses.fields(Fit)))
 
 
 def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, correlation_px: float = 1.0) -> Tensor:
@@ -538,7 +573,7 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     k = jac.shape[1]
     sigma2 = fit.rss / (fit.n - k).clamp_min(1) * correlation_px
     info = jac @ jac.transpose(1, 2)
-    info = info + 1e-12 * info.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] * torch.eye(k, dtype=jac.dtype)
+    info = info + 1e-12 * info.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] * torch.eye(k, dtype=jac.dtype, device=jac.device)
     cov = torch.linalg.pinv(info, hermitian=True) * sigma2[:, None, None]
     pos_cov = cov[:, : 3 * L, : 3 * L].reshape(B, L, 3, L, 3)
     return torch.stack([pos_cov[:, i, :, i, :] for i in range(L)], 1)
