@@ -38,15 +38,15 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from render import light_transport
+from render import GBuffer, Material, light_transport
 from render.geometry import normal_noise, plane_normals, smooth_normals
 from render.shadows import ShadowMethod
-from selfsup.refine import (Fit, FitProblem, RefineOptions, evaluate, position_covariance, refine, robust_loss,
+from selfsup.refine import (Fit, FitProblem, RefineOptions, position_covariance, refine, robust_loss,
                             search)
-from selfsup.scenes.io import Scene, SceneFileError, read_scene, render_inputs
+from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
-__all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "estimate_scene", "estimate_files",
-           "scene_files"]
+__all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "problems_of", "estimate_scene",
+           "estimate_batch", "records", "has_specular", "estimate_files", "scene_files"]
 
 log = logging.getLogger(__name__)
 METHODS = ("cnn+refine", "cnn", "refine")
@@ -134,28 +134,68 @@ def saturated_pixels(image: Tensor, mask: Tensor, min_share: float = 0.002) -> T
 
 def problem_of(scene: Scene, shadows: str = "epipolar", dtype=torch.float32, normal_smoothing: str = "never",
                normal_noise_threshold: float = 0.5, mask_saturated: bool = False) -> FitProblem:
-    """A batch-of-one :class:`FitProblem` from a scene file's contents; the normals
-    smoothed as ``normal_smoothing`` says (see :class:`EstimateOptions`), clipped
-    pixels (:func:`saturated_pixels`) left out when ``mask_saturated``."""
-    gbuffer, material, _ = render_inputs(scene)
+    """A batch-of-one :class:`FitProblem` from a scene file's contents (see :func:`problems_of`)."""
+    return problems_of([scene], shadows, dtype, normal_smoothing, normal_noise_threshold, mask_saturated)
+
+
+def _stacked_field(scenes: list[Scene], name: str, device=None) -> Tensor | None:
+    # One field of every scene, stacked (B, ...) and moved to ``device`` in one copy; None
+    # when no scene holds it.
+    values = [getattr(scene, name) for scene in scenes]
+    if all(v is None for v in values):
+        return None
+    if any(v is None for v in values) or len({tuple(v.shape) for v in values}) > 1:
+        raise ValueError(f"scenes of one batch must all hold {name} with one shape")
+    return torch.stack(values).to(device)
+
+
+def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.float32, normal_smoothing: str = "never",
+                normal_noise_threshold: float = 0.5, mask_saturated: bool = False, device=None) -> FitProblem:
+    """One :class:`FitProblem` of ``B`` same-sized scenes, on ``device`` (None: the
+    scenes' own; the scenes are stacked first, so each field moves in one copy);
+    the normals smoothed as ``normal_smoothing`` says (see :class:`EstimateOptions`),
+    clipped pixels (:func:`saturated_pixels`) left out when ``mask_saturated``.
+
+    The scenes must agree on which optional fields they hold and on the falloff
+    (one file's scene always does). Raises :class:`SceneFileError` naming the
+    first scene left with no valid pixel.
+    """
+    if not scenes:
+        raise ValueError("no scenes to prepare")
+    falloffs = {scene.falloff for scene in scenes}
+    if len(falloffs) > 1:
+        raise ValueError(f"scenes of one batch must share a falloff, got {sorted(falloffs)}")
+    shininess = _stacked_field(scenes, "shininess", device)
+    gbuffer = GBuffer.from_depth(_stacked_field(scenes, "depth", device), _stacked_field(scenes, "K", device),
+                                 _stacked_field(scenes, "normals", device))
+    material = Material(kd=_stacked_field(scenes, "kd", device), ks=_stacked_field(scenes, "ks", device),
+                        shininess=shininess[0] if len(scenes) == 1 and shininess.dim() == 1 else shininess)
+    image = _stacked_field(scenes, "image", device).permute(0, 3, 1, 2).to(dtype)
     if mask_saturated:
-        clipped = saturated_pixels(scene.image.permute(2, 0, 1)[None], gbuffer.mask)
+        clipped = saturated_pixels(image, gbuffer.mask)
         if bool(clipped.any()):
-            log.info("%s: %d clipped pixels left out", scene.id, int(clipped.sum()))
+            for scene, count in zip(scenes, clipped.flatten(1).sum(1).tolist()):
+                if count:
+                    log.info("%s: %d clipped pixels left out", scene.id, count)
             gbuffer = replace(gbuffer, mask=gbuffer.mask & ~clipped)
-    if not bool(gbuffer.mask.any()):
-        raise SceneFileError(scene.id, "no valid pixel left after estimating normals and leaving out clipped pixels")
-    if normal_smoothing == "always" or (
-            normal_smoothing == "auto"
-            and float(normal_noise(gbuffer.points, gbuffer.normals, gbuffer.mask)[0]) > normal_noise_threshold):
-        normals, mask = gbuffer.normals, gbuffer.mask
-        if scene.normals is None:
-            # Differences of noisy neighbours are tens of degrees off: fit planes to 9x9 windows instead.
-            normals, has_normal = plane_normals(gbuffer.points, gbuffer.mask, radius=4)
-            mask = gbuffer.mask & has_normal
-        gbuffer = replace(gbuffer, normals=smooth_normals(gbuffer.points, normals, mask), mask=mask)
-    return FitProblem(gbuffer, material, scene.image.permute(2, 0, 1)[None].to(dtype),
-                      None if scene.ambient is None else scene.ambient[None], scene.falloff, shadows)
+    empty = (~gbuffer.mask.flatten(1).any(1)).tolist()
+    if any(empty):
+        raise SceneFileError(scenes[empty.index(True)].id,
+                             "no valid pixel left after estimating normals and leaving out clipped pixels")
+    if normal_smoothing != "never":
+        noisy = torch.ones(len(scenes), dtype=torch.bool, device=image.device) if normal_smoothing == "always" else (
+            normal_noise(gbuffer.points, gbuffer.normals, gbuffer.mask) > normal_noise_threshold)
+        if bool(noisy.any()):
+            at = noisy.nonzero(as_tuple=True)[0]
+            points, normals, mask = gbuffer.points[at], gbuffer.normals[at], gbuffer.mask[at]
+            if scenes[0].normals is None:
+                # Differences of noisy neighbours are tens of degrees off: fit planes to 9x9 windows instead.
+                normals, has_normal = plane_normals(points, mask, radius=4)
+                mask = mask & has_normal
+            smoothed = smooth_normals(points, normals, mask)
+            gbuffer = replace(gbuffer, normals=gbuffer.normals.index_put((at,), smoothed),
+                              mask=gbuffer.mask.index_put((at,), mask))
+    return FitProblem(gbuffer, material, image, _stacked_field(scenes, "ambient", device), scenes[0].falloff, shadows)
 
 
 def bic(loss: float, n_values: int, n_params: int, block_px: int) -> float:
@@ -180,28 +220,139 @@ def light_shares(problem: FitProblem, fit: Fit, specular: bool) -> Tensor:
 
 
 @functools.lru_cache(maxsize=4)
-def _network(checkpoint: str | None):
+def _network(checkpoint: str | None, device: str = "cpu"):
     from selfsup.checkpoint import load_network
 
-    return load_network(checkpoint)[0]
+    return load_network(checkpoint, map_location=device)[0].to(device)
 
 
 @torch.no_grad()
 def network_slots(problem: FitProblem, checkpoint: str | None = None) -> tuple[Tensor, Tensor]:
-    """The network's light slots for a batch-of-one problem: positions ``(1, K, 3)`` and
-    presence ``(K,)``, most present first."""
-    network = _network(checkpoint)
+    """The network's light slots: positions ``(B, K, 3)`` and presence ``(B, K)``,
+    each image's most present first."""
+    network = _network(checkpoint, str(problem.image.device))
     prediction = network(problem.image.float(), problem.gbuffer, problem.material.kd.float())
-    order = prediction.presence[0].argsort(descending=True)
-    return prediction.position[:, order].to(problem.image.dtype), prediction.presence[0, order]
+    order = prediction.presence.argsort(dim=1, descending=True)
+    position = prediction.position.gather(1, order[..., None].expand(-1, -1, 3))
+    return position.to(problem.image.dtype), prediction.presence.gather(1, order)
 
 
-def _candidate(problem: FitProblem, fit: Fit, n_lights: int, specular: bool, options: EstimateOptions) -> Candidate:
-    # A fitted model and its criterion: robust loss, 6 parameters per light, the
-    # unknown ambient (3) and the specular switch.
-    loss = float(robust_loss(problem, fit.model, replace(options.refine, specular=specular))[0])
-    k = 6 * n_lights + (3 if problem.ambient is None else 0) + int(specular)
-    return Candidate(fit, n_lights, specular, bic(loss, int(problem.gbuffer.mask.sum()) * 3, k, options.block_px))
+def has_specular(problem: FitProblem) -> Tensor:
+    """Whether each image's material has a specular term: ``(B,)`` bool."""
+    ks = problem.material.ks
+    if ks is None:
+        return torch.zeros(problem.batch, dtype=torch.bool, device=problem.image.device)
+    return (ks > 0).flatten(1).any(1)
+
+
+def _row(fit: Fit, i: int) -> Fit:
+    return Fit(*(getattr(fit, f.name)[i : i + 1] for f in dataclasses.fields(Fit)))
+
+
+def _stacked(fits: list[Fit]) -> Fit:
+    return Fit(*(torch.cat([getattr(f, name.name) for f in fits]) for name in dataclasses.fields(Fit)))
+
+
+def _candidates(problem: FitProblem, fit: Fit, n_lights: int, specular: list[bool], options: EstimateOptions
+                ) -> list[Candidate]:
+    # Each image's fitted model and its criterion: robust loss, 6 parameters per light,
+    # the unknown ambient (3) and the specular switch.
+    loss = robust_loss(problem, fit.model, options.refine).tolist()
+    n_values = (problem.gbuffer.mask.flatten(1).sum(1) * 3).tolist()
+    ambient = 3 if problem.ambient is None else 0
+    return [Candidate(_row(fit, i), n_lights, spec, bic(loss[i], int(n_values[i]), 6 * n_lights + ambient + int(spec),
+                                                        options.block_px))
+            for i, spec in enumerate(specular)]
+
+
+def _groups(best: list[Candidate]) -> dict[tuple[int, bool], list[int]]:
+    # The images of each (light count, specular switch): one batched call each.
+    groups: dict[tuple[int, bool], list[int]] = {}
+    for i, candidate in enumerate(best):
+        groups.setdefault((candidate.n_lights, candidate.specular), []).append(i)
+    return groups
+
+
+def estimate_batch(problem: FitProblem, options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
+    """Estimate the lights of a batch of same-sized images; each image's chosen model
+    and every model tried (see :func:`estimate_scene`).
+
+    Every step runs on the whole batch (the searches over ``B x candidates``
+    images), so a GPU is filled; each image is judged on its own and gets the
+    answer it would get alone.
+    """
+    B, device = problem.batch, problem.image.device
+    searched = problem if options.search_shadows == options.shadows else replace(problem, shadows=options.search_shadows)
+    specular_of = has_specular(problem).tolist()
+    if options.method == "refine":
+        slots = None
+    else:
+        slots, presence = network_slots(problem, options.checkpoint)
+        if options.method == "cnn":
+            return _network_candidates(problem, slots, presence, specular_of, options)
+
+    def index(images: list[int]) -> Tensor:
+        return torch.tensor(images, dtype=torch.long, device=device)
+
+    def starts(images: list[int]) -> dict:
+        if slots is None:
+            return {}
+        return dict(extra_starts=slots[index(images)], per_axis=options.cnn_grid, starts=options.cnn_starts)
+
+    # Candidates are fitted on all pyramid levels but the finest; only the chosen one
+    # descends to it (the finest level costs as much as all the others together).
+    levels = len(options.refine.strides)
+    coarse = replace(options.refine, strides=options.refine.strides[: max(levels - 1, 1)],
+                     max_iters=options.refine.max_iters[: max(levels - 1, 1)])
+
+    def polished(images: list[int], fit: Fit, n_lights: int, specular: bool, labels: list[bool]):
+        # The search's answer refined and judged under the final shadow model; ``specular``
+        # is the term computed, ``labels`` each image's switch (equal where ks > 0).
+        sub = problem.select(index(images))
+        if searched is not problem:
+            fit = refine(sub, fit.position, replace(coarse, specular=specular))
+        return _candidates(sub, fit, n_lights, labels, options), sub, fit
+
+    everyone = list(range(B))
+    # Where ks is zero the specular term adds nothing: one search serves the whole batch.
+    any_specular = any(specular_of)
+    first = search(searched, 1, replace(coarse, specular=any_specular), **starts(everyone))
+    tried = [[c] for c in polished(everyone, first, 1, any_specular, specular_of)[0]]
+    shiny = [i for i in everyone if specular_of[i]]
+    if shiny:
+        at = index(shiny)
+        unspecular = refine(searched.select(at), first.position[at], replace(coarse, specular=False))
+        for i, c in zip(shiny, polished(shiny, unspecular, 1, False, [False] * len(shiny))[0]):
+            tried[i].append(c)
+    best = [min(t, key=lambda c: c.criterion) for t in tried]
+    growing = everyone
+    for n_lights in range(2, options.max_lights + 1):
+        still = []
+        for specular in (False, True):
+            group = [i for i in growing if best[i].specular == specular]
+            if not group:
+                continue
+            fixed = torch.cat([best[i].fit.position for i in group])
+            more = search(searched.select(index(group)), n_lights, replace(coarse, specular=specular), fixed=fixed,
+                          **starts(group))
+            found, sub, fit = polished(group, more, n_lights, specular, [specular] * len(group))
+            shares = light_shares(sub, fit, specular).amin(-1).tolist()
+            for i, c, share in zip(group, found, shares):
+                tried[i].append(c)
+                # A light that does not pay for itself: more would not either.
+                if c.criterion < best[i].criterion and share >= options.min_light_share:
+                    best[i] = c
+                    still.append(i)
+        growing = sorted(still)
+    if levels > 1:
+        for (n_lights, specular), group in _groups(best).items():
+            finest = replace(options.refine, specular=specular, strides=options.refine.strides[-1:],
+                             max_iters=options.refine.max_iters[-1:])
+            sub = problem.select(index(group))
+            fit = refine(sub, torch.cat([best[i].fit.position for i in group]), finest)
+            for i, c in zip(group, _candidates(sub, fit, n_lights, [specular] * len(group), options)):
+                best[i] = c
+    return [(best[i], tried[i]) for i in everyone]
 
 
 def estimate_scene(scene: Scene, options: EstimateOptions) -> dict:
@@ -214,74 +365,56 @@ def estimate_scene(scene: Scene, options: EstimateOptions) -> dict:
     ``search_shadows``; each model found is refined with ``shadows`` before it is
     judged. With ``cnn+refine`` the network's slots join the grid's best
     candidates as starts of every search; ``cnn`` keeps the slots as they are (no
-    refinement).
+    refinement). :func:`estimate_batch` does the work; batches of scenes go there.
     """
     problem = problem_of(scene, options.shadows, normal_smoothing=options.normal_smoothing,
                          normal_noise_threshold=options.normal_noise_threshold, mask_saturated=options.mask_saturated)
-    searched = problem if options.search_shadows == options.shadows else replace(problem, shadows=options.search_shadows)
-    has_specular = scene.ks is not None and bool((scene.ks > 0).any())
-    if options.method == "refine":
-        starts = {}
-    else:
-        slots, presence = network_slots(problem, options.checkpoint)
-        if options.method == "cnn":
-            return _network_record(scene, problem, slots, presence, has_specular, options)
-        starts = dict(extra_starts=slots, per_axis=options.cnn_grid, starts=options.cnn_starts)
-
-    # Candidates are fitted on all pyramid levels but the finest; only the chosen one
-    # descends to it (the finest level costs as much as all the others together).
-    levels = len(options.refine.strides)
-    coarse = replace(options.refine, strides=options.refine.strides[: max(levels - 1, 1)],
-                     max_iters=options.refine.max_iters[: max(levels - 1, 1)])
-
-    def polished(fit: Fit, n_lights: int, specular: bool) -> Candidate:
-        # The search's answer refined and judged under the final shadow model.
-        if searched is not problem:
-            fit = refine(problem, fit.position, replace(coarse, specular=specular))
-        return _candidate(problem, fit, n_lights, specular, options)
-
-    first = search(searched, 1, replace(coarse, specular=has_specular), **starts)
-    tried = [polished(first, 1, has_specular)]
-    if has_specular:
-        unspecular = refine(searched, first.position, replace(coarse, specular=False))
-        tried.append(polished(unspecular, 1, False))
-    best = min(tried, key=lambda c: c.criterion)
-    for n_lights in range(2, options.max_lights + 1):
-        opts = replace(coarse, specular=best.specular)
-        more = polished(search(searched, n_lights, opts, fixed=best.fit.position, **starts), n_lights, best.specular)
-        tried.append(more)
-        share = float(light_shares(problem, more.fit, best.specular).min())
-        if more.criterion >= best.criterion or share < options.min_light_share:
-            break  # a light that does not pay for itself: more would not either
-        best = more
-    if levels > 1:
-        finest = replace(options.refine, specular=best.specular, strides=options.refine.strides[-1:],
-                         max_iters=options.refine.max_iters[-1:])
-        best = _candidate(problem, refine(problem, best.fit.position, finest), best.n_lights, best.specular, options)
-    return _record(scene, problem, best, tried, options)
+    return records([scene.id], problem, estimate_batch(problem, options), options)[0]
 
 
-def _network_record(scene: Scene, problem: FitProblem, slots: Tensor, presence: Tensor, has_specular: bool,
-                    options: EstimateOptions) -> dict:
+def _network_candidates(problem: FitProblem, slots: Tensor, presence: Tensor, specular_of: list[bool],
+                        options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
     # The network's present slots (at least one); refine with no iterations solves
     # their intensities and ambient and evaluates the fit.
-    keep = max(1, min(int((presence > 0.5).sum()), options.max_lights))
-    fit = refine(problem, slots[:, :keep], replace(options.refine, specular=has_specular, max_iters=(0,), strides=(1,)))
-    chosen = _candidate(problem, fit, keep, has_specular, options)
-    return _record(scene, problem, chosen, [chosen], options)
+    keep = (presence > 0.5).sum(1).clamp(1, options.max_lights).tolist()
+    chosen: list[Candidate | None] = [None] * problem.batch
+    for n_lights in sorted(set(keep)):
+        group = [i for i, k in enumerate(keep) if k == n_lights]
+        at = torch.tensor(group, dtype=torch.long, device=slots.device)
+        labels = [specular_of[i] for i in group]
+        sub = problem.select(at)
+        fit = refine(sub, slots[at, :n_lights], replace(options.refine, specular=any(labels), max_iters=(0,), strides=(1,)))
+        for i, c in zip(group, _candidates(sub, fit, n_lights, labels, options)):
+            chosen[i] = c
+    return [(c, [c]) for c in chosen]
 
 
-def _record(scene: Scene, problem: FitProblem, best: Candidate, tried: list[Candidate], options: EstimateOptions) -> dict:
-    refine_opts = replace(options.refine, specular=best.specular)
-    cov = position_covariance(problem, best.fit, refine_opts, correlation_px=float(options.block_px**2))
-    std = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()[0]
+def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, list[Candidate]]],
+            options: EstimateOptions) -> list[dict]:
+    """The JSON-ready records (no ``seconds``) of :func:`estimate_batch`'s results, with
+    each light's position covariance (one batched call per light count and switch)."""
+    covariances: list[Tensor | None] = [None] * len(results)
+    for (n_lights, specular), group in _groups([best for best, _ in results]).items():
+        at = torch.tensor(group, dtype=torch.long, device=problem.image.device)
+        fit = _stacked([results[i][0].fit for i in group])
+        cov = position_covariance(problem.select(at), fit, replace(options.refine, specular=specular),
+                                  correlation_px=float(options.block_px**2)).cpu()
+        for j, i in enumerate(group):
+            covariances[i] = cov[j]
+    return [_record(scene_id, best, tried, cov) for scene_id, (best, tried), cov in zip(ids, results, covariances)]
+
+
+def _record(scene_id: str, best: Candidate, tried: list[Candidate], cov: Tensor) -> dict:
+    # cov: (L, 3, 3) position covariance of the chosen model's lights.
+    std = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    fit = best.fit
     lights = [
-        {"position": best.fit.position[0, i].tolist(), "intensity": best.fit.intensity[0, i].tolist(),
-         "position_std": std[i].tolist(), "position_cov": cov[0, i].tolist()}
+        {"position": fit.position[0, i].tolist(), "intensity": fit.intensity[0, i].tolist(),
+         "position_std": std[i].tolist(), "position_cov": cov[i].tolist()}
         for i in range(best.n_lights)
     ]
     return {
-        "id": scene.id, "lights": lights, "ambient": best.fit.ambient[0].tolist(),
+        "id": scene_id, "lights": lights, "ambient": fit.ambient[0].tolist(),
         "specular": best.specular,
         "candidates": [{"n_lights": c.n_lights, "specular": c.specular, "criterion": round(c.criterion, 3)}
                        for c in tried],

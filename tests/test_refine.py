@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from selfsup.estimate import EstimateOptions, estimate_files, estimate_scene, problem_of
+from selfsup.estimate import (EstimateOptions, estimate_batch, estimate_files, estimate_scene, problem_of,
+                              records)
+from selfsup.refine import FitProblem
 from selfsup.metrics import light_errors
 from selfsup.refine import RefineOptions, evaluate, refine, robust_loss, search
 from selfsup.scenes.exact import render_spec
@@ -107,6 +109,24 @@ def test_shipped_network_starts_the_refinement_and_selection(seed, n_lights):
     assert len(record["lights"]) == n_lights, record["candidates"]
     position = torch.tensor([light["position"] for light in record["lights"]])
     assert _rel_error_paired(position, scene) < 0.05  # success, as scene-format.md defines it
+
+
+def test_a_batch_gives_each_scene_the_answer_it_gets_alone():
+    # One light, two lights and a specular scene in one batch: mixed counts and switches.
+    scenes = [_scene(4, 1, MEDIUM), _scene(11, 2, MEDIUM),
+              _scene(3, 1, dataclasses.replace(MEDIUM, specular_prob=1.0))]
+    options = EstimateOptions(method="cnn+refine", refine=RefineOptions(max_iters=(15, 5)))
+    problem = FitProblem.cat([problem_of(s, options.shadows, normal_smoothing=options.normal_smoothing)
+                              for s in scenes])
+    batched = records([s.id for s in scenes], problem, estimate_batch(problem, options), options)
+    for scene, record in zip(scenes, batched):
+        alone = estimate_scene(scene, options)
+        assert [c["n_lights"] for c in record["candidates"]] == [c["n_lights"] for c in alone["candidates"]]
+        assert record["specular"] == alone["specular"]
+        for ours, theirs in zip(record["lights"], alone["lights"]):
+            gap = (torch.tensor(ours["position"]) - torch.tensor(theirs["position"])).norm()
+            assert float(gap) < 1e-3 * float(scene.scene_scale)
+    assert [len(r["lights"]) for r in batched[:2]] == [1, 2]
 
 
 def test_network_alone_gives_a_full_record(tmp_path):

@@ -8,7 +8,7 @@ the problem, so that a batch of files can report it and go on.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +56,11 @@ class Scene:
     @property
     def id(self) -> str:
         return str(self.meta.get("id", ""))
+
+    def to(self, device: torch.device | str, copy: bool = False) -> "Scene":
+        """The same scene with every tensor on ``device`` (copied even there when ``copy``)."""
+        return replace(self, **{f.name: getattr(self, f.name).to(device, copy=copy) for f in fields(self)
+                                if isinstance(getattr(self, f.name), Tensor)})
 
     @property
     def falloff(self) -> str:
