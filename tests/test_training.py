@@ -108,6 +108,13 @@ def test_loss_gradient_reaches_every_trained_head(pool):
         assert grad is not None and torch.isfinite(grad).all() and grad.abs().sum() > 0, name
 
 
+@pytest.mark.parametrize("experiment", sorted(p.stem for p in (ROOT / "configs" / "experiment").glob("*.yaml")))
+def test_every_experiment_builds_a_trainer(experiment):
+    # What the configs' comments and messages point users to must compose and build.
+    trainer = build_trainer(_cfg(f"experiment={experiment}", "trainer.out_dir=x"))
+    assert trainer.options.max_steps > 0 and trainer.options.batch_size > 0
+
+
 def test_config_composes_every_group_and_overrides():
     cfg = _cfg()
     assert cfg.mode == "train"
