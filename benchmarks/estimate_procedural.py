@@ -45,26 +45,41 @@ COLUMNS = ["set", "method", "scenes", "median_position_error", "success_rate", "
            "two_sigma_coverage", "median_seconds"]
 
 
-def run_set(name: str, degradations: dict, lights: list, count: int, seed: int, options: EstimateOptions) -> dict:
+def score(record: dict, scene) -> tuple[float, bool, bool, int]:
+    """One estimate against its scene's truth: worst position error (of the scene size),
+    success, right light count, and how many true lights fall inside their 2-sigma ellipsoid."""
+    position = torch.tensor([light["position"] for light in record["lights"]]).reshape(-1, 3)
+    g = GBuffer.from_depth(scene.depth[None], scene.K[None])
+    errors = light_errors(position, None, scene.light_pos, None, float(scene.scene_scale),
+                          g.points[0][g.mask[0]].mean(0))
+    inside = 0
+    for e, t in pair_lights(position, scene.light_pos):
+        cov = torch.tensor(record["lights"][e]["position_cov"], dtype=torch.float64)
+        delta = (scene.light_pos[t] - position[e]).double()
+        inside += float(delta @ torch.linalg.pinv(cov) @ delta) < CHI2_3D_2SIGMA
+    return max(errors.position), errors.success, errors.count_right, inside
+
+
+def set_scene(name: str, index: int, seed: int):
+    """Scene ``index`` of the fixed-seed set ``name`` (160x120, 2x2 AA), degraded as the set says."""
+    degradations, lights = SETS[name]
     sampler = SamplerConfig(height=120, width=160, n_lights_probs=tuple(lights))
+    return render_item(seed * 1_000_003 + index, sampler, Degradations(**degradations), 2)[1]
+
+
+def run_set(name: str, count: int, seed: int, options: EstimateOptions) -> dict:
     worst, success, count_right, inside, total_lights, seconds = [], 0, 0, 0, 0, []
     for index in range(count):
-        _, scene = render_item(seed * 1_000_003 + index, sampler, Degradations(**degradations), 2)
+        scene = set_scene(name, index, seed)
         started = time.perf_counter()
         with torch.no_grad():
             record = estimate_scene(scene, options)
         seconds.append(time.perf_counter() - started)
-        position = torch.tensor([light["position"] for light in record["lights"]]).reshape(-1, 3)
-        g = GBuffer.from_depth(scene.depth[None], scene.K[None])
-        errors = light_errors(position, None, scene.light_pos, None, float(scene.scene_scale),
-                              g.points[0][g.mask[0]].mean(0))
-        worst.append(max(errors.position))
-        success += errors.success
-        count_right += errors.count_right
-        for e, t in pair_lights(position, scene.light_pos):
-            cov = torch.tensor(record["lights"][e]["position_cov"], dtype=torch.float64)
-            delta = (scene.light_pos[t] - position[e]).double()
-            inside += float(delta @ torch.linalg.pinv(cov) @ delta) < CHI2_3D_2SIGMA
+        error, ok, right, within = score(record, scene)
+        worst.append(error)
+        success += ok
+        count_right += right
+        inside += within
         total_lights += scene.light_pos.shape[0]
     return {"set": name, "method": options.method, "scenes": count,
             "median_position_error": round(statistics.median(worst), 4), "success_rate": round(success / count, 3),
@@ -77,10 +92,10 @@ def run(scenes: int = 20, method: str = "cnn+refine", seed: int = 9100, sets: li
     options = EstimateOptions(method=method, shadows=shadows, search_shadows=search_shadows,
                               normal_smoothing=normal_smoothing)
     rows = []
-    for name, (degradations, lights) in SETS.items():
+    for name in SETS:
         if sets and name not in sets:
             continue
-        rows.append(run_set(name, degradations, lights, scenes, seed, options))
+        rows.append(run_set(name, scenes, seed, options))
         print(rows[-1], flush=True)
     path = None
     if write:

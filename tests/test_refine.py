@@ -297,3 +297,14 @@ def test_robust_solve_at_fixed_positions_converges():
     assert losses[2] < 0.99 * losses[0] and losses[3] > 0.99 * losses[2], losses
     with pytest.raises(ValueError, match="irls_passes"):
         RefineOptions(irls_passes=0)
+
+
+def test_throughput_benchmark_scores_a_batch_end_to_end():
+    from benchmarks.estimate_throughput import run
+
+    rows, path = run(scenes=2, batches=(2,), device="cpu", sets=("true reflectance, 1 light",), write=False,
+                     options=EstimateOptions(refine=RefineOptions(max_iters=(15, 5))))
+    assert path is None and len(rows) == 1
+    row = rows[0]
+    assert row["scenes"] == 2 and row["scenes_per_s"] > 0 and row["success_rate"] == 1.0
+    assert abs(row["inputs_share"] + row["estimate_share"] + row["records_share"] - 1) < 0.05

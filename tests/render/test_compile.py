@@ -15,10 +15,13 @@ def _inputs(device, dtype=torch.float32):
     return g, mat, lights
 
 
-@pytest.mark.slow
+@pytest.mark.parametrize("device", [
+    pytest.param("cpu", marks=pytest.mark.slow),
+    pytest.param("cuda", marks=[pytest.mark.gpu, pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]),
+])
 @pytest.mark.parametrize("method", ["epipolar", "paper"])
-def test_torch_compile_matches_eager(method):
-    g, mat, lights = _inputs("cpu")
+def test_torch_compile_matches_eager(method, device):
+    g, mat, lights = _inputs(device)
     layer = ShadowedBlinnPhong(shadows=method, check_finite=False)
     compiled = torch.compile(layer)
     out = compiled(g, mat, lights)
