@@ -431,41 +431,105 @@ def scene_files(path: str | Path) -> list[Path]:
     raise FileNotFoundError(f"estimate.input {path} does not exist")
 
 
-def estimate_files(input: str | Path, output: str | Path, options: EstimateOptions, progress: bool = True) -> dict:
+def _signature(scene: Scene) -> tuple:
+    # Scenes that can share a batch: one image size, the same optional fields, one falloff.
+    return (tuple(scene.image.shape), scene.ks is None, scene.normals is None, scene.ambient is None,
+            tuple(scene.shininess.shape), scene.falloff)
+
+
+def _estimate_group(group: list[tuple[Path, Scene]], options: EstimateOptions, device: torch.device
+                    ) -> tuple[dict[Path, dict], dict[Path, str]]:
+    # Records (with ``seconds``: the scene's share of the batch's time) and failure reasons
+    # of scenes that can share a batch. A batch that fails is retried scene by scene, so
+    # one bad scene never costs the others.
+    started = time.perf_counter()
+    try:
+        with torch.no_grad():
+            problem = problems_of([scene for _, scene in group], options.shadows,
+                                  normal_smoothing=options.normal_smoothing,
+                                  normal_noise_threshold=options.normal_noise_threshold,
+                                  mask_saturated=options.mask_saturated, device=device)
+            out = records([scene.id for _, scene in group], problem, estimate_batch(problem, options), options)
+    except (SceneFileError, ValueError, RuntimeError) as error:
+        if len(group) > 1:
+            done: dict[Path, dict] = {}
+            failed: dict[Path, str] = {}
+            for item in group:
+                one_done, one_failed = _estimate_group([item], options, device)
+                done.update(one_done)
+                failed.update(one_failed)
+            return done, failed
+        reason = error.reason if isinstance(error, SceneFileError) else f"{type(error).__name__}: {error}"
+        return {}, {group[0][0]: reason}
+    seconds = round((time.perf_counter() - started) / len(group), 4)
+    return {path: {**record, "seconds": seconds} for (path, _), record in zip(group, out)}, {}
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise RuntimeError(f"estimate.device={name} but no CUDA device is available")
+    return torch.device(name)
+
+
+def estimate_files(input: str | Path, output: str | Path, options: EstimateOptions, progress: bool = True,
+                   batch: int = 1, device: str = "cpu") -> dict:
     """Estimate every scene file under ``input``; one JSON line per good file in ``output``.
 
     A bad file is logged with its name and reason and skipped; the summary returned
     counts ``done``, ``failed`` (with reasons) and the median seconds per scene.
+    ``batch`` > 1 estimates up to that many consecutive files together
+    (:func:`estimate_batch`; files of one size and the same fields share a batch),
+    each record's ``seconds`` being its share of the batch's time; a failing batch is
+    retried file by file. ``device``: ``cpu``, ``cuda`` or ``auto``.
     """
+    if batch < 1:
+        raise ValueError(f"estimate.batch must be >= 1, got {batch}")
+    where = _device(device)
     files = scene_files(input)
     if not files:
         raise FileNotFoundError(f"no .npz scene files in {input}")
     if options.method in ("cnn", "cnn+refine"):
-        _network(options.checkpoint)  # a missing or bad checkpoint stops here, before any file
+        _network(options.checkpoint, str(where))  # a missing or bad checkpoint stops here, before any file
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
-    failed, seconds = {}, []
+    failed: dict[str, str] = {}
+    seconds: list[float] = []
     try:
         from tqdm import tqdm
-        bar = tqdm(files, desc="estimate", unit="scene", disable=not progress)
+        bar = tqdm(total=len(files), desc="estimate", unit="scene", disable=not progress)
     except ImportError:  # tqdm is optional: no progress bar then
-        bar = files
+        bar = None
     with output.open("w") as out:
-        for path in bar:
-            try:
-                scene = read_scene(path)
-                start = time.perf_counter()
-                with torch.no_grad():
-                    record = estimate_scene(scene, options)
-                record["seconds"] = round(time.perf_counter() - start, 4)
-            except (SceneFileError, ValueError, RuntimeError) as error:
-                reason = error.reason if isinstance(error, SceneFileError) else f"{type(error).__name__}: {error}"
-                failed[str(path)] = reason
-                log.error("skipped %s: %s", path, reason)
-                continue
-            seconds.append(record["seconds"])
-            out.write(json.dumps(record) + "\n")
+        for first in range(0, len(files), batch):
+            chunk = files[first : first + batch]
+            groups: dict[tuple, list[tuple[Path, Scene]]] = {}
+            done: dict[Path, dict] = {}
+            reasons: dict[Path, str] = {}
+            for path in chunk:
+                try:
+                    scene = read_scene(path)
+                except (SceneFileError, ValueError, RuntimeError) as error:
+                    reasons[path] = error.reason if isinstance(error, SceneFileError) else f"{type(error).__name__}: {error}"
+                    continue
+                groups.setdefault(_signature(scene), []).append((path, scene))
+            for group in groups.values():
+                group_done, group_failed = _estimate_group(group, options, where)
+                done.update(group_done)
+                reasons.update(group_failed)
+            for path in chunk:  # in the files' order
+                if path in reasons:
+                    failed[str(path)] = reasons[path]
+                    log.error("skipped %s: %s", path, reasons[path])
+                elif path in done:
+                    seconds.append(done[path]["seconds"])
+                    out.write(json.dumps(done[path]) + "\n")
             out.flush()
+            if bar is not None:
+                bar.update(len(chunk))
+    if bar is not None:
+        bar.close()
     summary = {"done": len(seconds), "failed": len(failed), "failures": failed,
                "median_seconds": sorted(seconds)[len(seconds) // 2] if seconds else None, "output": str(output)}
     log.info("estimated %d scene(s), %d failed; median %.3f s per scene; wrote %s", summary["done"],

@@ -308,3 +308,25 @@ def test_throughput_benchmark_scores_a_batch_end_to_end():
     row = rows[0]
     assert row["scenes"] == 2 and row["scenes_per_s"] > 0 and row["success_rate"] == 1.0
     assert abs(row["inputs_share"] + row["estimate_share"] + row["records_share"] - 1) < 0.05
+
+
+def test_batched_files_match_single_files_and_a_bad_one_costs_no_other(tmp_path):
+    config = dataclasses.replace(SMALL, height=24, width=32)
+    for seed in (6, 7):
+        write_scene(tmp_path / f"good_{seed}.npz", _scene(seed, config=config))
+    # Readable, but every pixel clipped (left out): it fails inside the batch's
+    # preparation, which is then retried file by file.
+    arrays = dict(np.load(tmp_path / "good_6.npz"))
+    arrays["image"] = np.ones_like(arrays["image"])
+    np.savez(tmp_path / "clipped.npz", **arrays)
+    options = EstimateOptions(max_lights=1, refine=RefineOptions(max_iters=(10, 3)))
+    single = estimate_files(tmp_path, tmp_path / "one.jsonl", options, progress=False)
+    batched = estimate_files(tmp_path, tmp_path / "four.jsonl", options, progress=False, batch=4)
+    assert single["done"] == batched["done"] == 2 and list(batched["failures"]) == [str(tmp_path / "clipped.npz")]
+    assert "no valid pixel" in batched["failures"][str(tmp_path / "clipped.npz")]
+    one, four = ([json.loads(line) for line in (tmp_path / name).read_text().splitlines()] for name in ("one.jsonl", "four.jsonl"))
+    assert [r["id"] for r in one] == [r["id"] for r in four]
+    for a, b in zip(one, four):
+        assert np.allclose(a["lights"][0]["position"], b["lights"][0]["position"], atol=1e-3)
+    with pytest.raises(ValueError, match="estimate.batch must be >= 1"):
+        estimate_files(tmp_path, tmp_path / "x.jsonl", options, progress=False, batch=0)
