@@ -33,8 +33,11 @@ DEFAULT_SETS = ("true reflectance, 1 light", "true reflectance, 2 lights")
 
 
 def _render(job: tuple[str, int, int]):
-    torch.set_num_threads(1)
     return set_scene(*job)
+
+
+def _one_thread() -> None:  # each render process on its own core
+    torch.set_num_threads(1)
 
 
 def render_set(name: str, count: int, seed: int, workers: int) -> list:
@@ -44,7 +47,7 @@ def render_set(name: str, count: int, seed: int, workers: int) -> list:
         return [_render(job) for job in jobs]
     # Thousands of scenes hold more tensors than a process may pass as file descriptors.
     torch.multiprocessing.set_sharing_strategy("file_system")
-    with multiprocessing.get_context("spawn").Pool(workers) as pool:
+    with multiprocessing.get_context("spawn").Pool(workers, initializer=_one_thread) as pool:
         shared = pool.map(_render, jobs, chunksize=4)
     # Into this process's own memory, as scenes read from files are: the first touch of
     # shared-memory pages would otherwise be timed as input preparation.
