@@ -25,7 +25,7 @@ import torch
 
 from benchmarks.common import device_name, write_results
 from benchmarks.estimate_procedural import SETS, score, set_scene
-from selfsup.estimate import EstimateOptions, estimate_batch, problems_of, records
+from selfsup.estimate import EstimateOptions, estimate_batch, prepare, records
 
 COLUMNS = ["set", "method", "batch", "scenes", "scenes_per_s", "inputs_share", "estimate_share", "records_share",
            "median_position_error", "success_rate", "count_accuracy"]
@@ -71,9 +71,7 @@ def estimate_scenes(scenes: list, options: EstimateOptions, device: torch.device
             clock.append(time.perf_counter())
             phases[name] = phases.get(name, 0.0) + clock[-1] - clock[-2]
 
-    problem = problems_of(scenes, options.shadows, normal_smoothing=options.normal_smoothing,
-                          normal_noise_threshold=options.normal_noise_threshold, mask_saturated=options.mask_saturated,
-                          device=device)
+    problem = prepare(scenes, options, device)
     lap("inputs")
     results = estimate_batch(problem, options)
     lap("estimate")

@@ -45,7 +45,7 @@ from selfsup.refine import (Fit, FitProblem, RefineOptions, position_covariance,
                             search)
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
-__all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "problems_of", "estimate_scene",
+__all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "problems_of", "prepare", "estimate_scene",
            "estimate_batch", "records", "has_specular", "estimate_files", "scene_files"]
 
 log = logging.getLogger(__name__)
@@ -196,6 +196,14 @@ def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.floa
             gbuffer = replace(gbuffer, normals=gbuffer.normals.index_put((at,), smoothed),
                               mask=gbuffer.mask.index_put((at,), mask))
     return FitProblem(gbuffer, material, image, _stacked_field(scenes, "ambient", device), scenes[0].falloff, shadows)
+
+
+def prepare(scenes: list[Scene], options: EstimateOptions, device=None) -> FitProblem:
+    """:func:`problems_of` with the input settings of ``options`` (shadows, normal
+    smoothing, clipped pixels): the problem :func:`estimate_batch` expects."""
+    return problems_of(scenes, options.shadows, normal_smoothing=options.normal_smoothing,
+                       normal_noise_threshold=options.normal_noise_threshold,
+                       mask_saturated=options.mask_saturated, device=device)
 
 
 def bic(loss: float, n_values: int, n_params: int, block_px: int) -> float:
@@ -367,8 +375,7 @@ def estimate_scene(scene: Scene, options: EstimateOptions) -> dict:
     candidates as starts of every search; ``cnn`` keeps the slots as they are (no
     refinement). :func:`estimate_batch` does the work; batches of scenes go there.
     """
-    problem = problem_of(scene, options.shadows, normal_smoothing=options.normal_smoothing,
-                         normal_noise_threshold=options.normal_noise_threshold, mask_saturated=options.mask_saturated)
+    problem = prepare([scene], options)
     return records([scene.id], problem, estimate_batch(problem, options), options)[0]
 
 
@@ -445,10 +452,7 @@ def _estimate_group(group: list[tuple[Path, Scene]], options: EstimateOptions, d
     started = time.perf_counter()
     try:
         with torch.no_grad():
-            problem = problems_of([scene for _, scene in group], options.shadows,
-                                  normal_smoothing=options.normal_smoothing,
-                                  normal_noise_threshold=options.normal_noise_threshold,
-                                  mask_saturated=options.mask_saturated, device=device)
+            problem = prepare([scene for _, scene in group], options, device)
             out = records([scene.id for _, scene in group], problem, estimate_batch(problem, options), options)
     except (SceneFileError, ValueError, RuntimeError) as error:
         if len(group) > 1:

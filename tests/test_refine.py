@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from selfsup.estimate import (EstimateOptions, estimate_batch, estimate_files, estimate_scene, problem_of,
+from selfsup.estimate import (EstimateOptions, estimate_batch, estimate_files, estimate_scene, prepare, problem_of,
                               records)
-from selfsup.refine import FitProblem
 from selfsup.metrics import light_errors
 from selfsup.refine import RefineOptions, evaluate, refine, robust_loss, search
 from selfsup.scenes.exact import render_spec
@@ -116,8 +115,7 @@ def test_a_batch_gives_each_scene_the_answer_it_gets_alone():
     scenes = [_scene(4, 1, MEDIUM), _scene(11, 2, MEDIUM),
               _scene(3, 1, dataclasses.replace(MEDIUM, specular_prob=1.0))]
     options = EstimateOptions(method="cnn+refine", refine=RefineOptions(max_iters=(15, 5)))
-    problem = FitProblem.cat([problem_of(s, options.shadows, normal_smoothing=options.normal_smoothing)
-                              for s in scenes])
+    problem = prepare(scenes, options)
     batched = records([s.id for s in scenes], problem, estimate_batch(problem, options), options)
     for scene, record in zip(scenes, batched):
         alone = estimate_scene(scene, options)
