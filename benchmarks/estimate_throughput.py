@@ -126,6 +126,7 @@ def run(scenes: int = 64, batches: tuple[int, ...] = (16, 64), device: str = "au
     if write:
         header = (f"Fixed-seed procedural sets (seeds {seed}*1000003+i, as estimate_procedural), 160x120, 2x2 AA; "
                   f"estimate.method={options.method}, estimate.shadows={options.shadows}, "
+                  f"estimate.min_light_share={options.min_light_share}, "
                   f"estimate.search_shadows={options.search_shadows}, defaults otherwise; {device_name(device)}. "
                   "scenes_per_s: all scenes through selfsup.estimate.estimate_batch in batches of `batch`, "
                   "inputs from host tensors to records (covariances included), after a warm-up batch; *_share: the part of "
@@ -144,12 +145,14 @@ def main() -> None:
     parser.add_argument("--sets", nargs="+", default=list(DEFAULT_SETS))
     parser.add_argument("--workers", type=int, default=0, help="processes rendering the scenes")
     parser.add_argument("--method", default="cnn+refine")
+    parser.add_argument("--min-light-share", type=float, default=EstimateOptions.min_light_share,
+                        help="estimate.min_light_share (what an added light must carry)")
     parser.add_argument("--threads", type=int, default=0, help=">0: torch.set_num_threads (CPU)")
     parser.add_argument("--no-write", action="store_true", help="print only")
     args = parser.parse_args()
     if args.threads > 0:
         torch.set_num_threads(args.threads)
-    options = replace(EstimateOptions(), method=args.method)
+    options = replace(EstimateOptions(), method=args.method, min_light_share=args.min_light_share)
     print(run(args.scenes, tuple(args.batch), args.device, args.seed, tuple(args.sets), args.workers,
               not args.no_write, options)[1])
 
