@@ -18,12 +18,12 @@ from torch import Tensor
 from torch.utils.data import Dataset
 
 from selfsup.scenes.degrade import Degradations, degrade
-from selfsup.scenes.exact import RenderedScene, render_spec
+from selfsup.scenes.exact import RenderedScene, render_specs
 from selfsup.scenes.io import Scene
 from selfsup.scenes.sampler import SamplerConfig, SceneSpec, sample_scene
 
 __all__ = ["ProceduralScenes", "sampler_config", "scene_to_item", "collate", "materialise", "protocol_specs", "PROTOCOL_LIGHTS",
-           "render_item"]
+           "render_item", "render_items"]
 
 # Room-normalised light positions (x across, y up, z into the room, in [0, 1]) of the
 # protocol set: front/back x left/right high, and two in the middle at two heights.
@@ -96,8 +96,15 @@ def collate(items: list[dict[str, Tensor]]) -> dict[str, Tensor]:
 
 def render_item(seed: int, sampler: SamplerConfig, degradations: Degradations, samples: int) -> tuple[RenderedScene, Scene]:
     """Sample, render and degrade one scene: ``(exact render, degraded inputs)``."""
-    rendered = render_spec(sample_scene(seed, sampler), samples=samples)
-    return rendered, degrade(rendered.scene, degradations, seed)
+    return render_items([seed], sampler, degradations, samples)[0]
+
+
+def render_items(seeds: list[int], sampler: SamplerConfig, degradations: Degradations,
+                 samples: int) -> list[tuple[RenderedScene, Scene]]:
+    """:func:`render_item` of each seed, ray cast together: the same results, several
+    times faster per scene (see :func:`selfsup.scenes.exact.render_specs`)."""
+    rendered = render_specs([sample_scene(seed, sampler) for seed in seeds], samples=samples)
+    return [(r, degrade(r.scene, degradations, seed)) for r, seed in zip(rendered, seeds)]
 
 
 class ProceduralScenes(Dataset):
@@ -130,10 +137,15 @@ class ProceduralScenes(Dataset):
         return self.base_seed * 1_000_003 + index
 
     def __getitem__(self, index: int) -> dict[str, Tensor]:
-        if not 0 <= index < self.length:
-            raise IndexError(f"index {index} out of range for {self.length} scenes")
-        _, scene = render_item(self.seed_of(index), self.sampler, self.degradations, self.samples)
-        return scene_to_item(scene, self.max_lights)
+        return self.__getitems__([index])[0]
+
+    def __getitems__(self, indices: list[int]) -> list[dict[str, Tensor]]:
+        """Items ``indices``, rendered together (a DataLoader fetches its batches so)."""
+        for index in indices:
+            if not 0 <= index < self.length:
+                raise IndexError(f"index {index} out of range for {self.length} scenes")
+        rendered = render_items([self.seed_of(i) for i in indices], self.sampler, self.degradations, self.samples)
+        return [scene_to_item(scene, self.max_lights) for _, scene in rendered]
 
 
 def sampler_config(**kwargs) -> SamplerConfig:

@@ -18,12 +18,14 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from selfsup.scenes.io import Scene
-from selfsup.scenes.raycast import Primitives, any_hit, camera_rays, cast_rays, shade_exact
+from selfsup.scenes.raycast import (_CHUNK, Bundles, PrimitiveBatch, blocked_bundles, bundle_rays, camera_rays,
+                                    cast_bundles, hit_normals, shade_exact)
 from selfsup.scenes.sampler import SceneSpec, Texture
 
-__all__ = ["RenderedScene", "render_spec", "albedo_at", "fractal_noise"]
+__all__ = ["RenderedScene", "Materials", "render_spec", "render_specs", "albedo_at", "fractal_noise"]
 
 GENERATOR_NAME = "shadowlight.procedural v1 (exact ray casting)"
+_MAX_RAYS = 2**19  # camera rays of one render_specs call: 32 scenes of 128 x 128
 
 
 @dataclass
@@ -63,11 +65,11 @@ def fractal_noise(points: Tensor, scale: Tensor, octaves: int = 4) -> Tensor:
 
 def albedo_at(spec: SceneSpec, points: Tensor, primitive: Tensor) -> Tensor:
     """Albedo ``(N, 3)`` of the primitives ``(N,)`` (global index, >= 0) at ``points (N, 3)``."""
-    base, alt = spec.kd_base[primitive], spec.kd_alt[primitive]
-    kind, scale = spec.texture[primitive], spec.texture_scale[primitive]
+    base, alt = spec.kd_base.index_select(0, primitive), spec.kd_alt.index_select(0, primitive)
+    kind, scale = spec.texture.index_select(0, primitive), spec.texture_scale.index_select(0, primitive)
     cells = torch.floor(points / scale[:, None]).sum(-1)
     checker = torch.remainder(cells, 2) < 0.5
-    stripes = torch.sin(2 * math.pi * (points * spec.texture_dir[primitive]).sum(-1) / scale) > 0
+    stripes = torch.sin(2 * math.pi * (points * spec.texture_dir.index_select(0, primitive)).sum(-1) / scale) > 0
     t = torch.where(kind == Texture.CHECKER, checker.to(points.dtype),
                     torch.where(kind == Texture.STRIPES, stripes.to(points.dtype), torch.ones_like(scale)))
     noisy = (kind == Texture.NOISE).nonzero(as_tuple=True)[0]
@@ -76,60 +78,140 @@ def albedo_at(spec: SceneSpec, points: Tensor, primitive: Tensor) -> Tensor:
     return alt + t[:, None] * (base - alt)
 
 
-def _objects_only(prims: Primitives) -> Primitives:
-    return Primitives(planes=prims.planes[:0], spheres=prims.spheres, boxes=prims.boxes, cylinders=prims.cylinders)
+@dataclass(frozen=True)
+class Materials:
+    """Per-primitive material tables ``(P, ...)`` as in :class:`SceneSpec` (what
+    :func:`albedo_at` reads), for the primitives of one scene or of a batch."""
+
+    kd_base: Tensor
+    kd_alt: Tensor
+    texture: Tensor
+    texture_scale: Tensor
+    texture_dir: Tensor
+    ks: Tensor
+    shininess: Tensor
 
 
-def _trace(spec: SceneSpec, dirs: Tensor, lights: Tensor):
-    hit = cast_rays(spec.prims, torch.zeros_like(dirs), dirs)
-    valid = torch.isfinite(hit.t)
-    t = torch.where(valid, hit.t, torch.zeros_like(hit.t))
-    points = dirs * t[:, None]
-    facing = (hit.normal * dirs).sum(-1, keepdim=True) > 0
-    normals = torch.where(facing, -hit.normal, hit.normal)
-    # Renormalised: float32 sphere and cylinder normals drift from unit length by ~1e-5.
-    normals = normals / normals.norm(dim=-1, keepdim=True).clamp_min(1e-12) * valid[:, None]
+_MATERIAL_FIELDS = ("kd_base", "kd_alt", "texture", "texture_scale", "texture_dir", "ks", "shininess")
+
+
+def _tile_order(height: int, width: int) -> Tensor:
+    """Pixel indices ``(H*W,)`` row-major within 8 x 8 tiles, tiles row-major: rays
+    listed so come in coherent bundles, which the ray caster culls as a whole."""
+    v, u = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    tiles_x = -(-width // 8)
+    key = (((v // 8) * tiles_x + u // 8) * 64 + (v % 8) * 8 + u % 8).reshape(-1)
+    return key.argsort()
+
+
+class _Batch:
+    """Specs of one image size, cast together: their primitives (:class:`PrimitiveBatch`),
+    materials in its global order, and lights padded to ``L``: ``light_position``,
+    ``light_intensity (B, L, 3)`` (zero intensity where a scene has fewer)."""
+
+    def __init__(self, specs: list[SceneSpec]):
+        self.specs = specs
+        self.prims = PrimitiveBatch.of([spec.prims for spec in specs])
+        sizes = torch.tensor([spec.kd_base.shape[0] for spec in specs])
+        scene_major = (sizes.cumsum(0) - sizes)[self.prims.scene] + self.prims.local
+        self.materials = Materials(*(torch.cat([getattr(spec, name) for spec in specs])[scene_major]
+                                     for name in _MATERIAL_FIELDS))
+        self.n_lights = [spec.light_position.shape[0] for spec in specs]
+        L = max(self.n_lights)
+        self.light_position = torch.zeros(len(specs), L, 3)
+        self.light_intensity = torch.zeros(len(specs), L, 3)
+        for b, spec in enumerate(specs):
+            self.light_position[b, : self.n_lights[b]] = spec.light_position
+            self.light_intensity[b, : self.n_lights[b]] = spec.light_relative_intensity
+
+
+def _trace(batch: _Batch, dirs: list[Tensor]):
+    """Camera rays ``dirs[b] (R_b, 3)`` of each scene (neighbours in a list pointing
+    alike, see :func:`_tile_order`), concatenated: ``scene (R,)``, ``valid``, ``t``,
+    ``points``, camera-facing ``normals``, cast-shadow ``visibility (R, L)`` and the
+    global ``primitive (R,)`` (0 where none)."""
+    counts = torch.tensor([x.shape[0] for x in dirs])
+    bundles_per = -(-counts // _CHUNK)
+    scene_of_bundle = torch.repeat_interleave(torch.arange(len(dirs)), bundles_per)
+    first_slot = (bundles_per.cumsum(0) - bundles_per) * _CHUNK
+    first_ray = counts.cumsum(0) - counts
+    # slot -> ray feeding it (a bundle's padding repeats its scene's last ray); ray -> slot.
+    slot_src = torch.cat([first_ray[b] + bundle_rays(torch.arange(int(counts[b]))).reshape(-1)
+                          for b in range(len(dirs))])
+    scene = torch.repeat_interleave(torch.arange(len(dirs)), counts)
+    slot_of_ray = first_slot[scene] + torch.arange(int(counts.sum())) - first_ray[scene]
+    flat = torch.cat(dirs)
+    N = int(bundles_per.sum())
+
+    def bundled(rays: Tensor) -> Tensor:  # (R, 3) -> (3, N, S)
+        return rays.index_select(0, slot_src).unflatten(0, (N, _CHUNK)).permute(2, 0, 1)
+
+    origin = flat.new_zeros(N, 3)
+    t, primitive = cast_bundles(batch.prims, Bundles.of(bundled(flat), origin, scene_of_bundle, 0.0))
+    t, primitive = t.index_select(0, slot_of_ray), primitive.index_select(0, slot_of_ray)
+    valid = primitive >= 0
+    t = torch.where(valid, t, torch.zeros_like(t))
+    points = flat * t[:, None]
+    normal = hit_normals(batch.prims.prims, points, primitive)
+    facing = (normal * flat).sum(-1, keepdim=True) > 0
+    normals = torch.where(facing, -normal, normal)
     # The room is convex and every light is inside it, so its planes never block a
-    # shadow ray: test the objects only. The origin is nudged off the surface along
-    # the camera-facing normal by 2e-4 of its distance (float32 self-hits).
-    occluders = _objects_only(spec.prims)
-    vis = []
-    for light in lights:
-        origin = points + 2e-4 * points.norm(dim=-1, keepdim=True) * normals
-        blocked = any_hit(occluders, origin, light[None] - origin, 1e-6, torch.ones_like(t))
-        vis.append((~blocked).to(points.dtype))
-    visibility = torch.stack(vis, -1) if vis else torch.ones(points.shape[0], 0, dtype=points.dtype)
-    primitive = hit.primitive.clamp_min(0)
-    return valid, t, points, normals, visibility, primitive
+    # shadow ray: test the objects only. Each ray runs from the light (one origin per
+    # bundle) to the point nudged off the surface along the camera-facing normal by
+    # 2e-4 of its distance (float32 self-hits), and is blocked by a hit before it.
+    target = bundled(points + 2e-4 * points.norm(dim=-1, keepdim=True) * normals)
+    end = flat.new_full((N, _CHUNK), 1 - 1e-6)
+    visibility = flat.new_ones(flat.shape[0], batch.light_position.shape[1])
+    for light in range(batch.light_position.shape[1]):
+        lit = torch.tensor([n > light for n in batch.n_lights])[scene_of_bundle].nonzero(as_tuple=True)[0]
+        source = batch.light_position[scene_of_bundle[lit], light]  # (N', 3)
+        shadow = Bundles.of(target[:, lit] - source.T[:, :, None], source, scene_of_bundle[lit], 0.0, end[lit])
+        blocked = torch.zeros(N, _CHUNK, dtype=torch.bool)
+        blocked[lit] = blocked_bundles(batch.prims, shadow, objects_only=True).view(-1, _CHUNK)
+        visibility[:, light] = (~blocked.reshape(-1).index_select(0, slot_of_ray)).to(flat.dtype)
+    return scene, valid, t, points, normals * valid[:, None], visibility, primitive.clamp_min(0)
 
 
-def _shade(spec: SceneSpec, trace, falloff: str) -> tuple[Tensor, Tensor]:
+def _shade(batch: _Batch, trace, falloff: str) -> tuple[Tensor, Tensor]:
     # Unit-exposure radiance (R, 3) without ambient, and the albedo (R, 3), of traced rays.
-    valid, _, points, normals, visibility, primitive = trace
-    kd = albedo_at(spec, points, primitive) * valid[:, None]
-    ks = spec.ks[primitive][:, None] * valid[:, None]
-    shininess = torch.where(valid, spec.shininess[primitive], torch.ones_like(points[:, 0]))
-    radiance = shade_exact(points, normals, visibility, kd, ks, shininess, spec.light_position,
-                           spec.light_relative_intensity, torch.zeros(3, dtype=points.dtype), falloff)
+    scene, valid, _, points, normals, visibility, primitive = trace
+    materials = batch.materials
+    kd = albedo_at(materials, points, primitive) * valid[:, None]
+    ks = materials.ks.index_select(0, primitive)[:, None] * valid[:, None]
+    shininess = torch.where(valid, materials.shininess.index_select(0, primitive), torch.ones_like(points[:, 0]))
+    radiance = shade_exact(points, normals, visibility, kd, ks, shininess, batch.light_position.index_select(0, scene),
+                           batch.light_intensity.index_select(0, scene), torch.zeros(3, dtype=points.dtype), falloff)
     return radiance * valid[:, None], kd
 
 
 def _edges(prim: Tensor, visibility: Tensor, kd: Tensor) -> Tensor:
-    # (H, W) bool: pixels whose 3x3 neighbourhood changes primitive, shadow or albedo.
-    def spread(x: Tensor) -> Tensor:  # (C, H, W) -> max - min over 3x3
-        x = x[None]
-        return (F.max_pool2d(x, 3, 1, 1) + F.max_pool2d(-x, 3, 1, 1))[0]
+    # (B, H, W) bool: pixels whose 3x3 neighbourhood changes primitive, shadow or albedo.
+    def largest(x: Tensor) -> Tensor:  # max over 3x3, edges replicated: shifted maxima, 6x faster than max_pool2d
+        x = F.pad(x, (1, 1, 1, 1), mode="replicate")
+        x = torch.maximum(torch.maximum(x[..., :-2, :], x[..., 1:-1, :]), x[..., 2:, :])
+        return torch.maximum(torch.maximum(x[..., :-2], x[..., 1:-1]), x[..., 2:])
 
-    stack = torch.cat([prim.to(kd.dtype)[None], visibility.permute(2, 0, 1), kd.permute(2, 0, 1)], 0)
+    def spread(x: Tensor) -> Tensor:  # (B, C, H, W) -> max - min over 3x3
+        return largest(x) + largest(-x)
+
+    stack = torch.cat([prim.to(kd.dtype)[:, None], visibility.permute(0, 3, 1, 2), kd.permute(0, 3, 1, 2)], 1)
     change = spread(stack)
-    return (change[0] > 0) | (change[1 : 1 + visibility.shape[-1]] > 0).any(0) | (change[-3:] > 0.02).any(0)
+    L = visibility.shape[-1]
+    return (change[:, 0] > 0) | (change[:, 1 : 1 + L] > 0).any(1) | (change[:, -3:] > 0.02).any(1)
 
 
 def render_spec(spec: SceneSpec, samples: int = 2, falloff: str = "inverse_square") -> RenderedScene:
     """Render ``spec`` exactly; returns the scene file contents with ground truth.
+    See :func:`render_specs`."""
+    return render_specs([spec], samples, falloff)[0]
+
+
+def render_specs(specs: list[SceneSpec], samples: int = 2, falloff: str = "inverse_square") -> list[RenderedScene]:
+    """Render specs of one image size exactly, ray cast together; each result is the
+    one :func:`render_spec` gives alone (casting several at once only saves time).
 
     Args:
-        spec: a sampled scene.
+        specs: sampled scenes, all of one ``height`` and ``width``.
         samples: ``samples x samples`` image samples per pixel (1: centre only).
             Adaptive: pixels whose 3x3 neighbourhood shows no change of primitive,
             of any light's visibility or of a checker or stripe
@@ -144,35 +226,76 @@ def render_spec(spec: SceneSpec, samples: int = 2, falloff: str = "inverse_squar
     """
     if samples < 1:
         raise ValueError(f"samples must be >= 1, got {samples}")
-    H, W, K = spec.height, spec.width, spec.K
-    lights = spec.light_position
-    centre_dirs = camera_rays(K, H, W)
-    centre = _trace(spec, centre_dirs, lights)
-    valid, depth, points, normals, visibility, primitive = centre
-    radiance, kd = _shade(spec, centre, falloff)
-    ks = spec.ks[primitive][:, None] * valid[:, None]
-    shininess = torch.where(valid, spec.shininess[primitive], torch.ones_like(depth))
-    supersampled = 0
+    if not specs:
+        return []
+    H, W = specs[0].height, specs[0].width
+    if any((spec.height, spec.width) != (H, W) for spec in specs):
+        raise ValueError(f"render_specs needs specs of one size, got {sorted({(s.height, s.width) for s in specs})}")
+    per_call = max(1, _MAX_RAYS // (H * W))
+    if len(specs) > per_call:  # bounded memory: a few hundred MB at most
+        return [r for i in range(0, len(specs), per_call) for r in render_specs(specs[i : i + per_call], samples, falloff)]
+    B = len(specs)
+    batch = _Batch(specs)
+    order = _tile_order(H, W)
+    centre_dirs = [camera_rays(spec.K, H, W) for spec in specs]
+    centre = _trace(batch, [dirs[order] for dirs in centre_dirs])
+    # Back to pixel order: ray b * H * W + i of the trace is pixel order[i] of scene b.
+    to_pixel = (torch.arange(B)[:, None] * (H * W) + order[None]).reshape(-1)
+    centre = tuple(torch.empty_like(x).index_copy_(0, to_pixel, x) for x in centre)
+    _, valid, depth, points, normals, visibility, primitive = centre
+    radiance, kd = _shade(batch, centre, falloff)
+    supersampled = [0] * B
     if samples > 1:
         # Albedo jumps only where the pattern is discontinuous (checker, stripes).
-        kind = spec.texture[primitive]
+        kind = batch.materials.texture[primitive]
         jumps = kd * ((kind == Texture.CHECKER) | (kind == Texture.STRIPES))[:, None]
-        edge = _edges(primitive.reshape(H, W), visibility.reshape(H, W, -1), jumps.reshape(H, W, 3)).reshape(-1)
-        pixels = edge.nonzero(as_tuple=True)[0]
-        supersampled = int(pixels.numel())
-        if supersampled:
-            # Sub-pixel offsets on a regular grid, as camera-ray direction shifts.
-            offsets = (torch.arange(samples, dtype=K.dtype) + 0.5) / samples - 0.5
-            oy, ox = torch.meshgrid(offsets, offsets, indexing="ij")
-            shift = torch.stack([ox.reshape(-1), oy.reshape(-1), torch.zeros(samples * samples, dtype=K.dtype)], -1)
-            shift = shift @ torch.linalg.inv(K).T
-            dirs = (centre_dirs[pixels, None] + shift[None]).reshape(-1, 3)  # (E * S, 3), pixel-major
-            sub_radiance, sub_kd = _shade(spec, _trace(spec, dirs, lights), falloff)
-            radiance[pixels] = sub_radiance.unflatten(0, (supersampled, -1)).mean(1)
-            kd[pixels] = sub_kd.unflatten(0, (supersampled, -1)).mean(1) * valid[pixels, None]
+        # A pixel's primitive as its index within its scene, so that scenes compare alike.
+        local = batch.prims.local[primitive]
+        edge = _edges(local.reshape(B, H, W), visibility.reshape(B, H, W, -1), jumps.reshape(B, H, W, 3)).reshape(B, -1)
+        # Sub-pixel offsets on a regular grid, as camera-ray direction shifts.
+        offsets = (torch.arange(samples, dtype=torch.float32) + 0.5) / samples - 0.5
+        oy, ox = torch.meshgrid(offsets, offsets, indexing="ij")
+        grid = torch.stack([ox.reshape(-1), oy.reshape(-1), torch.zeros(samples * samples)], -1)
+        pixels = [order[edge[b][order]] for b in range(B)]  # in tile order
+        supersampled = [int(p.numel()) for p in pixels]
+        todo = [b for b in range(B) if supersampled[b]]
+        if todo:
+            sub_dirs = [(centre_dirs[b][pixels[b], None] + (grid.to(specs[b].K.dtype) @ torch.linalg.inv(specs[b].K).T)[None])
+                        .reshape(-1, 3) for b in todo]  # (E * S, 3), pixel-major
+            sub_batch = _Batch([specs[b] for b in todo])
+            sub_radiance, sub_kd = _shade(sub_batch, _trace(sub_batch, sub_dirs), falloff)
+            at = torch.cat([b * H * W + pixels[b] for b in todo])
+            radiance[at] = sub_radiance.unflatten(0, (-1, samples * samples)).mean(1)
+            kd[at] = sub_kd.unflatten(0, (-1, samples * samples)).mean(1) * valid[at, None]
+    results = []
+    for b, spec in enumerate(specs):
+        rows = slice(b * H * W, (b + 1) * H * W)
+        results.append(_finish(spec, valid[rows], depth[rows], points[rows], normals[rows],
+                               visibility[rows, : batch.n_lights[b]], radiance[rows], kd[rows],
+                               batch.materials.ks[primitive[rows]], batch.materials.shininess[primitive[rows]],
+                               samples, supersampled[b], falloff))
+    return results
 
+
+def _quantile(values: Tensor, q: float) -> Tensor:
+    """``torch.quantile(values, q)`` (linear interpolation) of a 1-D tensor from its top
+    values only: a partial sort, 10x faster for the 99th percentile of an image."""
+    n = values.numel()
+    position = q * (n - 1)
+    low = int(position)
+    top = torch.topk(values, n - low).values  # descending: top[-1] is sorted[low]
+    below, above = top[-1], top[-2] if n - low > 1 else top[-1]
+    return below + (position - low) * (above - below)
+
+
+def _finish(spec: SceneSpec, valid: Tensor, depth: Tensor, points: Tensor, normals: Tensor, visibility: Tensor,
+            radiance: Tensor, kd: Tensor, ks: Tensor, shininess: Tensor, samples: int, supersampled: int,
+            falloff: str) -> RenderedScene:
+    # One scene's exposure, ground truth and file contents from its rays (H * W, ...) in pixel order.
+    H, W = spec.height, spec.width
+    lights = spec.light_position
     unit_image = radiance + kd * spec.ambient_relative
-    exposure = spec.exposure / torch.quantile(unit_image[valid].amax(-1), 0.99).clamp_min(1e-6)
+    exposure = spec.exposure / _quantile(unit_image[valid].amax(-1), 0.99).clamp_min(1e-6)
     image = unit_image * exposure * valid[:, None]
     intensity = spec.light_relative_intensity * exposure
     ambient = spec.ambient_relative * exposure
@@ -182,9 +305,10 @@ def render_spec(spec: SceneSpec, samples: int = 2, falloff: str = "inverse_squar
             "n_lights": int(lights.shape[0]), "aa_samples": samples, "aa_pixels": supersampled,
             "seed": spec.seed, **spec.meta}
     scene = Scene(
-        image=image.reshape(H, W, 3).float(), depth=depth.reshape(H, W).float(), K=K.float(),
-        kd=kd.reshape(H, W, 3).float(), meta=meta, ks=ks.reshape(H, W, 1).float(),
-        shininess=shininess.reshape(H, W).float(), normals=normals.reshape(H, W, 3).float(),
+        image=image.reshape(H, W, 3).float(), depth=depth.reshape(H, W).float(), K=spec.K.float(),
+        kd=kd.reshape(H, W, 3).float(), meta=meta, ks=(ks[:, None] * valid[:, None]).reshape(H, W, 1).float(),
+        shininess=torch.where(valid, shininess, torch.ones_like(depth)).reshape(H, W).float(),
+        normals=normals.reshape(H, W, 3).float(),
         ambient=ambient.float(), light_pos=lights.float(), light_intensity=intensity.float(),
         scene_scale=scene_scale.float(),
     )

@@ -11,13 +11,15 @@ from torch import Tensor
 
 from selfsup.scenes.dataset import protocol_specs
 from selfsup.scenes.degrade import Degradations, degrade
-from selfsup.scenes.exact import RenderedScene, render_spec
+from selfsup.scenes.exact import RenderedScene, render_specs
 from selfsup.scenes.io import write_scene
 from selfsup.scenes.sampler import SamplerConfig, sample_scene
 
 __all__ = ["generate_set", "contact_sheet", "to_rgb8"]
 
 log = logging.getLogger(__name__)
+
+_BATCH = 16  # scenes ray cast together (render_specs bounds the rays per call itself)
 
 
 def to_rgb8(x: Tensor) -> np.ndarray:
@@ -74,16 +76,17 @@ def generate_set(out: str, count: int = 100, seed: int = 0, sampler: SamplerConf
     if total < 1:
         raise ValueError(f"count must be >= 1, got {count}")
     paths, rows = [], []
-    for index in range(total):
-        spec = specs[index] if protocol else sample_scene(seed * 1_000_003 + index, sampler)
-        rendered = render_spec(spec, samples=samples)
-        inputs = degrade(rendered.scene, degradations, spec.seed)
-        inputs.meta["id"] = f"{'protocol' if protocol else 'procedural'}_{seed}_{index:05d}"
-        path = out_dir / f"scene_{index:05d}.npz"
-        write_scene(path, inputs)
-        paths.append(path)
-        if len(rows) < contact_sheet_rows:
-            rows.append(_panels(rendered, inputs))
+    for first in range(0, total, _BATCH):
+        indices = range(first, min(first + _BATCH, total))
+        batch = [specs[i] if protocol else sample_scene(seed * 1_000_003 + i, sampler) for i in indices]
+        for index, spec, rendered in zip(indices, batch, render_specs(batch, samples=samples)):
+            inputs = degrade(rendered.scene, degradations, spec.seed)
+            inputs.meta["id"] = f"{'protocol' if protocol else 'procedural'}_{seed}_{index:05d}"
+            path = out_dir / f"scene_{index:05d}.npz"
+            write_scene(path, inputs)
+            paths.append(path)
+            if len(rows) < contact_sheet_rows:
+                rows.append(_panels(rendered, inputs))
     if rows:
         contact_sheet(rows, out_dir / "contact_sheet.png")
     log.info("wrote %d scene files to %s", len(paths), out_dir)

@@ -9,7 +9,7 @@ from torch.utils.data import DataLoader
 from render import GBuffer, Material, PointLights, render
 from selfsup.scenes.dataset import ProceduralScenes, collate, protocol_specs
 from selfsup.scenes.degrade import Degradations, degrade
-from selfsup.scenes.exact import render_spec
+from selfsup.scenes.exact import render_spec, render_specs
 from selfsup.scenes.io import read_scene
 from selfsup.scenes.sampler import SamplerConfig, sample_scene, signed_distance
 
@@ -25,6 +25,29 @@ def test_same_seed_same_scene_and_different_seeds_differ():
     torch.testing.assert_close(a.image, b.image, rtol=0, atol=0)
     torch.testing.assert_close(a.light_pos, b.light_pos, rtol=0, atol=0)
     assert not torch.equal(a.depth, c.depth)
+
+
+def test_scenes_cast_together_render_exactly_as_each_alone():
+    # Seeds with one and two lights, with and without anti-aliased pixels.
+    specs = [sample_scene(seed, SMALL) for seed in range(5)]
+    assert len({spec.light_position.shape[0] for spec in specs}) == 2
+    for samples in (1, 2):
+        for alone, together in zip([render_spec(s, samples=samples) for s in specs], render_specs(specs, samples=samples)):
+            for name in ("image", "depth", "normals", "kd", "ks", "shininess", "light_intensity"):
+                assert torch.equal(getattr(alone.scene, name), getattr(together.scene, name)), name
+            assert torch.equal(alone.visibility, together.visibility)
+            assert alone.scene.meta == together.scene.meta
+    with pytest.raises(ValueError, match="one size"):
+        render_specs([specs[0], sample_scene(0, dataclasses.replace(SMALL, height=32))])
+
+
+def test_dataset_batches_equal_its_items():
+    data = ProceduralScenes(SMALL, length=4, base_seed=5)
+    for item, one in zip(data.__getitems__([2, 0, 3]), (data[2], data[0], data[3])):
+        for key in item:
+            assert torch.equal(item[key], one[key]), key
+    with pytest.raises(IndexError):
+        data.__getitems__([0, 4])
 
 
 @pytest.mark.parametrize("seed", range(4))
