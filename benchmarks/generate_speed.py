@@ -1,8 +1,10 @@
 """Procedural scene generation throughput (sample + exact render + degradations).
 
 Target (issue 3): at least 100 scenes/s at 128x128, one light, 2x2 anti-aliasing,
-on the 2-core CPU. Measured over ``count`` consecutive seeds, after one warm-up.
-Results: benchmarks/results/generate_speed_<device>_<date>.{md,json}.
+on the 2-core CPU. Measured over ``count`` consecutive seeds, after one warm-up:
+one scene per call, ``batch`` scenes ray cast together (what the dataset's batches
+and ``mode=generate`` do), and through a DataLoader with ``workers`` processes
+(what training gets). Results: benchmarks/results/generate_speed_<device>_<date>.{md,json}.
 
     python train.py mode=benchmark benchmark=generate_speed
 """
@@ -13,9 +15,10 @@ import dataclasses
 import time
 
 import torch
+from torch.utils.data import DataLoader
 
 from benchmarks.common import write_results
-from selfsup.scenes.dataset import render_item
+from selfsup.scenes.dataset import ProceduralScenes, collate, render_items
 from selfsup.scenes.degrade import Degradations
 from selfsup.scenes.sampler import SamplerConfig
 
@@ -25,26 +28,50 @@ SETTINGS = (
     ("64x64, 1 light, 2x2 AA", dict(height=64, width=64), 2),
     ("160x120, 1 light, 2x2 AA", dict(height=120, width=160), 2),
 )
+SENSOR = Degradations(depth_noise=0.0015, depth_quantisation=0.0005, edge_hole_jump=0.05, random_holes=0.01,
+                      image_noise=0.005)
 
 
-def run(count: int = 100, write: bool = True) -> list[dict]:
+def _in_process(config: SamplerConfig, samples: int, count: int, together: int) -> tuple[float, float]:
+    # (seconds, share of supersampled pixels) for seeds 1..count, ``together`` per call.
+    render_items(list(range(together)), config, SENSOR, samples)
+    start = time.perf_counter()
+    aa = 0.0
+    for first in range(1, count + 1, together):
+        for rendered, _ in render_items(list(range(first, min(first + together, count + 1))), config, SENSOR, samples):
+            aa += rendered.scene.meta["aa_pixels"] / (config.height * config.width)
+    return time.perf_counter() - start, aa / count
+
+
+def _loader(config: SamplerConfig, samples: int, count: int, batch: int, workers: int) -> float:
+    data = ProceduralScenes(config, SENSOR, length=count, base_seed=1, samples=samples)
+    loader = DataLoader(data, batch_size=batch, num_workers=workers, collate_fn=collate)
+    start = time.perf_counter()
+    for _ in loader:
+        pass
+    return time.perf_counter() - start
+
+
+def run(count: int = 128, batch: int = 32, workers: int = 2, write: bool = True) -> list[dict]:
     rows = []
-    sensor = Degradations(depth_noise=0.0015, depth_quantisation=0.0005, edge_hole_jump=0.05, random_holes=0.01,
-                          image_noise=0.005)
     for name, size, samples in SETTINGS:
         config = dataclasses.replace(SamplerConfig(), **size)
-        render_item(0, config, sensor, samples)
-        start = time.perf_counter()
-        aa_share = 0.0
-        for seed in range(1, count + 1):
-            rendered, _ = render_item(seed, config, sensor, samples)
-            aa_share += rendered.scene.meta["aa_pixels"] / (size["height"] * size["width"])
-        seconds = time.perf_counter() - start
-        rows.append({"setting": name, "scenes_per_s": round(count / seconds, 1),
-                     "ms_per_scene": round(1e3 * seconds / count, 1), "supersampled_pixels": f"{aa_share / count:.0%}"})
+        for together in (1, batch):
+            seconds, aa_share = _in_process(config, samples, count, together)
+            rows.append({"setting": name, "how": "one per call" if together == 1 else f"{together} per call",
+                         "scenes_per_s": round(count / seconds, 1), "ms_per_scene": round(1e3 * seconds / count, 1),
+                         "supersampled_pixels": f"{aa_share:.0%}"})
+        if workers and samples == 2 and size["height"] == 128:
+            seconds = _loader(config, samples, count, batch, workers)
+            rows.append({"setting": name, "how": f"DataLoader, {workers} workers, batch {batch}",
+                         "scenes_per_s": round(count / seconds, 1), "ms_per_scene": round(1e3 * seconds / count, 1),
+                         "supersampled_pixels": ""})
+
     if write:
         print(write_results("generate_speed", torch.device("cpu"), rows,
                             f"{count} scenes per setting, each sampled, rendered exactly and degraded (sensor-like "
-                            "depth and image noise); one process.",
-                            ["setting", "scenes_per_s", "ms_per_scene", "supersampled_pixels"]))
+                            "depth and image noise). 'one per call': render_item; 'N per call': render_items, the "
+                            "scenes ray cast together; DataLoader: ProceduralScenes through worker processes "
+                            "(one torch thread each), including their start-up.",
+                            ["setting", "how", "scenes_per_s", "ms_per_scene", "supersampled_pixels"]))
     return rows

@@ -265,7 +265,9 @@ def _bounds(kind: str, table: Tensor) -> Tensor:
 def _pairs(batch: PrimitiveBatch, bundles: Bundles, k: int) -> tuple[Tensor, Tensor]:
     """The (bundle, row of kind ``k``) pairs of one scene that may meet: ``bundle, row (M,)``.
 
-    Planes meet every bundle of their scene. An object is bounded by a sphere, and a
+    A plane meets a bundle only if the bundle's cone reaches into the half-space of
+    directions heading towards it, and the plane lies within the rays' reach. An
+    object is bounded by a sphere, and a
     ray meets the sphere only if its direction is within the sphere's angular radius
     of the centre's and the sphere lies within the ray's segment: so the bundle's
     cone and the sphere must be within the sum of their angles. Conservative: float64,
@@ -277,16 +279,27 @@ def _pairs(batch: PrimitiveBatch, bundles: Bundles, k: int) -> tuple[Tensor, Ten
     row = torch.arange(bundle.shape[0]) - torch.repeat_interleave(counts.cumsum(0) - counts, counts)
     row = row + batch.start[bundles.scene, k][bundle]
     kind = _KINDS[k][0]
-    if kind == "planes" or not bundle.numel():
+    if not bundle.numel():
         return bundle, row
-    bound = _bounds(kind, getattr(batch.prims, kind).index_select(0, row)).double()
     origin = bundles.origin.index_select(0, bundle).double()
+    axis = bundles.axis.index_select(0, bundle)
+    spread = bundles.spread.index_select(0, bundle)
+    if kind == "planes":
+        plane = batch.prims.planes.index_select(0, row).double()
+        # Signed distance from the origin; the rays must head that way, and reach that far.
+        gap = ((plane[:, :3] - origin) * plane[:, 3:6]).sum(-1)
+        toward = torch.acos(((axis * plane[:, 3:6]).sum(-1) * torch.sign(gap)).clamp(-1, 1))
+        ok = (toward <= math.pi / 2 + spread + 1e-3) | (gap == 0)
+        ok &= gap.abs() * (1 - 1e-3) < bundles.far.index_select(0, bundle)
+        keep = ok.nonzero(as_tuple=True)[0]
+        return bundle[keep], row[keep]
+    bound = _bounds(kind, getattr(batch.prims, kind).index_select(0, row)).double()
     offset = bound[:, :3] - origin
     dist = offset.norm(dim=-1).clamp_min(1e-300)
     radius = bound[:, 3] * (1 + 1e-3) + 1e-6 * (dist + origin.norm(dim=-1))
-    toward = torch.acos(((bundles.axis.index_select(0, bundle) * offset).sum(-1) / dist).clamp(-1, 1))
+    toward = torch.acos(((axis * offset).sum(-1) / dist).clamp(-1, 1))
     reach = torch.where(radius < dist, torch.asin((radius / dist).clamp_max(1)), torch.full_like(dist, math.pi))
-    ok = toward <= bundles.spread[bundle] + reach + 1e-3
+    ok = toward <= spread + reach + 1e-3
     ok &= dist + radius > bundles.near[bundle]
     ok &= dist - radius < bundles.far[bundle]
     keep = ok.nonzero(as_tuple=True)[0]
@@ -486,18 +499,20 @@ def shade_exact(
     Returns:
         ``(R, 3)`` radiance.
     """
-    v = -points / points.norm(dim=-1, keepdim=True)
+    # By component (3, R): a reduction over a last axis of 3 is several times slower on CPU.
+    p, n = points.T.contiguous(), normals.T.contiguous()
+    v = -p / (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt()
     color = kd * ambient[None]
     if light_position.dim() == 2:
         light_position, light_intensity = light_position[None], light_intensity[None]
     for i in range(light_position.shape[1]):
-        offset = light_position[:, i] - points
-        d = offset.norm(dim=-1, keepdim=True)
-        l = offset / d
+        offset = light_position[:, i].T - p
+        d2 = offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2]
+        l = offset / d2.sqrt()
         h = l + v
-        h = h / h.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        f = 1.0 / d**2 if falloff == "inverse_square" else torch.ones_like(d)
-        diffuse = kd * (normals * l).sum(-1, keepdim=True).clamp_min(0)
-        spec = ks * (normals * h).sum(-1, keepdim=True).clamp_min(0) ** shininess[:, None]
-        color = color + visibility[:, i : i + 1] * light_intensity[:, i] * f * (diffuse + spec)
+        h = h / (h[0] * h[0] + h[1] * h[1] + h[2] * h[2]).sqrt().clamp_min(1e-12)
+        f = 1.0 / d2 if falloff == "inverse_square" else torch.ones_like(d2)
+        diffuse = kd * (n[0] * l[0] + n[1] * l[1] + n[2] * l[2]).clamp_min(0)[:, None]
+        spec = ks * ((n[0] * h[0] + n[1] * h[1] + n[2] * h[2]).clamp_min(0) ** shininess)[:, None]
+        color = color + visibility[:, i : i + 1] * light_intensity[:, i] * f[:, None] * (diffuse + spec)
     return color
