@@ -117,6 +117,12 @@ def single_light_costs(position: Tensor, points: Tensor, normals: Tensor, mask: 
                       for i in range(0, B, per_call)])
 
 
+def _sums_over_pixels(per_hypothesis: Tensor, per_pixel: Tensor) -> Tensor:
+    """``per_hypothesis (B, M, P) @ per_pixel (B, P, C)`` as the transposed product, which
+    BLAS runs twice as fast for C = 3 on the 2-core CPU (and bitwise the same there)."""
+    return (per_pixel.transpose(1, 2) @ per_hypothesis.transpose(1, 2)).transpose(1, 2)
+
+
 def _single_light_costs(position: Tensor, points: Tensor, normals: Tensor, mask: Tensor, kd: Tensor, image: Tensor,
                         exposure: Tensor, falloff, robust_scale: float | None) -> Tensor:
     points = points.flatten(1, 2)  # (B, P, 3)
@@ -142,10 +148,10 @@ def _single_light_costs(position: Tensor, points: Tensor, normals: Tensor, mask:
     # is nearly constant over the scene, so its column is close to the ambient one.
     wide = torch.float64 if image.device.type != "mps" else image.dtype
     s_11 = albedo_weight.sum(1)[:, None].to(wide)  # (B, 1, 3): ambient column against itself
-    s_d1 = (diffuse @ albedo_weight).to(wide)  # (B, M, 3)
-    s_dd = ((diffuse * diffuse) @ albedo_weight).to(wide)
+    s_d1 = _sums_over_pixels(diffuse, albedo_weight).to(wide)  # (B, M, 3)
+    s_dd = _sums_over_pixels(diffuse * diffuse, albedo_weight).to(wide)
     b_1 = target_weight.sum(1)[:, None].to(wide)
-    b_d = (diffuse @ target_weight).to(wide)
+    b_d = _sums_over_pixels(diffuse, target_weight).to(wide)
     y_y = (weight * observed * observed).sum(1)[:, None].to(wide)
     s_dd, s_11 = s_dd * (1 + 1e-9) + 1e-30, s_11 * (1 + 1e-9) + 1e-30  # ridge: an unlit hypothesis stays solvable
     det = s_dd * s_11 - s_d1 * s_d1
