@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
@@ -58,10 +58,20 @@ class FitProblem:
     ambient: Tensor | None = None
     falloff: str = "inverse_square"
     shadows: str = "epipolar"
+    _median: Tensor | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def batch(self) -> int:
         return self.image.shape[0]
+
+    def median_observed(self) -> Tensor:
+        """``(B,)`` median observed value on valid pixels; kept once found (the robust
+        loss's scale needs it at every evaluation, 5% of an estimate's time)."""
+        if self._median is None:
+            mask = self.gbuffer.mask[:, None].expand_as(self.image)
+            observed = torch.where(mask, self.image, torch.full_like(self.image, float("nan")))
+            self._median = observed.flatten(1).nanmedian(1).values
+        return self._median
 
     def select(self, index: Tensor) -> "FitProblem":
         """The images ``index`` (a 1-D long tensor), repeats allowed; ``self`` when
@@ -189,9 +199,7 @@ def _columns(problem: FitProblem, diffuse: Tensor, specular: Tensor | None) -> T
 
 def _cauchy_scale(problem: FitProblem, options: RefineOptions) -> Tensor:
     # The robust loss's scale (B,): robust_scale x the median observed value on valid pixels.
-    mask = problem.gbuffer.mask[:, None].expand_as(problem.image)
-    observed = torch.where(mask, problem.image, torch.full_like(problem.image, float("nan")))
-    return options.robust_scale * observed.flatten(1).nanmedian(1).values.clamp_min(1e-6)
+    return options.robust_scale * problem.median_observed().clamp_min(1e-6)
 
 
 def _weights(problem: FitProblem, residual: Tensor | None, options: RefineOptions, scale: Tensor | None = None
