@@ -327,7 +327,7 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         resid = (model[idx] - sub.image).flatten(1)
         weighted = jac * w.flatten(1)[:, None]
         jtj = weighted @ jac.transpose(1, 2)
-        jtr = (weighted @ resid[..., None]).squeeze(-1)
+        jtr = (resid[:, None] @ weighted.transpose(1, 2)).squeeze(1)  # a row times J^T: 4x a matrix times a column
         diag = jtj.diagonal(dim1=-2, dim2=-1)
         # A light that lights nothing has zero columns: a floor of 1e-6 of the largest
         # curvature keeps the damped system positive definite (it then stays put).
