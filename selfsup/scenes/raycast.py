@@ -267,20 +267,19 @@ def _pairs(batch: PrimitiveBatch, bundles: Bundles, k: int) -> tuple[Tensor, Ten
 
     A plane meets a bundle only if the bundle's cone reaches into the half-space of
     directions heading towards it, and the plane lies within the rays' reach. An
-    object is bounded by a sphere, and a
-    ray meets the sphere only if its direction is within the sphere's angular radius
-    of the centre's and the sphere lies within the ray's segment: so the bundle's
-    cone and the sphere must be within the sum of their angles. Conservative: float64,
-    the sphere padded by 1e-3 of its radius and the angle by 1e-3 radians, well
-    beyond float32 rounding.
+    object is bounded by a sphere; a ray meets the sphere only if its direction is
+    within the sphere's angular radius of the centre's and the sphere lies within
+    the ray's segment: so the bundle's cone and the sphere must be within the sum of
+    their angles. Conservative: float64, the sphere padded by 1e-3 of its radius and
+    the angles by 1e-3 radians, well beyond float32 rounding.
     """
     counts = batch.count[bundles.scene, k]
     bundle = torch.repeat_interleave(torch.arange(counts.shape[0]), counts)
+    if not bundle.numel():
+        return bundle, bundle
     row = torch.arange(bundle.shape[0]) - torch.repeat_interleave(counts.cumsum(0) - counts, counts)
     row = row + batch.start[bundles.scene, k][bundle]
     kind = _KINDS[k][0]
-    if not bundle.numel():
-        return bundle, row
     origin = bundles.origin.index_select(0, bundle).double()
     axis = bundles.axis.index_select(0, bundle)
     spread = bundles.spread.index_select(0, bundle)
@@ -428,15 +427,15 @@ def cast_rays(prims: Primitives, origins: Tensor, directions: Tensor, t_min: flo
     if _shared_origin(origins):
         t, index = cast_bundles(*_one_scene(prims, origins, directions, t_min, None), t_min)
         t, index = t[:R], index[:R]
-    elif R:
+    else:
+        # Every ray against every primitive; primitive p weighs P - p among those at the nearest t.
         t_all = _dense_t(prims, origins.T.contiguous(), directions.T.contiguous(), t_min)
         P = t_all.shape[0]
         t = t_all.amin(0) if P else directions.new_full((R,), _FAR)
         weight = torch.arange(P, 0, -1, dtype=t.dtype)[:, None]
-        index = _select(_mask(torch.ge, t, _FAR), -1.0, P - (_mask(torch.eq, t_all, t) * weight).amax(0) if P else 0.0).long()
-        t = torch.where(index >= 0, t, torch.full_like(t, float("inf")))
-    else:
-        t, index = directions.new_zeros(0), torch.zeros(0, dtype=torch.long)
+        first = P - (_mask(torch.eq, t_all, t) * weight).amax(0) if P else t
+        miss = _mask(torch.ge, t, _FAR)
+        t, index = t / (1 - miss), _select(miss, -1.0, first).long()
     points = origins + directions * torch.where(index >= 0, t, torch.zeros_like(t))[:, None]
     return Hit(t, hit_normals(prims, points, index), index)
 
