@@ -10,6 +10,7 @@ sensor with an albedo estimate would give it.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -20,9 +21,9 @@ from torch import Tensor
 from selfsup.scenes.io import Scene
 from selfsup.scenes.raycast import (_CHUNK, Bundles, PrimitiveBatch, blocked_bundles, bundle_rays, camera_rays,
                                     cast_bundles, hit_normals, shade_exact)
-from selfsup.scenes.sampler import SceneSpec, Texture
+from selfsup.scenes.sampler import Materials, SceneSpec, Texture
 
-__all__ = ["RenderedScene", "Materials", "render_spec", "render_specs", "albedo_at", "fractal_noise"]
+__all__ = ["RenderedScene", "render_spec", "render_specs", "albedo_at", "fractal_noise"]
 
 GENERATOR_NAME = "shadowlight.procedural v1 (exact ray casting)"
 _MAX_RAYS = 2**19  # camera rays of one render_specs call: 32 scenes of 128 x 128
@@ -63,36 +64,19 @@ def fractal_noise(points: Tensor, scale: Tensor, octaves: int = 4) -> Tensor:
     return 0.5 + 0.5 * total / norm
 
 
-def albedo_at(spec: SceneSpec, points: Tensor, primitive: Tensor) -> Tensor:
+def albedo_at(materials: Materials, points: Tensor, primitive: Tensor) -> Tensor:
     """Albedo ``(N, 3)`` of the primitives ``(N,)`` (global index, >= 0) at ``points (N, 3)``."""
-    base, alt = spec.kd_base.index_select(0, primitive), spec.kd_alt.index_select(0, primitive)
-    kind, scale = spec.texture.index_select(0, primitive), spec.texture_scale.index_select(0, primitive)
+    base, alt = materials.kd_base.index_select(0, primitive), materials.kd_alt.index_select(0, primitive)
+    kind, scale = materials.texture.index_select(0, primitive), materials.texture_scale.index_select(0, primitive)
     cells = torch.floor(points / scale[:, None]).sum(-1)
     checker = torch.remainder(cells, 2) < 0.5
-    stripes = torch.sin(2 * math.pi * (points * spec.texture_dir.index_select(0, primitive)).sum(-1) / scale) > 0
+    stripes = torch.sin(2 * math.pi * (points * materials.texture_dir.index_select(0, primitive)).sum(-1) / scale) > 0
     t = torch.where(kind == Texture.CHECKER, checker.to(points.dtype),
                     torch.where(kind == Texture.STRIPES, stripes.to(points.dtype), torch.ones_like(scale)))
     noisy = (kind == Texture.NOISE).nonzero(as_tuple=True)[0]
     if noisy.numel():  # the costliest pattern: evaluated only where used
         t[noisy] = fractal_noise(points[noisy], scale[noisy])
     return alt + t[:, None] * (base - alt)
-
-
-@dataclass(frozen=True)
-class Materials:
-    """Per-primitive material tables ``(P, ...)`` as in :class:`SceneSpec` (what
-    :func:`albedo_at` reads), for the primitives of one scene or of a batch."""
-
-    kd_base: Tensor
-    kd_alt: Tensor
-    texture: Tensor
-    texture_scale: Tensor
-    texture_dir: Tensor
-    ks: Tensor
-    shininess: Tensor
-
-
-_MATERIAL_FIELDS = ("kd_base", "kd_alt", "texture", "texture_scale", "texture_dir", "ks", "shininess")
 
 
 def _tile_order(height: int, width: int) -> Tensor:
@@ -112,10 +96,10 @@ class _Batch:
     def __init__(self, specs: list[SceneSpec]):
         self.specs = specs
         self.prims = PrimitiveBatch.of([spec.prims for spec in specs])
-        sizes = torch.tensor([spec.kd_base.shape[0] for spec in specs])
+        sizes = torch.tensor([spec.materials.kd_base.shape[0] for spec in specs])
         scene_major = (sizes.cumsum(0) - sizes)[self.prims.scene] + self.prims.local
-        self.materials = Materials(*(torch.cat([getattr(spec, name) for spec in specs])[scene_major]
-                                     for name in _MATERIAL_FIELDS))
+        self.materials = Materials(**{f.name: torch.cat([getattr(spec.materials, f.name) for spec in specs])[scene_major]
+                                      for f in dataclasses.fields(Materials)})
         self.n_lights = [spec.light_position.shape[0] for spec in specs]
         L = max(self.n_lights)
         self.light_position = torch.zeros(len(specs), L, 3)

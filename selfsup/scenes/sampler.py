@@ -20,7 +20,7 @@ from torch import Tensor
 
 from selfsup.scenes.raycast import Primitives
 
-__all__ = ["SamplerConfig", "SceneSpec", "Texture", "sample_scene", "signed_distance"]
+__all__ = ["SamplerConfig", "SceneSpec", "Materials", "Texture", "sample_scene", "signed_distance"]
 
 
 class Texture:
@@ -57,26 +57,18 @@ class SamplerConfig:
     scale_range: tuple[float, float] = (0.7, 1.4)
 
 
-@dataclass
-class SceneSpec:
-    """One sampled scene in the camera frame.
+@dataclass(frozen=True)
+class Materials:
+    """Per-primitive material tables, global order (planes, spheres, boxes, cylinders,
+    as in :func:`raycast.cast_rays`), of one scene or of a batch of scenes.
 
     Attributes:
-        prims: the shapes (planes, spheres, boxes, cylinders), float32.
-        kd_base, kd_alt: ``(P, 3)`` albedo colours per primitive (global order:
-            planes, spheres, boxes, cylinders, as in :func:`raycast.cast_rays`).
+        kd_base, kd_alt: ``(P, 3)`` albedo colours.
         texture: ``(P,)`` int, a :class:`Texture` kind; texture_scale ``(P,)`` metres;
             texture_dir ``(P, 3)`` unit (stripes).
         ks: ``(P,)``; shininess: ``(P,)``.
-        K: ``(3, 3)``; height, width: image size.
-        light_position, light_relative_intensity: ``(L, 3)``; the exposure is fixed
-            at render time. ambient_relative: ``(3,)``.
-        n_room_planes: planes that bound the (convex) room; they never cast shadows
-            on what the camera sees from inside it.
-        meta: free notes for the scene file.
     """
 
-    prims: Primitives
     kd_base: Tensor
     kd_alt: Tensor
     texture: Tensor
@@ -84,6 +76,23 @@ class SceneSpec:
     texture_dir: Tensor
     ks: Tensor
     shininess: Tensor
+
+
+@dataclass
+class SceneSpec:
+    """One sampled scene in the camera frame.
+
+    Attributes:
+        prims: the shapes (planes, spheres, boxes, cylinders), float32.
+        materials: their :class:`Materials`.
+        K: ``(3, 3)``; height, width: image size.
+        light_position, light_relative_intensity: ``(L, 3)``; the exposure is fixed
+            at render time. ambient_relative: ``(3,)``.
+        meta: free notes for the scene file.
+    """
+
+    prims: Primitives
+    materials: Materials
     K: Tensor
     height: int
     width: int
@@ -343,9 +352,11 @@ def sample_scene(seed: int, config: SamplerConfig | None = None, n_lights: int |
     if torch.rand(1, generator=gen) >= config.ambient_zero_prob:
         ambient = _u(gen, config.ambient_range) * _uniform(gen, 0.8, 1.0, 3)
     return SceneSpec(
-        prims=prims.to(torch.float32), kd_base=base.float(), kd_alt=alt.float(), texture=texture,
-        texture_scale=(tex_scale * scale).float(), texture_dir=tex_dir.float(), ks=ks.float(),
-        shininess=shininess.float(), K=K.float(), height=config.height, width=config.width,
+        prims=prims.to(torch.float32),
+        materials=Materials(kd_base=base.float(), kd_alt=alt.float(), texture=texture,
+                            texture_scale=(tex_scale * scale).float(), texture_dir=tex_dir.float(), ks=ks.float(),
+                            shininess=shininess.float()),
+        K=K.float(), height=config.height, width=config.width,
         light_position=light_cam.float(), light_relative_intensity=(tint * power).float(),
         ambient_relative=ambient.float(), exposure=_u(gen, config.exposure_range), seed=int(seed),
         meta={"room_size_m": [room_w * scale, room_d * scale, room_h * scale], "objects": objs.names,
