@@ -94,7 +94,6 @@ class _Batch:
     ``light_intensity (B, L, 3)`` (zero intensity where a scene has fewer)."""
 
     def __init__(self, specs: list[SceneSpec]):
-        self.specs = specs
         self.prims = PrimitiveBatch.of([spec.prims for spec in specs])
         sizes = torch.tensor([spec.materials.kd_base.shape[0] for spec in specs])
         scene_major = (sizes.cumsum(0) - sizes)[self.prims.scene] + self.prims.local
