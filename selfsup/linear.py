@@ -24,11 +24,9 @@ def basis_images(kd: Tensor, ks: Tensor | None, diffuse: Tensor, specular: Tenso
         kd: ``(B, H, W, 3)``; ks: ``(B, H, W, 1|3)`` or None.
         diffuse, specular: ``(B, L, H, W)`` transport maps (specular may be None).
     """
-    # Channel-first copies of the (small) reflectances first, so that the basis comes out
-    # contiguous: every solve then reads it without copying it (twice as fast for one image).
-    cols = kd.permute(0, 3, 1, 2).contiguous()[:, :, None] * diffuse[:, None]
+    cols = kd.permute(0, 3, 1, 2)[:, :, None] * diffuse[:, None]
     if specular is not None and ks is not None:
-        cols = cols + ks.permute(0, 3, 1, 2).contiguous()[:, :, None] * specular[:, None]
+        cols = cols + ks.permute(0, 3, 1, 2)[:, :, None] * specular[:, None]
     return cols
 
 
