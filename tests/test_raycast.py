@@ -60,3 +60,16 @@ def test_bundled_rays_give_what_every_ray_against_every_primitive_gives():
                        0.0, torch.cat([end, end[:1]]))
         assert torch.equal(from_light, each[:-1])
         assert 0.0 < from_light.float().mean() < 0.9  # some points shadowed, most lit
+
+
+def test_a_ray_without_direction_does_not_hide_its_bundles_hits():
+    # A zero (or NaN) direction makes its bundle's cone NaN; the cone must then cover
+    # everything rather than cull the bundle's other rays.
+    sphere = Primitives(spheres=torch.tensor([[0, 0, 5.0, 1.0]]))
+    d = torch.zeros(10, 3)
+    d[:, 2] = 1
+    d[0] = 0
+    d[1] = float("nan")
+    origins = torch.zeros(1, 3).expand(10, 3)
+    assert torch.equal(cast_rays(sphere, origins, d).t[2:], torch.full((8,), 4.0))
+    assert any_hit(sphere, origins, d, 0.0, torch.full((10,), 10.0))[2:].all()

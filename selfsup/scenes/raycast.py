@@ -238,10 +238,15 @@ class Bundles:
         low = axis.to(d.dtype)
         cos = unit[0] * low[:, 0:1] + unit[1] * low[:, 1:2] + unit[2] * low[:, 2:3]
         spread = torch.acos(cos.amin(-1).double().clamp(-1, 1))
-        # Rays of a bundle pointing every way: the cone is the whole sphere.
-        spread = torch.where(axis_norm > 1e-3 * d.shape[-1], spread, torch.full_like(spread, math.pi))
-        near = (length.amin(-1) * t_min).double()
+        # Rays of a bundle pointing every way, or one without a direction (zero or not
+        # finite, which makes the cone NaN): the cone is the whole sphere, reaching from 0 to inf.
+        whole = ~((axis_norm > 1e-3 * d.shape[-1]) & torch.isfinite(spread))
+        spread = torch.where(whole, torch.full_like(spread, math.pi), spread)
+        axis = torch.where(whole[:, None], torch.tensor([1.0, 0.0, 0.0], dtype=axis.dtype), axis)
+        near = (length.amin(-1) * t_min).double().nan_to_num(0.0)
         far = torch.full_like(near, math.inf) if t_max is None else (length * t_max).amax(-1).double()
+        far = torch.where(whole | far.isnan(), torch.full_like(far, math.inf), far)
+        near = torch.where(whole, torch.zeros_like(near), near)
         return Bundles(d, origin, scene, t_max, axis, spread, near, far)
 
 
