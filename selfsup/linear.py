@@ -109,13 +109,9 @@ def single_light_costs(position: Tensor, points: Tensor, normals: Tensor, mask: 
     explain pull with bounded force).
     """
     B, M = points.shape[0], position.shape[1]
-    position = position.expand(B, -1, -1)
     per_call = max(1, _COST_ELEMENTS // max(1, M * points.shape[1] * points.shape[2]))
-    if B <= per_call:
-        return _single_light_costs(position, points, normals, mask, kd, image, exposure, falloff, robust_scale)
-    return torch.cat([_single_light_costs(position[i : i + per_call], points[i : i + per_call], normals[i : i + per_call],
-                                          mask[i : i + per_call], kd[i : i + per_call], image[i : i + per_call],
-                                          exposure[i : i + per_call], falloff, robust_scale)
+    per_image = (position.expand(B, -1, -1), points, normals, mask, kd, image, exposure)
+    return torch.cat([_single_light_costs(*(x[i : i + per_call] for x in per_image), falloff, robust_scale)
                       for i in range(0, B, per_call)])
 
 
@@ -138,11 +134,11 @@ def _single_light_costs(position: Tensor, points: Tensor, normals: Tensor, mask:
     offsets = (position * position).sum(-1)[:, :, None] + (points * points).sum(-1)[:, None]
     squared = torch.baddbmm(offsets, position, points.transpose(1, 2), alpha=-2)  # (B, M, P)
     floor = 1e-6 * points.norm(dim=-1).amax(1)[:, None, None]
-    inverse = squared.clamp_min(floor * floor).rsqrt_()  # 1 / max(distance, floor)
+    inverse = squared.clamp_min(floor * floor).rsqrt()  # 1 / max(distance, floor)
     facing = torch.baddbmm(-(normals * points).sum(-1)[:, None], position, normals.transpose(1, 2))
-    diffuse = facing.clamp_min_(0).mul_(inverse)  # max(0, n . l)
+    diffuse = facing.clamp_min(0) * inverse  # max(0, n . l)
     if Falloff(falloff) is Falloff.INVERSE_SQUARE:
-        diffuse.mul_(inverse.square_())
+        diffuse = diffuse * inverse.square()
 
     albedo_weight = weight * kd * kd  # (B, P, 3)
     target_weight = weight * kd * observed

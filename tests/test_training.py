@@ -79,6 +79,22 @@ def test_hypothesis_costs_match_an_explicit_least_squares_fit(pool):
         assert bool((fast[:, j] <= explicit * (1 + 1e-6) + 1e-9).all())  # non-negative optimum: never worse
 
 
+def test_hypothesis_costs_by_chunks_of_images_equal_one_pass_and_carry_gradients(pool, monkeypatch):
+    import selfsup.linear
+
+    scenes = scene_batch({k: v.double() if v.is_floating_point() else v for k, v in pool.items()})
+    exposure = scene_frame(scenes.image, scenes.gbuffer).exposure
+    hypotheses = scene_frame(scenes.image, scenes.gbuffer).centre[:, None] + torch.randn(
+        8, 5, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    whole = hypothesis_costs(hypotheses, scenes, exposure, "inverse_square", stride=2)
+    monkeypatch.setattr(selfsup.linear, "_COST_ELEMENTS", 1)  # one image per pass
+    position = hypotheses.clone().requires_grad_(True)
+    chunked = hypothesis_costs(position, scenes, exposure, "inverse_square", stride=2, robust_scale=0.1)
+    chunked.sum().backward()
+    torch.testing.assert_close(hypothesis_costs(hypotheses, scenes, exposure, "inverse_square", stride=2), whole)
+    assert torch.isfinite(position.grad).all() and position.grad.abs().sum() > 0
+
+
 def test_loss_reads_no_ground_truth_unless_the_ablation_switch_is_on(pool):
     scenes = scene_batch(pool)
     network = LightNet(max_lights=2)
