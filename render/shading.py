@@ -57,10 +57,10 @@ def light_geometry(points: Tensor, light_position: Tensor) -> LightGeometry:
     # Square-root guard: sqrt'(0) is infinite; the clamp keeps the gradient finite
     # for a light exactly on the surface. The scale-aware floor (1e-6 of the
     # point's distance to the camera) works for millimetre and kilometre scenes.
-    eps = 1e-6 * points.norm(dim=-1).clamp_min(torch.finfo(points.dtype).tiny ** 0.25)
+    depth = points.norm(dim=-1)
+    eps = 1e-6 * depth.clamp_min(torch.finfo(points.dtype).tiny ** 0.25)
     distance = (offset * offset).sum(-1).clamp_min(torch.finfo(points.dtype).tiny).sqrt()
     to_light = _safe_normalize(offset, distance, eps)
-    depth = points.norm(dim=-1)
     to_viewer = _safe_normalize(-points, depth, eps)
     return LightGeometry(to_light, torch.maximum(distance, eps), to_viewer)
 

@@ -35,10 +35,6 @@ def _rel_error_paired(position, scene):
 
 @pytest.mark.parametrize("method, iters, tol, shadows", [
     ("lm", (4, 0), 1e-3, "none"),  # the variable-projection step: 0.04 -> 0.0001 in 3 steps
-    # Shadow edges make the landscape rough: slower, and where it stops is chaotic. Measured:
-    # 0.0046 or 0.0089 from this start when the image changes by 2e-7 (the generator's float
-    # rounding, 2026-11-23); from 0.04, either is a 5-9x gain.
-    ("lm", (40, 10), 0.01, "epipolar"),
     ("adam", (60, 0), 0.03, "epipolar"),
 ])
 def test_each_optimiser_moves_towards_the_true_light(method, iters, tol, shadows):
@@ -49,6 +45,22 @@ def test_each_optimiser_moves_towards_the_true_light(method, iters, tol, shadows
     fit = refine(problem, start, options)
     assert _rel_error(fit.position[0], scene) < min(tol, _rel_error(start[0], scene))
     assert torch.isfinite(fit.intensity).all() and (fit.intensity >= 0).all()
+
+
+def test_lm_with_shadows_converges_from_the_best_of_several_starts():
+    # Shadow edges make the landscape rough: from one start 0.04 away, LM stops anywhere
+    # from 0.0004 to 0.03 (measured 2026-11-23 over four directions; which one it reaches
+    # flips with float rounding). The estimator therefore keeps the best of several starts,
+    # as here: every fit lowers its start's cost, and the cheapest is at the light.
+    scene = _scene(1)
+    directions = torch.tensor([[1.0, -1.0, 1.0], [-1.0, 1.0, 1.0], [1.0, 1.0, -1.0], [-1.0, -1.0, -1.0]]) / 3**0.5
+    problem = problem_of(scene, "epipolar").select(torch.zeros(len(directions), dtype=torch.long))
+    start = scene.light_pos[None] + 0.04 * scene.scene_scale * directions[:, None]
+    options = RefineOptions(method="lm", max_iters=(40, 10), strides=(1, 1))
+    fit = refine(problem, start, options)
+    start_cost = refine(problem, start, dataclasses.replace(options, max_iters=(0,), strides=(1,))).cost
+    assert (fit.cost < start_cost).all()
+    assert _rel_error(fit.position[int(fit.cost.argmin())], scene) < 1e-3
 
 
 @pytest.mark.xfail(strict=True, reason="known issue: the paper's rate 0.02 on our normalised energy overshoots")

@@ -156,13 +156,13 @@ def _angle_from_camera_ray(points: Tensor, light_position: Tensor) -> Tensor:
     """``gamma``: angle at the light between ``L->O`` and ``L->X``.
 
     Args:
-        points: ``(N, M, 3)``; light_position: ``(N, 3)``.
+        points: ``(..., 3)``; light_position: ``(..., 3)``, broadcastable to ``points``.
 
     Returns:
-        ``(N, M)`` angles in ``[0, pi]``.
+        ``(...)`` angles in ``[0, pi]``.
     """
-    c = -light_position[:, None, :]
-    d = points - light_position[:, None, :]
+    c = -light_position
+    d = points - light_position
     cx, cy, cz = c.unbind(-1)
     dx, dy, dz = d.unbind(-1)
     sq = (cy * dz - cz * dy).square() + (cz * dx - cx * dz).square() + (cx * dy - cy * dx).square()
@@ -254,7 +254,6 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     dtype, device = pts.dtype, pts.device
     if lines is None:
         lines = _make_lines(light, K, H, W, options.spacing_px)
-    gamma = _angle_from_camera_ray(pts, light)  # (N, H*W)
     weight = valid.to(dtype)
     focal = 0.5 * (K[:, 0, 0] + K[:, 1, 1])
     nl, ns = lines.num_lines, lines.num_samples
@@ -262,34 +261,39 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     v = torch.arange(H, dtype=dtype, device=device).repeat_interleave(W)
 
     with torch.no_grad():
-        # 1) The sweep: for each line and sample, the smallest gamma at or before
-        #    it (running) and which sample holds it (argmin).
+        gamma = _angle_from_camera_ray(pts, light[:, None])  # (N, H*W)
+        # 1) The sweep, on the padded table of _pixel_nodes (rows: lines, then the two
+        #    that the last pixels' interpolation reaches; columns: a sample before the
+        #    first, which sees nothing, then the samples): for each node, the smallest
+        #    gamma at or before it (running) and which column holds it (argmin).
         angle_image = torch.stack([gamma * weight, weight], dim=1).reshape(N, 2, H, W)
-        running = torch.empty(N, nl, ns, dtype=dtype, device=device)
-        argmin = torch.empty(N, nl, ns, dtype=torch.long, device=device)
-        rows_per_chunk = max(1, options.chunk_samples // (nl * ns))
-        line_index = torch.arange(nl, dtype=dtype, device=device)
-        sample_index = torch.arange(ns, dtype=dtype, device=device)
+        line_of_row = _line_of_row(lines, nl)  # (N, nl + 2)
+        running = torch.empty(N, nl + 2, ns + 1, dtype=dtype, device=device)
+        argmin = torch.empty(N, nl + 2, ns + 1, dtype=torch.long, device=device)
+        rows_per_chunk = max(1, options.chunk_samples // ((nl + 2) * (ns + 1)))
+        sample_index = torch.arange(-1, ns, dtype=dtype, device=device)
         for start in range(0, N, rows_per_chunk):
             part = slice(start, min(N, start + rows_per_chunk))
             sub = lines.select(part)
             n = part.stop - part.start
-            # Directions per line (n, nl, 1, 2) times radii per sample (n, 1, ns, 1).
-            theta = sub.theta0[:, None] + line_index[None] * sub.dtheta[:, None]
+            # Directions per row (n, nl + 2, 1, 2) times radii per column (n, 1, ns + 1, 1).
+            theta = sub.theta0[:, None] + line_of_row[part] * sub.dtheta[:, None]
             direction = torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)[:, :, None]
-            radius = sub.radius(sample_index[None].expand(n, ns))[:, None, :, None]
-            xy = sub.epipole[:, None, None] + radius * direction  # (n, nl, ns, 2)
-            angle, ok = _masked_angle(angle_image[part], xy.reshape(n, nl * ns, 2), H, W)
-            angle = torch.where(ok, angle, _NO_OCCLUDER).reshape(n, nl, ns)
+            radius = sub.radius(sample_index[None].expand(n, ns + 1))[:, None, :, None]
+            xy = sub.epipole[:, None, None] + radius * direction
+            angle, ok = _masked_angle(angle_image[part], xy.reshape(n, (nl + 2) * (ns + 1), 2), H, W)
+            angle = torch.where(ok, angle, _NO_OCCLUDER).reshape(n, nl + 2, ns + 1)
+            angle[:, :, 0] = _NO_OCCLUDER
             torch.cummin(angle, dim=-1, out=(running[part], argmin[part]))
-        running_flat, argmin_flat = running.reshape(N, nl * ns), argmin.reshape(N, nl * ns)
+        running_flat, argmin_flat = running.reshape(N, -1), argmin.reshape(N, -1)
 
         # 2) Every pixel, from the running minima of the pattern nodes around it.
-        def node_from_sweep(line: Tensor, k: Tensor, has_prior: Tensor, direction: Tensor) -> Tensor:
-            value = running_flat.gather(1, line * ns + k)
-            return torch.where(has_prior & (value < _NO_OCCLUDER), value, _NO_OCCLUDER)
-
-        running_min = _running_min_at_pixels(lines.select((slice(None), None)), u, v, nl, ns, options.lookback, node_from_sweep)
+        # The bilinear interpolation of the four nodes around each pixel is grid_sample's
+        # on the table (border padding: the clamps of _node_index), one fused pass.
+        a, s = _pixel_coords(lines.select((slice(None), None)), u, v, options.lookback)
+        grid = torch.stack([(s + 1) * (2 / ns) - 1, a * (2 / (nl + 1)) - 1], dim=-1)
+        running_min = F.grid_sample(running[:, None], grid[:, None], mode="bilinear", padding_mode="border",
+                                    align_corners=True).reshape(N, H * W)
         distance = (light[:, None] - pts).norm(dim=-1)
         visibility, t = _smooth_visibility(running_min, gamma, pts[..., 2], distance, focal[:, None], options)
         visibility = torch.where(valid, visibility, 1.0)
@@ -300,67 +304,91 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
 
     # 3) With a gradient, only where it is not zero: inside the smooth band (the
     #    clamped smoothstep is flat, derivative 0, everywhere else). The same
-    #    computation as above, but the occluders' angles are recomputed from
-    #    their positions on the epipolar lines so that autograd sees how they
-    #    move with the light and the points.
+    #    computation as above for the band's pixels, the sweep's choices kept (which
+    #    nodes, which sample of each node's line is its occluder), but every angle and
+    #    position recomputed from the light and the points so that autograd sees how
+    #    they move.
     rows, cols = band.nonzero(as_tuple=True)
     if rows.numel() == 0:
         return visibility
-    seen = running_flat < _NO_OCCLUDER
-
-    def node_recomputed(line: Tensor, k: Tensor, has_prior: Tensor, direction: Tensor) -> Tensor:
-        flat = line * ns + k
-        chosen = argmin_flat[rows, flat]
-        xy = band_lines.epipole + band_lines.radius(chosen.to(dtype))[..., None] * direction
-        angle, ok = _masked_angle_at(gamma, weight, rows, xy, H, W)
-        return torch.where(has_prior & seen[rows, flat] & ok, angle, _NO_OCCLUDER)
-
     band_lines = lines.select(rows)
-    band_min = _running_min_at_pixels(band_lines, u[cols], v[cols], nl, ns, options.lookback, node_recomputed)
+    node, fa, fs = _node_index(*_pixel_coords(band_lines, u[cols], v[cols], options.lookback), ns)  # (M, 4), (M,), (M,)
+    at = rows[:, None]
+    seen = running_flat[at, node] < _NO_OCCLUDER
+    occluder_k = (argmin_flat[at, node] - 1).to(dtype)  # column -> sample index
+    line = line_of_row[at, torch.div(node, ns + 1, rounding_mode="floor")]
+    theta = band_lines.theta0[:, None] + line * band_lines.dtheta[:, None]
+    direction = torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)
+    xy = band_lines.epipole[:, None] + band_lines.radius(occluder_k)[..., None] * direction  # (M, 4, 2)
+    angle, ok = _masked_angle_at(pts, weight, light, rows, xy, H, W)
+    band_min = _lerp_nodes(torch.where(seen & ok, angle, _NO_OCCLUDER), fa, fs)
     band_points = pts[rows, cols]
+    band_light = light[rows]
     band_visibility, _ = _smooth_visibility(
-        band_min, gamma[rows, cols], band_points[:, 2], (light[rows] - band_points).norm(dim=-1), focal[rows], options
+        band_min, _angle_from_camera_ray(band_points, band_light), band_points[:, 2],
+        (band_light - band_points).norm(dim=-1), focal[rows], options,
     )
     return visibility.index_put((rows, cols), band_visibility)
 
 
-def _running_min_at_pixels(lines: _Lines, u: Tensor, v: Tensor, nl: int, ns: int, lookback: float, node_angle) -> Tensor:
-    """Bilinear interpolation, at pixels ``(u, v)``, of the running minimum of gamma
-    at the four pattern nodes around each pixel, ``lookback`` samples before it.
+def _line_of_row(lines: _Lines, nl: int) -> Tensor:
+    """``(N, nl + 2)``: the line index (as a float) of each row of the padded sweep table.
 
-    ``lines`` fields broadcast against ``u`` and ``v``; ``node_angle(line, k,
-    has_prior, direction)`` gives the running minimum of one node (long indices
-    of the pixels' shape).
+    Rows ``nl`` and ``nl + 1`` are where the interpolation of _pixel_nodes lands past
+    the last line: lines 0 and 1 again when the lines go all around the epipole, the
+    last line again (a clamp) otherwise.
     """
-    dtype = u.dtype
+    index = torch.arange(nl + 2, dtype=lines.dtheta.dtype, device=lines.dtheta.device)
+    past = index[nl:]
+    wrapped = torch.where(lines.periodic[:, None], past - nl, torch.full_like(past, nl - 1))
+    return torch.cat([index[:nl].expand(len(lines.periodic), nl), wrapped], dim=1)
+
+
+def _pixel_coords(lines: _Lines, u: Tensor, v: Tensor, lookback: float) -> tuple[Tensor, Tensor]:
+    """Where pixels ``(u, v)`` fall in the pattern, ``lookback`` samples before them:
+    ``a`` across lines (line index, fractional) and ``s`` along them (sample index).
+
+    ``lines`` fields broadcast against ``u`` and ``v``; differentiable in both.
+    """
     dx, dy = u - lines.epipole[..., 0], v - lines.epipole[..., 1]
     r_pix = (dx * dx + dy * dy).sqrt()
-    # atan2 guard: the pixel at the epipole has no direction; any fixed one will do.
-    at_epipole = r_pix < 1e-6
-    theta = torch.atan2(torch.where(at_epipole, 1.0, dy), torch.where(at_epipole, 1.0, dx))
-    # Angle from line 0, wrapped: lines all around (periodic) span [0, 2 pi); lines
-    # from an outside epipole span less than pi, so [-pi/2, 3 pi/2) holds them
-    # whole even where they straddle the +-pi seam of atan2.
-    shift = torch.where(lines.periodic, 0.0, math.pi / 2)
-    rel = torch.remainder(theta - lines.theta0 + shift, 2 * math.pi) - shift
-    upper = (nl - 1) + lines.periodic.to(dtype)  # periodic lines wrap to line 0 at index nl
+    # The pixel's angle from the pattern's reference direction: from line 0 where the
+    # lines span less than pi (outside epipole); from the direction pi past line 0
+    # (= -pi) where they go all around, offset by pi into [0, 2 pi].
+    periodic = lines.periodic.to(u.dtype)
+    base = lines.theta0 + math.pi * periodic
+    cos_b, sin_b = torch.cos(base), torch.sin(base)
+    across, along = cos_b * dy - sin_b * dx, cos_b * dx + sin_b * dy
+    if across.requires_grad or along.requires_grad:
+        # atan2 guard: the pixel at the epipole has no direction; any fixed one will
+        # do, and atan2's gradient at (0, 0) is 0/0.
+        at_epipole = r_pix < 1e-6
+        across, along = torch.where(at_epipole, 1.0, across), torch.where(at_epipole, 1.0, along)
+    rel = torch.atan2(across, along) + math.pi * periodic
+    upper = (lines.num_lines - 1) + periodic  # periodic: index nl is line 0 again (padded row)
     a = torch.minimum((rel / lines.dtheta).clamp_min(0), upper)
     radial = torch.where(lines.forward, r_pix - lines.r_min, lines.r_max - r_pix)
-    s = radial / lines.dr - lookback
+    return a, radial / lines.dr - lookback
+
+
+def _node_index(a: Tensor, s: Tensor, ns: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The four pattern nodes around pattern coordinates ``a, s (...)`` (see _pixel_coords):
+    flat indices ``(..., 4)`` into the padded sweep table ``(nl + 2) x (ns + 1)`` of
+    :func:`_sweep`, ordered (line, sample) = (0, 0), (0, 1), (1, 0), (1, 1) from the
+    lower corner, and the interpolation weights across (``fa``) and along (``fs``)."""
     a0, s0 = a.detach().floor(), s.detach().floor()
-    fa, fs = a - a0, s - s0
-    a0, s0 = a0.long(), s0.long()
-    nodes = []
-    for da in (0, 1):
-        line = a0 + da
-        line = torch.where(lines.periodic, torch.remainder(line, nl), line.clamp(0, nl - 1))
-        theta_line = lines.theta0 + line.to(dtype) * lines.dtheta
-        direction = torch.stack([torch.cos(theta_line), torch.sin(theta_line)], dim=-1)
-        for ds in (0, 1):
-            k = s0 + ds
-            nodes.append(node_angle(line, k.clamp(0, ns - 1), k >= 0, direction))
-    m00, m01, m10, m11 = nodes
-    return (1 - fa) * ((1 - fs) * m00 + fs * m01) + fa * ((1 - fs) * m10 + fs * m11)
+    width = ns + 1
+    row = a0.long() * width
+    col = s0.long() + 1
+    col = col.clamp(0, ns), (col + 1).clamp(0, ns)  # column 0: nothing before the first sample
+    node = torch.stack([row + col[0], row + col[1], row + (width + col[0]), row + (width + col[1])], dim=-1)
+    return node, a - a0, s - s0
+
+
+def _lerp_nodes(value: Tensor, fa: Tensor, fs: Tensor) -> Tensor:
+    """Bilinear interpolation of node values ``(..., 4)`` (order of _pixel_nodes) -> ``(...)``."""
+    v00, v01, v10, v11 = value.unbind(-1)
+    return torch.lerp(torch.lerp(v00, v01, fs), torch.lerp(v10, v11, fs), fa)
 
 
 def _smooth_visibility(running_min: Tensor, gamma: Tensor, depth: Tensor, distance: Tensor, focal: Tensor,
@@ -375,23 +403,24 @@ def _smooth_visibility(running_min: Tensor, gamma: Tensor, depth: Tensor, distan
     return t * t * (3 - 2 * t), t
 
 
-def _masked_angle_at(gamma: Tensor, weight: Tensor, rows: Tensor, xy: Tensor, H: int, W: int) -> tuple[Tensor, Tensor]:
-    """Like :func:`_masked_angle` (same bilinear weights, zero padding), for points
-    ``xy (M, 2)`` of images ``rows (M,)`` of ``gamma/weight (N, H*W)``."""
+def _masked_angle_at(pts: Tensor, weight: Tensor, light: Tensor, rows: Tensor, xy: Tensor, H: int, W: int
+                     ) -> tuple[Tensor, Tensor]:
+    """Like :func:`_masked_angle` (same bilinear weights, zero padding), with gamma
+    recomputed from the points: at ``xy (M, K, 2)`` of images ``rows (M,)`` of
+    ``pts (N, H*W, 3)``, ``weight (N, H*W)``, ``light (N, 3)``. Returns ``(M, K)`` twice."""
     x, y = xy[..., 0], xy[..., 1]
     x0, y0 = x.detach().floor(), y.detach().floor()
     wx, wy = x - x0, y - y0
-    x0, y0 = x0.long(), y0.long()
-    num = torch.zeros_like(x)
-    den = torch.zeros_like(x)
-    for oy in (0, 1):
-        for ox in (0, 1):
-            xi, yi = x0 + ox, y0 + oy
-            inside = (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
-            index = yi.clamp(0, H - 1) * W + xi.clamp(0, W - 1)
-            w = (wx if ox else 1 - wx) * (wy if oy else 1 - wy)
-            m = weight[rows, index] * inside
-            num = num + w * m * gamma[rows, index]
-            den = den + w * m
+    # The four taps on a last axis: (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1).
+    offset_x = torch.tensor([0.0, 1.0, 0.0, 1.0], dtype=x.dtype, device=x.device)
+    offset_y = torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=x.dtype, device=x.device)
+    xi, yi = x0[..., None] + offset_x, y0[..., None] + offset_y
+    inside = (xi >= 0) & (xi <= W - 1) & (yi >= 0) & (yi <= H - 1)
+    index = (yi.clamp(0, H - 1) * W + xi.clamp(0, W - 1)).long()
+    w = torch.lerp(1 - wx[..., None], wx[..., None], offset_x) * torch.lerp(1 - wy[..., None], wy[..., None], offset_y)
+    at = rows[:, None, None]
+    m = w * (weight[at, index] * inside)
+    gamma = _angle_from_camera_ray(pts[at, index], light[rows][:, None, None])
+    num, den = (m * gamma).sum(-1), m.sum(-1)
     ok = den > 0.5
     return num / torch.where(ok, den, 1.0), ok
