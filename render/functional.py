@@ -13,7 +13,8 @@ import torch
 from torch import Tensor
 
 from render.geometry import fit_intrinsics
-from render.shading import Falloff, blinn_phong_lobe, falloff_factor, light_geometry, shading_position_gradients
+from render.shading import (Falloff, blinn_phong_lobe, falloff_factor, light_geometry, light_offset,
+                            shading_position_gradients)
 from render.shadows import ShadowMethod, shadow_visibility
 from render.types import GBuffer, Material, PointLights, check_ambient
 
@@ -93,10 +94,16 @@ def _transport(gbuffer, material, light_position, falloff, shadows, shadow_optio
                geometry=None) -> LightTransport:
     # geometry: _geometry(gbuffer, light_position) when the caller already has it.
     normals = gbuffer.normals[:, None]
-    to_light, distance, to_viewer = _geometry(gbuffer, light_position) if geometry is None else geometry
+    if geometry is None and not with_specular:
+        # Diffuse alone needs no unit vectors: n.l = n.(L - X) / d, a third of the work
+        # (and of its backward) on (B, L, H, W, 3) arrays.
+        offset, distance, _, _ = light_offset(gbuffer.points[:, None], light_position[:, :, None, None, :])
+        n_dot_l = (normals * offset).sum(-1) / distance
+    else:
+        to_light, distance, to_viewer = _geometry(gbuffer, light_position) if geometry is None else geometry
+        n_dot_l = (normals * to_light).sum(-1)
     # Per-light scalar weights (B, L, H, W); RGB enters only where the caller sums lights.
     weight = falloff_factor(distance, falloff)
-    n_dot_l = (normals * to_light).sum(-1)
     visibility = None
     if shadows is not ShadowMethod.NONE:
         visibility = shadow_visibility(shadows, gbuffer.points, gbuffer.mask, _shadow_intrinsics(gbuffer, shadows),

@@ -53,6 +53,16 @@ def light_geometry(points: Tensor, light_position: Tensor) -> LightGeometry:
         >>> g.to_light[0, 0, 0, 0], g.distance[0, 0, 0, 0]
         (tensor([0., 0., 1.]), tensor(2.))
     """
+    offset, distance, depth, eps = light_offset(points, light_position)
+    to_light = offset / distance[..., None]
+    to_viewer = _safe_normalize(-points, depth, eps)
+    return LightGeometry(to_light, distance, to_viewer)
+
+
+def light_offset(points: Tensor, light_position: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The unnormalised half of :func:`light_geometry`: ``offset`` (surface to light,
+    shapes as there), guarded ``distance``, and the points' ``depth`` and ``eps``
+    (the guard's floor)."""
     offset = light_position - points
     # Square-root guard: sqrt'(0) is infinite; the clamp keeps the gradient finite
     # for a light exactly on the surface. The scale-aware floor (1e-6 of the
@@ -60,9 +70,7 @@ def light_geometry(points: Tensor, light_position: Tensor) -> LightGeometry:
     depth = points.norm(dim=-1)
     eps = 1e-6 * depth.clamp_min(torch.finfo(points.dtype).tiny ** 0.25)
     distance = (offset * offset).sum(-1).clamp_min(torch.finfo(points.dtype).tiny).sqrt()
-    to_light = _safe_normalize(offset, distance, eps)
-    to_viewer = _safe_normalize(-points, depth, eps)
-    return LightGeometry(to_light, torch.maximum(distance, eps), to_viewer)
+    return offset, torch.maximum(distance, eps), depth, eps
 
 
 def falloff_factor(distance: Tensor, falloff: Falloff | str) -> Tensor:
