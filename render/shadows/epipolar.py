@@ -163,14 +163,12 @@ def _angle_from_camera_ray(points: Tensor, light_position: Tensor) -> Tensor:
     """
     c = -light_position
     d = points - light_position
-    cx, cy, cz = c.unbind(-1)
-    dx, dy, dz = d.unbind(-1)
-    sq = (cy * dz - cz * dy).square() + (cz * dx - cx * dz).square() + (cx * dy - cy * dx).square()
+    c, d = torch.broadcast_tensors(c, d)
+    cross = torch.linalg.cross(c, d)
     # sqrt guard: |c x d| is 0 for points on the line L-O; the floor keeps sqrt'
     # finite there (atan2 itself is smooth away from (0, 0)).
-    sin_part = sq.clamp_min(torch.finfo(points.dtype).tiny).sqrt()
-    cos_part = cx * dx + cy * dy + cz * dz
-    return torch.atan2(sin_part, cos_part)
+    sin_part = torch.linalg.vecdot(cross, cross).clamp_min(torch.finfo(points.dtype).tiny).sqrt()
+    return torch.atan2(sin_part, torch.linalg.vecdot(c, d))
 
 
 def _bilinear(image: Tensor, xy: Tensor, height: int, width: int) -> Tensor:
