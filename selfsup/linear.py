@@ -86,10 +86,13 @@ def pseudo_huber(residual: Tensor, scale: float) -> Tensor:
     return torch.sqrt(residual * residual + scale * scale) - scale
 
 
-# Hypotheses x pixels per call of _single_light_costs: images are taken a few at a
-# time so that its (B, M, P) temporaries stay near the CPU's cache (on the 2-core
+# Hypotheses x pixels per call of _single_light_costs. On the CPU images are taken a
+# few at a time so that its (B, M, P) temporaries stay near the cache (on the 2-core
 # CPU, 4 images of 216 x 676 ran twice as fast as 16 at once; answers are identical).
-_COST_ELEMENTS = 640_000
+# An accelerator wants the opposite, few large calls: there the bound only caps memory
+# (each temporary 256 MiB in float32).
+_COST_ELEMENTS = {"cpu": 640_000}
+_COST_ELEMENTS_ACCELERATOR = 1 << 26
 
 
 def single_light_costs(position: Tensor, points: Tensor, normals: Tensor, mask: Tensor, kd: Tensor, image: Tensor,
@@ -109,7 +112,8 @@ def single_light_costs(position: Tensor, points: Tensor, normals: Tensor, mask: 
     explain pull with bounded force).
     """
     B, M = points.shape[0], position.shape[1]
-    per_call = max(1, _COST_ELEMENTS // max(1, M * points.shape[1] * points.shape[2]))
+    budget = _COST_ELEMENTS.get(points.device.type, _COST_ELEMENTS_ACCELERATOR)
+    per_call = max(1, budget // max(1, M * points.shape[1] * points.shape[2]))
     per_image = (position.expand(B, -1, -1), points, normals, mask, kd, image, exposure)
     return torch.cat([_single_light_costs(*(x[i : i + per_call] for x in per_image), falloff, robust_scale)
                       for i in range(0, B, per_call)])

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from selfsup.estimate import (EstimateOptions, estimate_batch, estimate_files, estimate_scene, prepare, problem_of,
-                              records)
+                              problems_of, records)
 from selfsup.metrics import light_errors
 from selfsup.refine import RefineOptions, evaluate, refine, robust_loss, search
 from selfsup.scenes.exact import render_spec
@@ -265,6 +265,21 @@ def test_cat_undoes_select():
     again = FitProblem.cat([problem.select(torch.tensor([1])), problem.select(torch.tensor([0]))])
     assert torch.equal(again.image, problem.image.flip(0)) and torch.equal(again.gbuffer.points, problem.gbuffer.points.flip(0))
     assert torch.equal(again.material.shininess, problem.material.shininess.flip(0))
+
+
+def test_a_selection_keeps_each_images_median_and_a_subsample_finds_its_own():
+    from selfsup.refine import subsample
+
+    problem = problems_of([_scene(1), _scene(2), _scene(3)], "none")
+    problem.median_observed()
+    picked = problem.select(torch.tensor([2, 0, 2]))
+    assert picked._median is not None
+    assert torch.equal(picked.median_observed(), problems_of([_scene(3), _scene(1), _scene(3)], "none").median_observed())
+    assert torch.equal(problem.with_shadows("epipolar").median_observed(), problem.median_observed())
+    coarse = subsample(problem, 2)
+    assert coarse._median is None
+    assert torch.equal(coarse.median_observed(), subsample(problems_of([_scene(1), _scene(2), _scene(3)], "none"), 2)
+                       .median_observed())
 
 
 def test_bad_refine_inputs_are_named():

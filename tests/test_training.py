@@ -86,8 +86,9 @@ def test_hypothesis_costs_by_chunks_of_images_equal_one_pass_and_carry_gradients
     exposure = scene_frame(scenes.image, scenes.gbuffer).exposure
     hypotheses = scene_frame(scenes.image, scenes.gbuffer).centre[:, None] + torch.randn(
         8, 5, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    monkeypatch.setattr(selfsup.linear, "_COST_ELEMENTS", {"cpu": 1 << 30})  # every image in one pass
     whole = hypothesis_costs(hypotheses, scenes, exposure, "inverse_square", stride=2)
-    monkeypatch.setattr(selfsup.linear, "_COST_ELEMENTS", 1)  # one image per pass
+    monkeypatch.setattr(selfsup.linear, "_COST_ELEMENTS", {"cpu": 1})  # one image per pass
     position = hypotheses.clone().requires_grad_(True)
     chunked = hypothesis_costs(position, scenes, exposure, "inverse_square", stride=2, robust_scale=0.1)
     chunked.sum().backward()
