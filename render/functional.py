@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from render.geometry import fit_intrinsics
+from render.geometry import dot3, fit_intrinsics
 from render.shading import (Falloff, blinn_phong_lobe, falloff_factor, light_geometry, light_offset,
                             shading_position_gradients)
 from render.shadows import ShadowMethod, shadow_visibility
@@ -98,10 +98,10 @@ def _transport(gbuffer, material, light_position, falloff, shadows, shadow_optio
         # Diffuse alone needs no unit vectors: n.l = n.(L - X) / d, a third of the work
         # (and of its backward) on (B, L, H, W, 3) arrays.
         offset, distance, _, _ = light_offset(gbuffer.points[:, None], light_position[:, :, None, None, :])
-        n_dot_l = (normals * offset).sum(-1) / distance
+        n_dot_l = dot3(normals, offset) / distance
     else:
         to_light, distance, to_viewer = _geometry(gbuffer, light_position) if geometry is None else geometry
-        n_dot_l = (normals * to_light).sum(-1)
+        n_dot_l = dot3(normals, to_light)
     # Per-light scalar weights (B, L, H, W); RGB enters only where the caller sums lights.
     weight = falloff_factor(distance, falloff)
     visibility = None
@@ -205,7 +205,7 @@ def light_transport_jacobian(
     cast_shifted = shadow_visibility(shadows, gbuffer.points.repeat(3, 1, 1, 1), gbuffer.mask.repeat(3, 1, 1),
                                      None if K is None else K.repeat(3, 1, 1), shifted, shadow_options)
     d_cast = ((cast_shifted.unflatten(0, (3, B)) - cast[None]) / step[None, :, None, None, None]).permute(1, 2, 3, 4, 0)
-    attached = ((normals * geometry.to_light).sum(-1) > 0).to(cast.dtype)
+    attached = (dot3(normals, geometry.to_light) > 0).to(cast.dtype)
     visibility = cast * attached
 
     def shadowed(value: Tensor, derivative: Tensor) -> Tensor:

@@ -10,7 +10,33 @@ import torch
 from kornia.geometry.depth import depth_to_3d_v2
 from torch import Tensor
 
-__all__ = ["unproject_depth", "normals_from_points", "plane_normals", "smooth_normals", "normal_noise", "fit_intrinsics", "pixel_grid"]
+__all__ = ["unproject_depth", "normals_from_points", "plane_normals", "smooth_normals", "normal_noise", "fit_intrinsics", "pixel_grid",
+           "dot3", "norm3"]
+
+
+def dot3(a: Tensor, b: Tensor) -> Tensor:
+    """``a . b`` over a last axis of length 3, broadcasting: ``(..., 3) x (..., 3) -> (...)``.
+
+    On the CPU as three strided products and two sums: 2-3x faster there than a
+    reduction over so short an axis (measured 2026-11-23, 300k vectors); elsewhere one
+    fused kernel (``torch.linalg.vecdot``).
+    """
+    if a.device.type != "cpu":
+        return torch.linalg.vecdot(a, b)
+    ax, ay, az = a.unbind(-1)
+    bx, by, bz = b.unbind(-1)
+    return ax * bx + ay * by + az * bz
+
+
+def norm3(v: Tensor) -> Tensor:
+    """Euclidean length over a last axis of length 3: ``(..., 3) -> (...)`` (see :func:`dot3`).
+
+    With a gradient, always ``torch.linalg.vector_norm``: its derivative at a zero
+    vector is 0, where that of a square root is infinite.
+    """
+    if v.device.type != "cpu" or (v.requires_grad and torch.is_grad_enabled()):
+        return torch.linalg.vector_norm(v, dim=-1)
+    return dot3(v, v).sqrt()
 
 
 def pixel_grid(height: int, width: int, like: Tensor) -> tuple[Tensor, Tensor]:

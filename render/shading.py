@@ -12,6 +12,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from render.geometry import dot3, norm3
+
 __all__ = ["Falloff", "LightGeometry", "light_geometry", "falloff_factor", "blinn_phong_lobe", "shading_position_gradients"]
 
 
@@ -67,9 +69,9 @@ def light_offset(points: Tensor, light_position: Tensor) -> tuple[Tensor, Tensor
     # Square-root guard: sqrt'(0) is infinite; the clamp keeps the gradient finite
     # for a light exactly on the surface. The scale-aware floor (1e-6 of the
     # point's distance to the camera) works for millimetre and kilometre scenes.
-    depth = points.norm(dim=-1)
+    depth = norm3(points)
     eps = 1e-6 * depth.clamp_min(torch.finfo(points.dtype).tiny ** 0.25)
-    distance = (offset * offset).sum(-1).clamp_min(torch.finfo(points.dtype).tiny).sqrt()
+    distance = dot3(offset, offset).clamp_min(torch.finfo(points.dtype).tiny).sqrt()
     return offset, torch.maximum(distance, eps), depth, eps
 
 
@@ -102,13 +104,13 @@ def blinn_phong_lobe(normals: Tensor, to_light: Tensor, to_viewer: Tensor, shini
 def _half_vector(normals: Tensor, to_light: Tensor, to_viewer: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     # h, |l + v| (1 where undefined), n.h (1 where unlit) and where the lobe is lit.
     half = to_light + to_viewer
-    length = half.norm(dim=-1)
+    length = norm3(half)
     # Guard: h is undefined when the light is exactly opposite the viewer (l = -v);
     # the lobe is then taken as 0 (n.h has no preferred value) with a zero gradient.
     ok = length > 1e-6
     length = torch.where(ok, length, torch.ones_like(length))
     half = half / length[..., None]
-    n_dot_h = (normals * half).sum(-1)
+    n_dot_h = dot3(normals, half)
     lit = ok & (n_dot_h > 1e-12)
     # Pow guard: for alpha < 1 the derivative of x^alpha is infinite at 0; the
     # masked branch gets a safe base of 1 so its (discarded) gradient stays finite.
@@ -136,7 +138,7 @@ def shading_position_gradients(normals: Tensor, geometry: LightGeometry, shinine
     f = falloff_factor(distance, falloff)
     # f'(d) / f: -2/d for 1/d^2, 0 for no falloff.
     log_slope = -2.0 / distance if Falloff(falloff) is Falloff.INVERSE_SQUARE else torch.zeros_like(distance)
-    n_dot_l = (normals * to_light).sum(-1)
+    n_dot_l = dot3(normals, to_light)
     d_n_dot_l = (normals - n_dot_l[..., None] * to_light) / distance[..., None]
     d_diffuse = f[..., None] * (d_n_dot_l + (n_dot_l * log_slope)[..., None] * to_light)
     d_diffuse = torch.where((n_dot_l > 0)[..., None], d_diffuse, torch.zeros_like(d_diffuse))
@@ -146,7 +148,7 @@ def shading_position_gradients(normals: Tensor, geometry: LightGeometry, shinine
     lobe = torch.where(lit, safe.pow(shininess), torch.zeros_like(safe))
     # d(n.h)/dp = (I - l l^T)(n - (n.h) h) / (d |l + v|); 0 where unlit (lobe = 0)
     tangent = normals - safe[..., None] * half
-    d_n_dot_h = (tangent - (tangent * to_light).sum(-1, keepdim=True) * to_light) / (distance * length)[..., None]
+    d_n_dot_h = (tangent - dot3(tangent, to_light)[..., None] * to_light) / (distance * length)[..., None]
     d_lobe = (shininess * lobe / safe)[..., None] * d_n_dot_h
     d_specular = f[..., None] * (d_lobe + (lobe * log_slope)[..., None] * to_light)
     return d_diffuse, d_specular

@@ -37,6 +37,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from render.geometry import dot3, norm3
+
 __all__ = ["EpipolarShadowOptions", "epipolar_shadow_visibility"]
 
 # gamma lies in [0, pi]; this marks "no occluder seen yet" in the running minimum.
@@ -167,21 +169,15 @@ def _angle_from_camera_ray(points: Tensor, light_position: Tensor) -> Tensor:
     cross = torch.linalg.cross(c, d)
     # sqrt guard: |c x d| is 0 for points on the line L-O; the floor keeps sqrt'
     # finite there (atan2 itself is smooth away from (0, 0)).
-    sin_part = torch.linalg.vecdot(cross, cross).clamp_min(torch.finfo(points.dtype).tiny).sqrt()
-    return torch.atan2(sin_part, torch.linalg.vecdot(c, d))
+    sin_part = dot3(cross, cross).clamp_min(torch.finfo(points.dtype).tiny).sqrt()
+    return torch.atan2(sin_part, dot3(c, d))
 
 
-def _bilinear(image: Tensor, xy: Tensor, height: int, width: int) -> Tensor:
-    """Sample ``image (N, C, H, W)`` at pixel coordinates ``xy (N, M, 2)`` -> ``(N, C, M)``."""
-    scale = xy.new_tensor([2.0 / max(width - 1, 1), 2.0 / max(height - 1, 1)])
-    grid = (xy * scale - 1).unsqueeze(1)  # (N, 1, M, 2)
-    return F.grid_sample(image, grid, mode="bilinear", padding_mode="zeros", align_corners=True).squeeze(2)
-
-
-def _masked_angle(angle_image: Tensor, xy: Tensor, height: int, width: int) -> tuple[Tensor, Tensor]:
-    """Mask-normalised bilinear ``gamma`` at ``xy``; ``angle_image (N, 2, H, W)`` holds
-    ``[gamma * mask, mask]``. Returns ``gamma (N, M)`` and validity ``(N, M)``."""
-    sampled = _bilinear(angle_image, xy, height, width)
+def _masked_angle(angle_image: Tensor, grid: Tensor) -> tuple[Tensor, Tensor]:
+    """Mask-normalised bilinear ``gamma`` at ``grid (N, 1, M, 2)`` (grid_sample's
+    coordinates, corners aligned); ``angle_image (N, 2, H, W)`` holds ``[gamma * mask,
+    mask]``. Returns ``gamma (N, M)`` and validity ``(N, M)``."""
+    sampled = F.grid_sample(angle_image, grid, mode="bilinear", padding_mode="zeros", align_corners=True).squeeze(2)
     weight = sampled[:, 1]
     # A sample is surface when most of its bilinear weight falls on valid pixels;
     # the division is guarded for the rest (holes, outside the image).
@@ -270,16 +266,18 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
         argmin = torch.empty(N, nl + 2, ns + 1, dtype=torch.long, device=device)
         rows_per_chunk = max(1, options.chunk_samples // ((nl + 2) * (ns + 1)))
         sample_index = torch.arange(-1, ns, dtype=dtype, device=device)
+        to_grid = pts.new_tensor([2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)])  # pixels -> grid_sample's [-1, 1]
         for start in range(0, N, rows_per_chunk):
             part = slice(start, min(N, start + rows_per_chunk))
             sub = lines.select(part)
             n = part.stop - part.start
-            # Directions per row (n, nl + 2, 1, 2) times radii per column (n, 1, ns + 1, 1).
+            # The epipole plus radii per column (n, 1, ns + 1, 1) times directions per row
+            # (n, nl + 2, 1, 2), made in grid coordinates in one pass.
             theta = sub.theta0[:, None] + line_of_row[part] * sub.dtheta[:, None]
             direction = torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)[:, :, None]
             radius = sub.radius(sample_index[None].expand(n, ns + 1))[:, None, :, None]
-            xy = sub.epipole[:, None, None] + radius * direction
-            angle, ok = _masked_angle(angle_image[part], xy.reshape(n, (nl + 2) * (ns + 1), 2), H, W)
+            grid = torch.addcmul((sub.epipole * to_grid - 1)[:, None, None], radius, direction * to_grid)
+            angle, ok = _masked_angle(angle_image[part], grid.reshape(n, 1, (nl + 2) * (ns + 1), 2))
             angle = torch.where(ok, angle, _NO_OCCLUDER).reshape(n, nl + 2, ns + 1)
             angle[:, :, 0] = _NO_OCCLUDER
             torch.cummin(angle, dim=-1, out=(running[part], argmin[part]))
@@ -292,7 +290,7 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
         grid = torch.stack([(s + 1) * (2 / ns) - 1, a * (2 / (nl + 1)) - 1], dim=-1)
         running_min = F.grid_sample(running[:, None], grid[:, None], mode="bilinear", padding_mode="border",
                                     align_corners=True).reshape(N, H * W)
-        distance = (light[:, None] - pts).norm(dim=-1)
+        distance = norm3(light[:, None] - pts)
         visibility, t = _smooth_visibility(running_min, gamma, pts[..., 2], distance, focal[:, None], options)
         visibility = torch.where(valid, visibility, 1.0)
         band = valid & (t > 0) & (t < 1)
@@ -324,7 +322,7 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     band_light = light[rows]
     band_visibility, _ = _smooth_visibility(
         band_min, _angle_from_camera_ray(band_points, band_light), band_points[:, 2],
-        (band_light - band_points).norm(dim=-1), focal[rows], options,
+        norm3(band_light - band_points), focal[rows], options,
     )
     return visibility.index_put((rows, cols), band_visibility)
 

@@ -124,3 +124,14 @@ def test_dtype_and_device_follow_inputs():
     lights = PointLights(position=torch.tensor([[[0.0, -0.5, 1.0]]]), intensity=torch.ones(1, 1, 3))
     for method in ("epipolar", "paper", "none"):
         assert render(g, mat, lights, shadows=method).image.dtype == torch.float32
+
+
+def test_dot3_and_norm3_match_the_reductions_and_norm3_has_a_zero_gradient_at_zero():
+    from render.geometry import dot3, norm3
+
+    a, b = torch.randn(2, 5, 1, 3, dtype=torch.float64), torch.randn(2, 1, 4, 3, dtype=torch.float64)
+    torch.testing.assert_close(dot3(a, b), (a * b).sum(-1))
+    torch.testing.assert_close(norm3(a), a.norm(dim=-1))
+    v = torch.zeros(3, 3, dtype=torch.float64).index_fill_(0, torch.tensor([1]), 1.0).requires_grad_(True)
+    norm3(v).sum().backward()
+    assert torch.isfinite(v.grad).all() and v.grad[0].abs().sum() == 0
