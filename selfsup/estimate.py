@@ -425,10 +425,13 @@ def _record(scene_id: str, best: Candidate, tried: list[Candidate], cov: Tensor)
     # cov: (L, 3, 3) position covariance of the chosen model's lights.
     std = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
     fit = best.fit
+    # Brightest light first (summed RGB intensity): the same scene gives the same record
+    # whichever start each light was found from.
+    order = fit.intensity[0].sum(-1).cpu().argsort(descending=True, stable=True).tolist()
     lights = [
         {"position": fit.position[0, i].tolist(), "intensity": fit.intensity[0, i].tolist(),
          "position_std": std[i].tolist(), "position_cov": cov[i].tolist()}
-        for i in range(best.n_lights)
+        for i in order
     ]
     return {
         "id": scene_id, "lights": lights, "ambient": fit.ambient[0].tolist(),
