@@ -175,22 +175,28 @@ class LightNet(nn.Module):
         falloff: the image model's falloff; sets how intensity scales with size.
         evidence_points: the anchors' photometric errors are measured on about
             this many pixels along the shorter image side.
+        cascade_levels: finer cost volumes around the chosen anchor, each a 5^3 grid
+            at a quarter of the previous step (1: quarter steps; 2: sixteenths).
+            Each level costs 125 more hypotheses on the evidence pixels.
 
     ``forward(image (B, 3, H, W), gbuffer, kd (B, H, W, 3)) -> LightPrediction``.
     """
 
     def __init__(self, max_lights: int = 2, input_size: int = 64, widths: tuple[int, ...] = (32, 48, 64, 96, 128),
                  hidden: int = 256, anchors_per_axis: int = 6, anchor_extent: float = 0.75,
-                 falloff: Falloff | str = Falloff.INVERSE_SQUARE, evidence_points: int = 24):
+                 falloff: Falloff | str = Falloff.INVERSE_SQUARE, evidence_points: int = 16, cascade_levels: int = 2):
         super().__init__()
         if max_lights < 1:
             raise ValueError(f"max_lights must be >= 1, got {max_lights}")
+        if cascade_levels < 1:
+            raise ValueError(f"cascade_levels must be >= 1, got {cascade_levels}")
         if input_size % 2 ** len(widths):
             raise ValueError(f"input_size {input_size} must be divisible by 2^{len(widths)} (one halving per stage)")
         self.max_lights = max_lights
         self.input_size = input_size
         self.falloff = Falloff(falloff)
         self.evidence_points = evidence_points
+        self.cascade_levels = cascade_levels
         stages, cin = [], IN_CHANNELS
         for width in widths:
             stages.append(_block(cin, width, 2))
@@ -206,6 +212,8 @@ class LightNet(nn.Module):
         self.register_buffer("fine_grid", torch.stack(torch.meshgrid(fine, fine, fine, indexing="ij"), -1).reshape(-1, 3),
                              persistent=False)
         self.anchor_step = 2 * anchor_extent / max(anchors_per_axis - 1, 1)
+        # The finest cascade level's grid step: slot 0's learned offset stays within it.
+        self.finest_step = self.anchor_step * 0.25**cascade_levels
         anchors = grid.shape[0]
         self.evidence_in = nn.Sequential(nn.Linear(anchors, hidden), nn.SiLU())
         # Prior logits: -20 x the relative excess error (fixed: the learned scores add to it).
@@ -244,14 +252,19 @@ class LightNet(nn.Module):
         return -(costs / best - 1).clamp(0, 10).to(image.dtype)
 
     def refine_anchor(self, centre: Tensor, image: Tensor, gbuffer: GBuffer, kd: Tensor, frame: SceneFrame) -> Tensor:
-        """Cascade stage: the best of a 5^3 grid of quarter steps around ``centre (B, 3)``
-        (normalised), moved to its parabola vertex; ``(B, 3)``, no gradient."""
-        fine = centre[:, None] + 0.25 * self.anchor_step * self.fine_grid.to(centre)  # (B, 125, 3)
-        costs = self.photometric_costs(fine, image, gbuffer, kd, frame)
-        shift = _parabola_vertex(costs, 5)
-        pick = costs.argmin(1)
+        """Cascade: ``cascade_levels`` times, the best of a 5^3 grid at a quarter of the
+        previous step around ``centre (B, 3)`` (normalised), moved to its parabola
+        vertex; ``(B, 3)``, no gradient."""
         rows = torch.arange(centre.shape[0], device=centre.device)
-        return (fine[rows, pick] + 0.25 * self.anchor_step * shift[rows, pick]).detach()
+        step = self.anchor_step
+        for _ in range(self.cascade_levels):
+            step = 0.25 * step
+            fine = centre[:, None] + step * self.fine_grid.to(centre)  # (B, 125, 3)
+            costs = self.photometric_costs(fine, image, gbuffer, kd, frame)
+            shift = _parabola_vertex(costs, 5)
+            pick = costs.argmin(1)
+            centre = fine[rows, pick] + step * shift[rows, pick]
+        return centre.detach()
 
     def forward(self, image: Tensor, gbuffer: GBuffer, kd: Tensor) -> LightPrediction:
         frame = scene_frame(image, gbuffer)
@@ -266,11 +279,11 @@ class LightNet(nn.Module):
         shift = _parabola_vertex(-evidence.float(), self.anchors_per_axis).to(evidence.dtype)
         anchor_normalised = self.anchors + self.anchor_step * shift
         chosen = anchor_logits.argmax(1)
-        # Slot 0: the chosen anchor refined on a finer cost volume around it (a cascade,
-        # as in multi-view stereo networks), plus a learned offset (within a quarter step)
-        # that the shadowed photometric loss trains.
+        # Slot 0: the chosen anchor refined on finer cost volumes around it (a cascade,
+        # as in multi-view stereo networks), plus a learned offset (within the finest
+        # level's step) that the shadowed photometric loss trains.
         best = self.refine_anchor(self.anchors[chosen], image, gbuffer, kd, frame) + \
-            0.25 * self.anchor_step * torch.tanh(slots[:, 0, :3])
+            self.finest_step * torch.tanh(slots[:, 0, :3])
         # Slot 0: the best hypothesis; the others: regressed, within 1.5 scene sizes of the centroid.
         normalised = torch.cat([best[:, None], 1.5 * torch.tanh(slots[:, 1:, :3] / 1.5)], 1)
         position = frame.centre[:, None] + frame.size[:, None, None] * normalised
