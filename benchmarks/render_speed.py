@@ -7,11 +7,18 @@ as such. Results: benchmarks/results/render_speed_<device>_<date>.{md,json}.
 
     python benchmarks/render_speed.py                    # full grid within budget
     python benchmarks/render_speed.py --quick            # targets only
+
+The target configurations are also measured through ``torch.compile(layer)``
+(mode ``compiled``; ``compile_s`` is the time of the first forward and the first
+forward+backward call, which compile): the fused elementwise kernels are what
+the GPU target needs. ``--no-compile`` skips those rows.
 """
 
 from __future__ import annotations
 
 import argparse
+import time
+
 import torch
 
 from benchmarks.common import device_name, timed, write_results
@@ -36,40 +43,52 @@ def make_inputs(height, width, batch, num_lights, device, dtype=torch.float32):
     return g, mat, pos, intensity, ambient
 
 
-def measure(height, width, batch, num_lights, method, device):
+def measure(height, width, batch, num_lights, method, device, compiled: bool = False):
     g, mat, pos, intensity, ambient = make_inputs(height, width, batch, num_lights, device)
     layer = ShadowedBlinnPhong(shadows=method, check_finite=False)
+    run_layer = torch.compile(layer) if compiled else layer
 
     def forward():
         with torch.no_grad():
-            layer(g, mat, PointLights(position=pos, intensity=intensity), ambient)
+            run_layer(g, mat, PointLights(position=pos, intensity=intensity), ambient)
 
     def forward_backward():
         p = pos.clone().requires_grad_(True)
         i = intensity.clone().requires_grad_(True)
-        layer(g, mat, PointLights(position=p, intensity=i), ambient).square().mean().backward()
+        run_layer(g, mat, PointLights(position=p, intensity=i), ambient).square().mean().backward()
 
+    compile_s = None
+    if compiled:  # the first calls compile (one graph without and one with gradients)
+        started = time.perf_counter()
+        forward()
+        forward_backward()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        compile_s = round(time.perf_counter() - started, 1)
     t_fwd = timed(forward, device)
     t_fb = timed(forward_backward, device)
     return {
         "device": device.type, "resolution": f"{width}x{height}", "batch": batch, "lights": num_lights,
-        "shadows": method, "fwd_ms_per_image": round(1e3 * t_fwd / batch, 3),
+        "shadows": method, "mode": "compiled" if compiled else "eager",
+        "fwd_ms_per_image": round(1e3 * t_fwd / batch, 3),
         "fwd_bwd_ms_per_image": round(1e3 * t_fb / batch, 3),
-        "fwd_bwd_images_per_s": round(batch / t_fb, 1),
+        "fwd_bwd_images_per_s": round(batch / t_fb, 1), "compile_s": compile_s,
     }
 
 
-def run(quick: bool = False, max_work: float | None = None, device: str | None = None) -> list:
-    """Measure the grid on ``device`` (default: CPU, and CUDA when present); returns the results paths."""
+def run(quick: bool = False, max_work: float | None = None, device: str | None = None, compiled: bool = True) -> list:
+    """Measure the grid on ``device`` (default: CPU, and CUDA when present), and the
+    target configurations compiled unless ``compiled`` is False; returns the results paths."""
     devices = [torch.device(device)] if device else [torch.device("cpu")] + (
         [torch.device("cuda")] if torch.cuda.is_available() else [])
     methods = ["epipolar", "paper", "none"]
     paths = []
     for dev in devices:
         budget = max_work or (2**22 if dev.type == "cpu" else 2**28)
+        target = (120, 160, 16, 1) if dev.type == "cpu" else (256, 256, 64, 1)
         configs = [(120, 160, 16, 1, m) for m in methods]  # the CPU target
         if dev.type == "cuda":
-            configs.append((256, 256, 64, 1, "epipolar"))  # the H100 target
+            configs.append((*target, "epipolar"))  # the H100 target
         if not quick:
             configs += [(s, s, b, l, m) for s in (128, 256, 512) for b in (1, 16, 64) for l in (1, 2, 4) for m in methods]
         rows = []
@@ -81,12 +100,22 @@ def run(quick: bool = False, max_work: float | None = None, device: str | None =
             row = measure(h, w, b, l, m, dev)
             print(row, flush=True)
             rows.append(row)
+        if compiled:
+            try:
+                row = measure(*target, "epipolar", dev, compiled=True)
+            except Exception as error:  # e.g. no C++ compiler for inductor's CPU kernels
+                row = {"device": dev.type, "resolution": f"{target[1]}x{target[0]}", "batch": target[2],
+                       "lights": target[3], "shadows": "epipolar", "mode": "compiled",
+                       "fwd_ms_per_image": f"failed: {type(error).__name__}: {str(error)[:120]}"}
+            print(row, flush=True)
+            rows.append(row)
         header = (f"Scene: sphere and box on a floor (exact depth), kd only, lights above/in front; float32; "
                   f"median of >= 3 runs after a warm-up. Targets: CPU 160x120 batch 16, 1 light, shadows, "
-                  f"fwd+bwd < 5 ms/image; H100 256x256 batch 64, 1 light, default shadows, >= 10,000 images/s.")
+                  f"fwd+bwd < 5 ms/image; H100 256x256 batch 64, 1 light, default shadows, >= 10,000 images/s. "
+                  f"mode: eager, or torch.compile(layer) (compile_s: its first two calls).")
         path = write_results("render_speed", dev, rows, header,
-                             ["device", "resolution", "batch", "lights", "shadows", "fwd_ms_per_image",
-                              "fwd_bwd_ms_per_image", "fwd_bwd_images_per_s"])
+                             ["device", "resolution", "batch", "lights", "shadows", "mode", "fwd_ms_per_image",
+                              "fwd_bwd_ms_per_image", "fwd_bwd_images_per_s", "compile_s"])
         print(f"wrote {path} ({device_name(dev)})")
         paths.append(path)
     return paths
@@ -98,8 +127,9 @@ def main() -> None:
     parser.add_argument("--max-work", type=float, default=None,
                         help="skip configs with batch*lights*pixels above this (default: 2^22 on CPU, 2^28 on CUDA)")
     parser.add_argument("--device", default=None, help="cpu or cuda (default: both when CUDA is present)")
+    parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile rows")
     args = parser.parse_args()
-    run(args.quick, args.max_work, args.device)
+    run(args.quick, args.max_work, args.device, not args.no_compile)
 
 
 if __name__ == "__main__":
