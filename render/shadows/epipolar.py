@@ -144,10 +144,10 @@ def _make_lines(light_position: Tensor, K: Tensor, height: int, width: int, spac
     theta0 = torch.where(inside, torch.full_like(r_max, -math.pi), theta_c + rel.amin(-1))
 
     with torch.no_grad():
-        lines_needed = torch.ceil(span * r_max / spacing).amax()
-        samples_needed = torch.ceil((r_max - r_min) / spacing).amax()
-        num_lines = max(int(lines_needed) + 1, 2)
-        num_samples = max(int(samples_needed) + 1, 2)
+        needed = torch.stack([torch.ceil(span * r_max / spacing).amax(),
+                              torch.ceil((r_max - r_min) / spacing).amax()]).tolist()  # one host sync
+    num_lines = max(int(needed[0]) + 1, 2)
+    num_samples = max(int(needed[1]) + 1, 2)
     dtheta = torch.where(inside, span / num_lines, span / (num_lines - 1))
     # Guard: an image of one pixel has r_max == r_min; keep the step non-zero.
     dr = ((r_max - r_min) / (num_samples - 1)).clamp_min(torch.finfo(dtype).eps)
