@@ -126,15 +126,22 @@ def network_inputs(image: Tensor, gbuffer: GBuffer, kd: Tensor, frame: SceneFram
     points (3), normals (3), mask (1); invalid pixels hold zeros, and the
     resampling averages valid pixels only.
     """
+    B, _, H, W = image.shape
     mask = gbuffer.mask[:, None].to(image.dtype)
     s = frame.exposure[:, None, None, None]
-    shown = (image / s).clamp(0, 4)
-    luminance = image.mean(1, keepdim=True)
     albedo = kd.permute(0, 3, 1, 2)
-    ratio = (luminance / albedo.mean(1, keepdim=True).clamp_min(0.05) / s).clamp(0, 8)
-    points = (gbuffer.points - frame.centre[:, None, None]) / frame.size[:, None, None, None]
-    maps = torch.cat([shown, ratio, albedo, points.permute(0, 3, 1, 2), gbuffer.normals.permute(0, 3, 1, 2)], 1)
-    pooled = _average_to(maps * mask, size)
+    # Written channel-last, where the sources (channel-last G-buffer maps) are read in
+    # order and the 2x2 average pooling runs 2-3x faster on the CPU than on (B, 13, H, W).
+    maps = torch.empty(B, 13, H, W, dtype=image.dtype, device=image.device, memory_format=torch.channels_last)
+    torch.div(image, s, out=maps[:, 0:3]).clamp_(0, 4)
+    brightness = image[:, 0:1] + image[:, 1:2] + image[:, 2:3]  # 3x the mean; sums of slices, not a strided mean
+    reflectance = (albedo[:, 0:1] + albedo[:, 1:2] + albedo[:, 2:3]).clamp_min(0.15)
+    torch.div(brightness, reflectance * s, out=maps[:, 3:4]).clamp_(0, 8)
+    maps[:, 4:7] = albedo
+    points = maps[:, 7:10].permute(0, 2, 3, 1)
+    torch.sub(gbuffer.points, frame.centre[:, None, None], out=points).div_(frame.size[:, None, None, None])
+    maps[:, 10:13] = gbuffer.normals.permute(0, 3, 1, 2)
+    pooled = _average_to(maps.mul_(mask), size)
     coverage = _average_to(mask, size)
     return torch.cat([pooled / coverage.clamp_min(1e-6) * (coverage > 0), coverage], 1)
 
