@@ -45,6 +45,34 @@ def test_network_is_small_and_predicts_every_slot(pool):
     assert torch.isfinite(prediction.position).all() and (prediction.intensity > 0).all()
 
 
+def test_each_cascade_level_brings_the_cost_volume_closer_to_an_exact_light():
+    # A bumpy floor lit by one light, rendered diffuse and unshadowed: exactly the cost
+    # volume's model, so each level (a quarter of the last step) must land closer.
+    from render import PointLights, render
+
+    H, W = 48, 64
+    K = torch.tensor([[[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]]])
+    v, u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    depth = (3.0 - 0.02 * v + 0.2 * torch.sin(u / 7.0) * torch.cos(v / 5.0))[None].float()
+    g = GBuffer.from_depth(depth, K)
+    kd = torch.full((1, H, W, 3), 0.6)
+    light = torch.tensor([[[0.4, -0.8, 2.2]]])
+    image = render(g, Material(kd=kd), PointLights(position=light, intensity=torch.full((1, 1, 3), 4.0)),
+                   torch.full((1, 3), 0.02), shadows="none").image
+    frame = scene_frame(image, g)
+    truth = (light[0] - frame.centre) / frame.size[:, None]  # normalised, (1, 3)
+    errors = []
+    for levels in (1, 2, 3):
+        network = LightNet(cascade_levels=levels).eval()
+        start = network.anchors[(network.anchors - truth).norm(dim=-1).argmin()][None]
+        found = network.refine_anchor(start, image, g, kd, frame)
+        errors.append(float((found - truth).norm()))
+    assert errors[1] < errors[0] and errors[2] <= errors[1] + 1e-4, errors
+    assert errors[1] < LightNet(cascade_levels=2).finest_step, errors
+    with pytest.raises(ValueError, match="cascade_levels"):
+        LightNet(cascade_levels=0)
+
+
 def test_network_output_follows_scene_scale_and_exposure(pool):
     # Inputs are normalised: scaling the scene by 3 scales positions by 3 about the
     # camera, and doubling the exposure doubles intensities (inverse square: x 9 for size).
