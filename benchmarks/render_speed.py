@@ -25,6 +25,10 @@ from benchmarks.common import device_name, timed, write_results
 from render import GBuffer, Material, PointLights, ShadowedBlinnPhong
 from selfsup.scenes.analytic import intrinsics_for, objects_on_floor, render_exact_view
 
+# The targets, (height, width, batch, lights): 2-core CPU and one H100.
+CPU_TARGET = (120, 160, 16, 1)
+GPU_TARGET = (256, 256, 64, 1)
+
 # Lights spread above and in front of the objects, cycled for several lights.
 LIGHTS = [[0.2, -1.5, 2.0], [-0.8, -0.9, 1.2], [0.6, -1.0, 0.5], [-1.0, -1.5, 3.0]]
 
@@ -85,10 +89,9 @@ def run(quick: bool = False, max_work: float | None = None, device: str | None =
     paths = []
     for dev in devices:
         budget = max_work or (2**22 if dev.type == "cpu" else 2**28)
-        target = (120, 160, 16, 1) if dev.type == "cpu" else (256, 256, 64, 1)
-        configs = [(120, 160, 16, 1, m) for m in methods]  # the CPU target
+        configs = [(*CPU_TARGET, m) for m in methods]
         if dev.type == "cuda":
-            configs.append((*target, "epipolar"))  # the H100 target
+            configs.append((*GPU_TARGET, "epipolar"))
         if not quick:
             configs += [(s, s, b, l, m) for s in (128, 256, 512) for b in (1, 16, 64) for l in (1, 2, 4) for m in methods]
         rows = []
@@ -101,6 +104,7 @@ def run(quick: bool = False, max_work: float | None = None, device: str | None =
             print(row, flush=True)
             rows.append(row)
         if compiled:
+            target = CPU_TARGET if dev.type == "cpu" else GPU_TARGET
             try:
                 row = measure(*target, "epipolar", dev, compiled=True)
             except Exception as error:  # e.g. no C++ compiler for inductor's CPU kernels

@@ -91,7 +91,7 @@ def pseudo_huber(residual: Tensor, scale: float) -> Tensor:
 # CPU, 4 images of 216 x 676 ran twice as fast as 16 at once; answers are identical).
 # An accelerator wants the opposite, few large calls: there the bound only caps memory
 # (each temporary 256 MiB in float32).
-_COST_ELEMENTS = {"cpu": 640_000}
+_COST_ELEMENTS_CPU = 640_000
 _COST_ELEMENTS_ACCELERATOR = 1 << 26
 
 
@@ -112,7 +112,7 @@ def single_light_costs(position: Tensor, points: Tensor, normals: Tensor, mask: 
     explain pull with bounded force).
     """
     B, M = points.shape[0], position.shape[1]
-    budget = _COST_ELEMENTS.get(points.device.type, _COST_ELEMENTS_ACCELERATOR)
+    budget = _COST_ELEMENTS_CPU if points.device.type == "cpu" else _COST_ELEMENTS_ACCELERATOR
     per_call = max(1, budget // max(1, M * points.shape[1] * points.shape[2]))
     per_image = (position.expand(B, -1, -1), points, normals, mask, kd, image, exposure)
     return torch.cat([_single_light_costs(*(x[i : i + per_call] for x in per_image), falloff, robust_scale)

@@ -9,7 +9,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from render import GBuffer, Material, ShadowedBlinnPhong, light_transport
+from render import GBuffer, Material, PointLights, ShadowedBlinnPhong, light_transport, render
 from selfsup.checkpoint import load_network
 from selfsup.linear import solve_intensities
 from selfsup.losses import LossOptions, hypothesis_costs, reconstruction_loss, scene_batch
@@ -48,8 +48,6 @@ def test_network_is_small_and_predicts_every_slot(pool):
 def test_each_cascade_level_brings_the_cost_volume_closer_to_an_exact_light():
     # A bumpy floor lit by one light, rendered diffuse and unshadowed: exactly the cost
     # volume's model, so each level (a quarter of the last step) must land closer.
-    from render import PointLights, render
-
     H, W = 48, 64
     K = torch.tensor([[[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]]])
     v, u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
@@ -114,9 +112,9 @@ def test_hypothesis_costs_by_chunks_of_images_equal_one_pass_and_carry_gradients
     exposure = scene_frame(scenes.image, scenes.gbuffer).exposure
     hypotheses = scene_frame(scenes.image, scenes.gbuffer).centre[:, None] + torch.randn(
         8, 5, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
-    monkeypatch.setattr(selfsup.linear, "_COST_ELEMENTS", {"cpu": 1 << 30})  # every image in one pass
+    monkeypatch.setattr(selfsup.linear, "_COST_ELEMENTS_CPU", 1 << 30)  # every image in one pass
     whole = hypothesis_costs(hypotheses, scenes, exposure, "inverse_square", stride=2)
-    monkeypatch.setattr(selfsup.linear, "_COST_ELEMENTS", {"cpu": 1})  # one image per pass
+    monkeypatch.setattr(selfsup.linear, "_COST_ELEMENTS_CPU", 1)  # one image per pass
     position = hypotheses.clone().requires_grad_(True)
     chunked = hypothesis_costs(position, scenes, exposure, "inverse_square", stride=2, robust_scale=0.1)
     chunked.sum().backward()

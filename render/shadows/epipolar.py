@@ -256,7 +256,7 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
 
     with torch.no_grad():
         gamma = _angle_from_camera_ray(pts, light[:, None])  # (N, H*W)
-        # 1) The sweep, on the padded table of _pixel_nodes (rows: lines, then the two
+        # 1) The sweep, on the padded table of _node_index (rows: lines, then the two
         #    that the last pixels' interpolation reaches; columns: a sample before the
         #    first, which sees nothing, then the samples): for each node, the smallest
         #    gamma at or before it (running) and which column holds it (argmin).
@@ -330,7 +330,7 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
 def _line_of_row(lines: _Lines, nl: int) -> Tensor:
     """``(N, nl + 2)``: the line index (as a float) of each row of the padded sweep table.
 
-    Rows ``nl`` and ``nl + 1`` are where the interpolation of _pixel_nodes lands past
+    Rows ``nl`` and ``nl + 1`` are where the interpolation of _node_index lands past
     the last line: lines 0 and 1 again when the lines go all around the epipole, the
     last line again (a clamp) otherwise.
     """
@@ -382,7 +382,7 @@ def _node_index(a: Tensor, s: Tensor, ns: int) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def _lerp_nodes(value: Tensor, fa: Tensor, fs: Tensor) -> Tensor:
-    """Bilinear interpolation of node values ``(..., 4)`` (order of _pixel_nodes) -> ``(...)``."""
+    """Bilinear interpolation of node values ``(..., 4)`` (order of _node_index) -> ``(...)``."""
     v00, v01, v10, v11 = value.unbind(-1)
     return torch.lerp(torch.lerp(v00, v01, fs), torch.lerp(v10, v11, fs), fa)
 
