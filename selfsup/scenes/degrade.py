@@ -24,10 +24,9 @@ import dataclasses
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
-from selfsup.scenes.exact import fractal_noise
+from selfsup.scenes.exact import fractal_noise, neighbourhood_max
 from selfsup.scenes.io import Scene
 
 __all__ = ["Degradations", "degrade", "REFLECTANCE_MODES", "AMBIENT_MODES"]
@@ -82,8 +81,7 @@ def _degrade_depth(depth: Tensor, d: Degradations, gen: torch.Generator) -> Tens
     keep = valid & (z > 0)
     if d.edge_hole_jump > 0:
         # Relative depth range over each 3x3 neighbourhood of the clean depth.
-        x = depth[None, None]
-        spread = (F.max_pool2d(x, 3, 1, 1) + F.max_pool2d(-x, 3, 1, 1))[0, 0]
+        spread = neighbourhood_max(depth) + neighbourhood_max(-depth)
         keep &= spread <= d.edge_hole_jump * depth
     if d.random_holes > 0:
         keep &= torch.rand(z.shape, generator=gen, dtype=z.dtype) >= d.random_holes
@@ -107,7 +105,7 @@ def degrade(scene: Scene, degradations: Degradations, seed: int) -> Scene:
         points = scene.depth[..., None] * (pixels @ torch.linalg.inv(scene.K).T)
         offset = torch.rand(3, 3, generator=gen, dtype=points.dtype) * 100
         size = torch.full((H * W,), 0.4, dtype=points.dtype) * float(scene.depth[scene.depth > 0].median())
-        pattern = torch.stack([fractal_noise(points.reshape(-1, 3) + offset[c], size) for c in range(3)], -1)
+        pattern = torch.stack([fractal_noise((points.reshape(-1, 3) + offset[c]).T, size) for c in range(3)], -1)
         out.kd = ((scene.kd + d.reflectance_noise * (2 * pattern.reshape(H, W, 3) - 1)).clamp(0, 1)) * valid
     if d.touches_depth:
         out.depth = _degrade_depth(scene.depth, d, gen)

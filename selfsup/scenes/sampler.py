@@ -109,7 +109,9 @@ def _uniform(gen: torch.Generator, low: float, high: float, *shape: int) -> Tens
 
 
 def _u(gen: torch.Generator, bounds) -> float:
-    return float(_uniform(gen, float(bounds[0]), float(bounds[1])))
+    # What float(_uniform(...)) gives, in Python floats (the same float64 operations, no tensor calls).
+    low, high = float(bounds[0]), float(bounds[1])
+    return low + (high - low) * torch.rand(1, generator=gen, dtype=torch.float64).item()
 
 
 def _log_u(gen: torch.Generator, bounds) -> float:
