@@ -221,14 +221,23 @@ def _shade(batch: _Batch, rays: _Rays, falloff: str) -> tuple[Tensor, Tensor]:
     materials = batch.materials
     valid = rays.valid.to(rays.points.dtype)
     kd = albedo_at(materials, rays.points, rays.primitive) * valid
-    ks = materials.ks.index_select(0, rays.primitive) * valid
-    shininess = materials.shininess.index_select(0, rays.primitive)
     L = batch.light_position.shape[1]
-    # Each ray's lights (L, 3, R): one gather from a (L * 3, B) table (a gather along a last axis is slow).
-    lights = [table.reshape(-1, 3 * L).T.contiguous().index_select(1, rays.scene).view(L, 3, -1)
-              for table in (batch.light_position, batch.light_intensity)]
-    diffuse, specular = blinn_phong(rays.points, rays.normals, rays.visibility, shininess, *lights, falloff)
-    return kd * diffuse + ks * specular, kd
+    # Each ray's light positions and intensities (6 L, R): one gather from a (6 L, B) table
+    # (a gather along a last axis is slow).
+    table = torch.cat([batch.light_position, batch.light_intensity], 1).reshape(-1, 6 * L).T.contiguous()
+    lights = table.index_select(1, rays.scene)  # (6 L, R)
+    diffuse, _ = blinn_phong(rays.points, rays.normals, rays.visibility, None, *lights.view(2, L, 3, -1), falloff,
+                             specular=False)
+    radiance = kd * diffuse
+    # The specular term only on rays of specular primitives (most surfaces are matte).
+    shiny = (materials.ks.index_select(0, rays.primitive) * valid).nonzero(as_tuple=True)[0]
+    if shiny.numel():
+        primitive = rays.primitive.index_select(0, shiny)
+        _, specular = blinn_phong(rays.points.index_select(1, shiny), rays.normals.index_select(1, shiny),
+                                  rays.visibility.index_select(1, shiny), materials.shininess.index_select(0, primitive),
+                                  *lights.index_select(1, shiny).view(2, L, 3, -1), falloff, diffuse=False)
+        radiance.index_add_(1, shiny, materials.ks.index_select(0, primitive) * specular)
+    return radiance, kd
 
 
 def neighbourhood_max(x: Tensor) -> Tensor:
@@ -242,7 +251,8 @@ def neighbourhood_max(x: Tensor) -> Tensor:
 def _edges(prim: Tensor, visibility: Tensor, kd: Tensor) -> tuple[Tensor, Tensor]:
     """Pixels ``(B, H, W)`` whose 3x3 neighbourhood changes primitive or shadow of any
     light (``visibility (L, B, H, W)``), and those whose only change is an albedo
-    jump (``kd (3, B, H, W)``, by more than 0.02)."""
+    jump (``kd (3, B, H, W)``, by more than 0.02). (Four neighbours would do for
+    straight edges, but not for checker corners or stripes under two pixels wide.)"""
     stack = torch.cat([prim.to(kd.dtype)[None], visibility, kd]).transpose(0, 1)  # (B, 1 + L + 3, H, W)
     change = neighbourhood_max(stack) + neighbourhood_max(-stack)
     L = visibility.shape[0]

@@ -378,18 +378,23 @@ def _shared_origin(origins: Tensor) -> bool:
 def hit_normals(prims: Primitives, points: Tensor, index: Tensor) -> Tensor:
     """Outward unit normals ``(3, R)`` at ``points (3, R)`` (by component) on primitives
     ``index (R,)`` (global; -1, none, gets zeros), found from the point on the primitive's surface."""
-    normal = torch.zeros_like(points)
-    first = 0
-    for kind, _ in _KINDS:
+    # Planes first in the global order: their normals are a gather; the other kinds are solved on their rays.
+    planes = prims.planes.shape[0]
+    unit = prims.planes[:, 3:6] / prims.planes[:, 3:6].norm(dim=-1, keepdim=True).clamp_min(1e-30)
+    normal_of = torch.cat([unit, unit.new_zeros(1, 3)]).T.to(points.dtype).contiguous()  # (3, planes + 1): none last
+    normal = normal_of.index_select(1, torch.where((index >= 0) & (index < planes), index, planes))
+    curved = (index >= planes).nonzero(as_tuple=True)[0]
+    if not curved.numel():
+        return normal
+    index_of_curved = index.index_select(0, curved)
+    first = planes
+    for kind, _ in _KINDS[1:]:
         table = getattr(prims, kind)
         last = first + table.shape[0]
-        rows = (_mask(torch.ge, index, first) * _mask(torch.lt, index, last)).nonzero(as_tuple=True)[0]
-        if rows.numel():
-            row = table.T.contiguous().index_select(1, index.index_select(0, rows) - first)  # (width, M)
-            if kind == "planes":
-                normal.index_copy_(1, rows, row[3:6])
-                first = last
-                continue
+        pick = (_mask(torch.ge, index_of_curved, first) * _mask(torch.lt, index_of_curved, last)).nonzero(as_tuple=True)[0]
+        if pick.numel():
+            rows = curved.index_select(0, pick)
+            row = table.T.contiguous().index_select(1, index_of_curved.index_select(0, pick) - first)  # (width, M)
             v = points.index_select(1, rows) - row[:3]  # from the centre
             if kind == "spheres":
                 n = v
@@ -485,36 +490,41 @@ def exact_visibility(prims: Primitives, points: Tensor, normals: Tensor, light_p
     return torch.stack(out, -1).to(points.dtype)
 
 
-def blinn_phong(points: Tensor, normals: Tensor, visibility: Tensor, shininess: Tensor, light_position: Tensor,
-                light_intensity: Tensor, falloff: str = "inverse_square") -> tuple[Tensor, Tensor]:
+def blinn_phong(points: Tensor, normals: Tensor, visibility: Tensor, shininess: Tensor | None, light_position: Tensor,
+                light_intensity: Tensor, falloff: str = "inverse_square", diffuse: bool = True,
+                specular: bool = True) -> tuple[Tensor | None, Tensor | None]:
     """The scene-format image model's light terms, by component: radiance is
     ``kd * diffuse + ks * specular`` plus the ambient term (the core of :func:`shade_exact`;
     a reduction over a last axis of 3 is several times slower on CPU).
 
     Args:
-        points, normals: ``(3, R)``; visibility: ``(L, R)``; shininess: ``(R,)``;
-        light_position, light_intensity: ``(L, 3, 1)`` shared, or ``(L, 3, R)`` for
-        lights of each ray's own.
+        points, normals: ``(3, R)``; visibility: ``(L, R)``; shininess: ``(R,)`` (unused
+        without ``specular``); light_position, light_intensity: ``(L, 3, 1)`` shared, or
+        ``(L, 3, R)`` for lights of each ray's own; diffuse, specular: which terms to
+        compute (the other is returned as None).
 
     Returns:
         ``diffuse, specular (3, R)``: the lights' unshadowed share times ``n.l`` and
         times ``(n.h)^shininess``, summed over the lights.
     """
     p, n = points, normals
-    v = -p * (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).rsqrt()
-    diffuse = specular = torch.zeros_like(p)
+    v = -p * (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).rsqrt() if specular else None
+    diffuse_sum = torch.zeros_like(p) if diffuse else None
+    specular_sum = torch.zeros_like(p) if specular else None
     for i in range(light_position.shape[0]):
         offset = light_position[i] - p
         d2 = offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2]
         l = offset * d2.rsqrt()
-        h = l + v
-        h = h * (h[0] * h[0] + h[1] * h[1] + h[2] * h[2]).clamp_min(1e-24).rsqrt()
         arriving = light_intensity[i] * (visibility[i] / d2 if falloff == "inverse_square" else visibility[i])
-        diffuse = diffuse + arriving * (n[0] * l[0] + n[1] * l[1] + n[2] * l[2]).clamp_min(0)
-        # (n.h)^s as exp(s log n.h), 3x faster than a tensor power; n.h = 0 gives exp(-69 s), zero in float32 for s >= 2.
-        cosine = (n[0] * h[0] + n[1] * h[1] + n[2] * h[2]).clamp_min(1e-30)
-        specular = specular + arriving * torch.exp(shininess * torch.log(cosine))
-    return diffuse, specular
+        if diffuse:
+            diffuse_sum = diffuse_sum + arriving * (n[0] * l[0] + n[1] * l[1] + n[2] * l[2]).clamp_min(0)
+        if specular:
+            h = l + v
+            h = h * (h[0] * h[0] + h[1] * h[1] + h[2] * h[2]).clamp_min(1e-24).rsqrt()
+            # (n.h)^s as exp(s log n.h), 3x faster than a tensor power; n.h = 0 gives exp(-69 s), zero in float32 for s >= 2.
+            cosine = (n[0] * h[0] + n[1] * h[1] + n[2] * h[2]).clamp_min(1e-30)
+            specular_sum = specular_sum + arriving * torch.exp(shininess * torch.log(cosine))
+    return diffuse_sum, specular_sum
 
 
 def shade_exact(
