@@ -9,7 +9,7 @@ m = 0.1 .. 0.3) success >= 90%; two-light scenes the right light count >= 90%;
 chi-square 95.4% point).
 
     python -m benchmarks.estimate_procedural --scenes 20 --method cnn+refine [--shadows none --search-shadows none]
-        [--normal-smoothing auto] [--sets "sensor depth and image noise"]  # a subset is printed, not written
+        [--normal-smoothing auto] [--reflectance-gains 1] [--sets "sensor depth and image noise"]  # a subset is printed, not written
 
 Results: benchmarks/results/estimate_procedural_<method>_shadows_<s>_search_<s>_<device>_<date>.{md,json}.
 """
@@ -88,9 +88,10 @@ def run_set(name: str, count: int, seed: int, options: EstimateOptions) -> dict:
 
 
 def run(scenes: int = 20, method: str = "cnn+refine", seed: int = 9100, sets: list[str] | None = None,
-        write: bool = True, shadows: str = "none", search_shadows: str = "none", normal_smoothing: str = "auto"):
+        write: bool = True, shadows: str = "none", search_shadows: str = "none", normal_smoothing: str = "auto",
+        reflectance_gains: int = 0):
     options = EstimateOptions(method=method, shadows=shadows, search_shadows=search_shadows,
-                              normal_smoothing=normal_smoothing)
+                              normal_smoothing=normal_smoothing, reflectance_gains=reflectance_gains)
     rows = []
     for name in SETS:
         if sets and name not in sets:
@@ -101,10 +102,12 @@ def run(scenes: int = 20, method: str = "cnn+refine", seed: int = 9100, sets: li
     if write:
         header = (f"{scenes} scenes per set (seeds {seed}*1000003+i), 160x120, 2x2 AA; estimate.method={method}, "
                   f"estimate.shadows={shadows}, estimate.search_shadows={search_shadows}, "
-                  f"estimate.normal_smoothing={normal_smoothing}, defaults otherwise. Position error: worst light per scene, of the scene size; success: every "
+                  f"estimate.normal_smoothing={normal_smoothing}, estimate.reflectance_gains={reflectance_gains}, "
+                  "defaults otherwise. Position error: worst light per scene, of the scene size; success: every "
                   "light < 0.05; two_sigma_coverage: share of true lights inside their 2-sigma ellipsoid "
                   f"(Mahalanobis^2 < {CHI2_3D_2SIGMA}); seconds per scene on this device.")
         name = f"estimate_procedural_{method.replace('+', '_')}_shadows_{shadows}_search_{search_shadows}"
+        name += f"_gains_{reflectance_gains}" if reflectance_gains else ""
         path = write_results(name, torch.device("cpu"), rows, header, COLUMNS)
     return rows, path
 
@@ -117,8 +120,10 @@ if __name__ == "__main__":
     parser.add_argument("--shadows", default="none")
     parser.add_argument("--search-shadows", default="none")
     parser.add_argument("--normal-smoothing", default="auto")
+    parser.add_argument("--reflectance-gains", type=int, default=0)
     parser.add_argument("--sets", nargs="*", help="names of the sets to run (default: all)")
     args = parser.parse_args()
     torch.set_num_threads(2)
     print(run(args.scenes, args.method, args.seed, sets=args.sets, write=not args.sets, shadows=args.shadows,
-              search_shadows=args.search_shadows, normal_smoothing=args.normal_smoothing)[1])
+              search_shadows=args.search_shadows, normal_smoothing=args.normal_smoothing,
+              reflectance_gains=args.reflectance_gains)[1])

@@ -11,7 +11,7 @@ from kornia.geometry.depth import depth_to_3d_v2
 from torch import Tensor
 
 __all__ = ["unproject_depth", "normals_from_points", "plane_normals", "smooth_normals", "normal_noise", "fit_intrinsics", "pixel_grid",
-           "dot3", "norm3"]
+           "dot3", "norm3", "surface_segments"]
 
 
 def dot3(a: Tensor, b: Tensor) -> Tensor:
@@ -290,3 +290,49 @@ def fit_intrinsics(points: Tensor, mask: Tensor) -> Tensor:
     K = torch.zeros(B, 3, 3, dtype=points.dtype, device=points.device)
     K[:, 0, 0], K[:, 0, 2], K[:, 1, 1], K[:, 1, 2], K[:, 2, 2] = fx, cx, fy, cy, 1.0
     return K
+
+
+def surface_segments(points: Tensor, normals: Tensor, mask: Tensor, *, max_relative_step: float = 0.03,
+                     max_angle_deg: float = 20.0, max_rounds: int = 10_000) -> Tensor:
+    """Connected smooth surfaces of a G-buffer: labels ``(B, H, W)`` long, -1 outside ``mask``.
+
+    Two 4-neighbours belong together when both are valid, their depths differ by less
+    than ``max_relative_step`` of the depth and their normals by less than
+    ``max_angle_deg``: a room's walls and floor, and the objects on them, come out as
+    separate segments. A segment's label is its smallest flat pixel index (minimum
+    label propagation with pointer jumping: about log-many rounds on compact shapes,
+    at most ``max_rounds``).
+
+    Args:
+        points, normals: ``(B, H, W, 3)``; mask: ``(B, H, W)`` bool.
+    """
+    if points.shape[:-1] != mask.shape or normals.shape != points.shape:
+        raise ValueError(f"points {tuple(points.shape)}, normals {tuple(normals.shape)} and mask {tuple(mask.shape)} "
+                         "must be (B, H, W, 3), (B, H, W, 3), (B, H, W)")
+    B, H, W = mask.shape
+    none = H * W  # the label of invalid pixels while propagating: larger than any pixel index
+    label = torch.arange(H * W, device=mask.device).expand(B, -1).reshape(B, H, W)
+    label = torch.where(mask, label, torch.full_like(label, none))
+    z = points[..., 2]
+    cos_min = torch.cos(torch.deg2rad(torch.tensor(max_angle_deg, dtype=torch.float64))).item()
+    links = []
+    for axis in (1, 2):  # down and right neighbours; each link serves both directions
+        n = mask.shape[axis] - 1
+        here, there = (slice(None),) * axis + (slice(0, n),), (slice(None),) * axis + (slice(1, None),)
+        joined = (mask[here] & mask[there] & ((z[here] - z[there]).abs() < max_relative_step * z[here].abs())
+                  & (dot3(normals[here], normals[there]) > cos_min))
+        links.append((here, there, joined))
+    flat_none = torch.full((B, 1), none, device=mask.device, dtype=label.dtype)
+    for _ in range(max_rounds):
+        new = label.clone()
+        for here, there, joined in links:
+            new[here] = torch.minimum(new[here], torch.where(joined, label[there], none))
+            new[there] = torch.minimum(new[there], torch.where(joined, label[here], none))
+        # Pointer jumping: a pixel takes the label its label's pixel already has.
+        flat = new.reshape(B, -1)
+        lookup = torch.cat([flat, flat_none], 1)
+        new = torch.minimum(flat, lookup.gather(1, flat)).reshape(B, H, W)
+        if torch.equal(new, label):
+            break
+        label = new
+    return torch.where(mask, label, torch.full_like(label, -1))

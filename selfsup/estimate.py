@@ -39,14 +39,14 @@ import torch
 from torch import Tensor
 
 from render import GBuffer, Material, light_transport
-from render.geometry import normal_noise, plane_normals, smooth_normals
+from render.geometry import normal_noise, plane_normals, smooth_normals, surface_segments
 from render.shadows import ShadowMethod
 from selfsup.refine import (Fit, FitProblem, RefineOptions, position_covariance, refine, robust_loss,
                             search)
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
 __all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "problems_of", "prepare", "estimate_scene",
-           "estimate_batch", "records", "has_specular", "estimate_files", "scene_files"]
+           "estimate_batch", "records", "has_specular", "estimate_files", "scene_files", "segment_gains"]
 
 log = logging.getLogger(__name__)
 METHODS = ("cnn+refine", "cnn", "refine")
@@ -71,6 +71,9 @@ class EstimateOptions:
     degrees, as normals of a consumer depth sensor do; ``always`` | ``never``.
     ``mask_saturated``: leave clipped pixels out (:func:`saturated_pixels`); the
     model cannot explain a highlight cut flat, and fitted it with a second light.
+    ``reflectance_gains``: rounds of re-estimation with the albedo of each smooth
+    surface rescaled by what the last fit says it is (:func:`segment_gains`), for
+    reflectance known only up to a factor per surface (0: trust the file's kd).
     """
 
     method: str = "cnn+refine"
@@ -85,6 +88,7 @@ class EstimateOptions:
     normal_smoothing: str = "auto"
     normal_noise_threshold: float = 0.5
     mask_saturated: bool = True
+    reflectance_gains: int = 0
     refine: RefineOptions = field(default_factory=RefineOptions)
 
     def __post_init__(self):
@@ -95,6 +99,8 @@ class EstimateOptions:
             raise ValueError(f"estimate.method must be one of {METHODS}, got {self.method!r}")
         if self.max_lights < 1:
             raise ValueError(f"max_lights must be >= 1, got {self.max_lights}")
+        if self.reflectance_gains < 0:
+            raise ValueError(f"reflectance_gains must be >= 0 rounds, got {self.reflectance_gains}")
         if self.normal_smoothing not in NORMAL_SMOOTHING:
             raise ValueError(f"estimate.normal_smoothing must be one of {NORMAL_SMOOTHING}, got {self.normal_smoothing!r}")
         if not self.normal_noise_threshold >= 0:
@@ -289,6 +295,41 @@ def _groups(best: list[Candidate]) -> dict[tuple[int, bool], list[int]]:
     return groups
 
 
+def segment_gains(image: Tensor, model: Tensor, segments: Tensor, min_pixels: int = 30, lit_share: float = 0.2,
+                  limits: tuple[float, float] = (0.2, 5.0)) -> Tensor:
+    """Per-surface albedo factors ``(B, H, W, 3)``: on each segment and channel, the
+    median of ``image / model`` over its pixels lit to at least ``lit_share`` of the
+    segment's brightest model value (shadows and dark sides say little), clamped to
+    ``limits``; 1 on segments with fewer than ``min_pixels`` such pixels and outside.
+
+    Args:
+        image, model: ``(B, 3, H, W)``; segments: ``(B, H, W)`` labels (-1: none),
+        e.g. :func:`render.geometry.surface_segments`.
+    """
+    B, C, H, W = image.shape
+    label = segments.reshape(B, 1, H * W).expand(B, C, H * W)
+    inside = label >= 0
+    # One group per (image, segment, channel): segment labels are flat pixel indices.
+    group = ((torch.arange(B, device=image.device)[:, None, None] * (H * W) + label.clamp_min(0)) * C
+             + torch.arange(C, device=image.device)[None, :, None]).reshape(-1)
+    model = model.reshape(B, C, H * W)
+    groups = B * H * W * C
+    brightest = model.new_zeros(groups).scatter_reduce_(0, group, model.reshape(-1), "amax")
+    ratio = (image.reshape(B, C, H * W) / model.clamp_min(1e-12)).reshape(-1)
+    use = (inside & (model > lit_share * brightest[group].view_as(model))).reshape(-1) & torch.isfinite(ratio)
+    values, owner = ratio[use], group[use]
+    if not values.numel():
+        return torch.ones_like(image).permute(0, 2, 3, 1)
+    # Each group's median: sort by value, then stably by group, and take each run's middle.
+    by_value = values.argsort()
+    ordered = values[by_value][owner[by_value].argsort(stable=True)]
+    counts = torch.bincount(owner, minlength=groups)
+    middle = (counts.cumsum(0) - counts + (counts - 1).clamp_min(0) // 2).clamp_max(values.numel() - 1)
+    factor = torch.where(counts >= min_pixels, ordered[middle].clamp(*limits), torch.ones_like(ordered[middle]))
+    factor = torch.where(inside.reshape(-1), factor[group], torch.ones_like(ratio))
+    return factor.view(B, C, H, W).permute(0, 2, 3, 1)
+
+
 def estimate_batch(problem: FitProblem, options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
     """Estimate the lights of a batch of same-sized images; each image's chosen model
     and every model tried (see :func:`estimate_scene`).
@@ -296,7 +337,25 @@ def estimate_batch(problem: FitProblem, options: EstimateOptions) -> list[tuple[
     Every step runs on the whole batch (the searches over ``B x candidates``
     images), so a GPU is filled; each image is judged on its own and gets the
     answer it would get alone.
+
+    With ``options.reflectance_gains`` rounds, each round rescales the albedo of every
+    smooth surface (:func:`render.geometry.surface_segments`) by :func:`segment_gains`
+    of the last round's chosen fit and estimates again; ``problem.material`` is then
+    replaced by the last albedo, which the records' covariances need.
     """
+    results = _estimate_once(problem, options)
+    if options.reflectance_gains:
+        g = problem.gbuffer
+        segments = surface_segments(g.points, g.normals, g.mask)
+        for _ in range(options.reflectance_gains):
+            model = torch.cat([best.fit.model for best, _ in results])
+            kd = problem.material.kd * segment_gains(problem.image, model, segments)
+            problem.material = Material(kd=kd, ks=problem.material.ks, shininess=problem.material.shininess)
+            results = _estimate_once(problem, options)
+    return results
+
+
+def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
     B, device = problem.batch, problem.image.device
     if options.refine.robust:
         problem.median_observed()  # the robust scale, found once: every selection below keeps its rows
