@@ -19,7 +19,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from selfsup.scenes.io import Scene
-from selfsup.scenes.raycast import (_CHUNK, _FAR, _KINDS, Bundles, PrimitiveBatch, blinn_phong, blocked_bundles,
+from selfsup.scenes.raycast import (_CHUNK, _FAR, _KINDS, Bundles, PrimitiveBatch, _mask, blinn_phong, blocked_bundles,
                                     bundle_rays, camera_rays, cast_bundles, hit_normals)
 from selfsup.scenes.sampler import Materials, SceneSpec, Texture
 
@@ -71,11 +71,11 @@ def albedo_at(materials: Materials, points: Tensor, primitive: Tensor) -> Tensor
     # Checker and stripes everywhere (a few cheap passes), chosen by float masks.
     inv_scale = 1 / scale
     cells = sum(torch.floor(points[i] * inv_scale) for i in range(3))
-    checker = _mask_of(torch.lt, torch.remainder(cells, 2), 0.5)
+    checker = _mask(torch.lt, torch.remainder(cells, 2), 0.5)
     direction = materials.texture_dir.T.contiguous().index_select(1, primitive)
     along = points[0] * direction[0] + points[1] * direction[1] + points[2] * direction[2]
-    stripes = _mask_of(torch.gt, torch.sin((2 * math.pi) * along * inv_scale), 0.0)
-    is_checker, is_stripes = _mask_of(torch.eq, kind, Texture.CHECKER), _mask_of(torch.eq, kind, Texture.STRIPES)
+    stripes = _mask(torch.gt, torch.sin((2 * math.pi) * along * inv_scale), 0.0)
+    is_checker, is_stripes = (_mask(torch.eq, kind, pattern, points.dtype) for pattern in (Texture.CHECKER, Texture.STRIPES))
     t = 1 + is_checker * (checker - 1) + is_stripes * (stripes - 1)
     noisy = (kind == Texture.NOISE).nonzero(as_tuple=True)[0]
     if noisy.numel():  # the costliest pattern: evaluated only where used
@@ -83,11 +83,6 @@ def albedo_at(materials: Materials, points: Tensor, primitive: Tensor) -> Tensor
     base = materials.kd_base.T.contiguous().index_select(1, primitive)
     alt = materials.kd_alt.T.contiguous().index_select(1, primitive)
     return alt + t * (base - alt)
-
-
-def _mask_of(compare, a: Tensor, b: float) -> Tensor:
-    # compare(a, b) as float 0/1 in the default float dtype (a may be an integer tensor).
-    return compare(a, b, out=torch.empty(a.shape, dtype=torch.get_default_dtype()))
 
 
 def _tile_order(height: int, width: int) -> Tensor:
@@ -143,14 +138,14 @@ class _Rays:
         return [getattr(self, f.name) for f in dataclasses.fields(self)]
 
 
-def _surface(batch: _Batch, scene: Tensor, dirs: Tensor, t: Tensor, primitive: Tensor) -> tuple:
+def _surface(batch: _Batch, dirs: Tensor, t: Tensor, primitive: Tensor) -> tuple:
     # (valid, t, points, camera-facing normals) of rays dirs (3, R) that hit primitive (-1: none) at t.
     valid = primitive >= 0
     t = torch.where(valid, t, torch.zeros_like(t))
     points = dirs * t
     normal = hit_normals(batch.prims.prims, points, primitive)
     toward = normal[0] * dirs[0] + normal[1] * dirs[1] + normal[2] * dirs[2]
-    return valid, t, points, normal * (1 - 2 * _mask_of(torch.gt, toward, 0.0))
+    return valid, t, points, normal * (1 - 2 * _mask(torch.gt, toward, 0.0))
 
 
 def _trace(batch: _Batch, dirs: list[Tensor]) -> _Rays:
@@ -179,7 +174,8 @@ def _trace(batch: _Batch, dirs: list[Tensor]) -> _Rays:
         return per_slot if slot_of_ray is None else per_slot.index_select(0, slot_of_ray)
 
     t, primitive = cast_bundles(batch.prims, Bundles.of(bundled(flat), flat.new_zeros(N, 3), scene_of_bundle, 0.0))
-    valid, t, points, normals = _surface(batch, scene, flat, unbundled(t), unbundled(primitive))
+    primitive = unbundled(primitive)
+    valid, t, points, normals = _surface(batch, flat, unbundled(t), primitive)
     # The room is convex and every light is inside it, so its planes never block a
     # shadow ray: test the objects only. Each ray runs from the light (one origin per
     # bundle) to the point nudged off the surface along the camera-facing normal by
@@ -202,8 +198,7 @@ def _trace(batch: _Batch, dirs: list[Tensor]) -> _Rays:
         if lit is not None:
             hit = torch.zeros(N, _CHUNK, dtype=torch.bool).index_copy_(0, lit, hit.view(-1, _CHUNK)).view(-1)
         visibility[light] = 1 - unbundled(hit).to(flat.dtype)
-    return _Rays(scene, valid, t, primitive.clamp_min(0) if slot_of_ray is None else unbundled(primitive).clamp_min(0),
-                 points, normals, visibility)
+    return _Rays(scene, valid, t, primitive.clamp_min(0), points, normals, visibility)
 
 
 # Rays shaded at once: their (3, R) float32 tensors stay within the cache (on the 2-core
@@ -277,7 +272,7 @@ def _same_primitive(batch: _Batch, centre: _Rays, dirs: Tensor) -> tuple[_Rays, 
     missed = (t >= _FAR).any(1)
     primitive = torch.where(missed, -1, centre.primitive).repeat_interleave(S)
     scene = centre.scene.repeat_interleave(S)
-    valid, t, points, normals = _surface(batch, scene, dirs.reshape(3, E * S), t.reshape(-1), primitive)
+    valid, t, points, normals = _surface(batch, dirs.reshape(3, E * S), t.reshape(-1), primitive)
     return _Rays(scene, valid, t, primitive.clamp_min(0), points, normals, centre.visibility.repeat_interleave(S, 1)), missed
 
 

@@ -74,10 +74,11 @@ class Hit:
 _FAR = 1e30
 
 
-def _mask(compare, a: Tensor, b: Tensor | float) -> Tensor:
-    """``compare(a, b)`` (``torch.gt``, ``ge``, ``le``...) as float 0/1, broadcast."""
+def _mask(compare, a: Tensor, b: Tensor | float, dtype: torch.dtype | None = None) -> Tensor:
+    """``compare(a, b)`` (``torch.gt``, ``ge``, ``le``...) as float 0/1, broadcast, in
+    ``dtype`` (default ``a``'s: give one where ``a`` holds integers)."""
     shape = torch.broadcast_shapes(a.shape, b.shape) if isinstance(b, Tensor) else a.shape
-    return compare(a, b, out=torch.empty(shape, dtype=a.dtype, device=a.device))
+    return compare(a, b, out=torch.empty(shape, dtype=dtype or a.dtype, device=a.device))
 
 
 def _select(mask: Tensor, a: Tensor | float, b: Tensor | float) -> Tensor:
