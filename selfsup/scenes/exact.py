@@ -20,10 +20,11 @@ from torch import Tensor
 
 from selfsup.scenes.io import Scene
 from selfsup.scenes.raycast import (_CHUNK, _FAR, _KINDS, Bundles, PrimitiveBatch, _mask, blinn_phong, blocked_bundles,
-                                    bundle_rays, camera_rays, cast_bundles, hit_normals)
+                                    bundle_rays, cast_bundles, hit_normals)
 from selfsup.scenes.sampler import Materials, SceneSpec, Texture
 
-__all__ = ["RenderedScene", "render_spec", "render_specs", "albedo_at", "fractal_noise", "neighbourhood_max"]
+__all__ = ["RenderedScene", "render_spec", "render_specs", "albedo_at", "material_rows", "fractal_noise",
+           "neighbourhood_max"]
 
 GENERATOR_NAME = "shadowlight.procedural v1 (exact ray casting)"
 _MAX_RAYS = 2**19  # camera rays of one render_specs call: 32 scenes of 128 x 128
@@ -65,23 +66,36 @@ def fractal_noise(points: Tensor, scale: Tensor, octaves: int = 4) -> Tensor:
     return 0.5 + (0.5 / norm) * total
 
 
-def albedo_at(materials: Materials, points: Tensor, primitive: Tensor) -> Tensor:
-    """Albedo ``(3, N)`` of the primitives ``(N,)`` (global index, >= 0) at ``points (3, N)``."""
-    kind, scale = materials.texture.index_select(0, primitive), materials.texture_scale.index_select(0, primitive)
+# Rows of a per-primitive material table (:func:`material_rows`).
+_KIND, _SCALE, _DIRECTION, _BASE, _ALT, _KS, _SHININESS = 0, 1, slice(2, 5), slice(5, 8), slice(8, 11), 11, 12
+
+
+def material_rows(materials: Materials) -> Tensor:
+    """The material table by rows ``(13, P)``: texture kind, texture scale, stripe
+    direction (3), base and alternate albedo (3 each), ks, shininess; one gather
+    of its columns gives rays all they need (13 gathers of one value each cost 3x more)."""
+    return torch.cat([materials.texture[None].to(materials.kd_base.dtype), materials.texture_scale[None],
+                      materials.texture_dir.T, materials.kd_base.T, materials.kd_alt.T, materials.ks[None],
+                      materials.shininess[None]]).contiguous()
+
+
+def albedo_at(material: Tensor, points: Tensor) -> Tensor:
+    """Albedo ``(3, N)`` at ``points (3, N)`` of primitives whose :func:`material_rows`
+    columns are ``material (13, N)``."""
+    kind, scale = material[_KIND], material[_SCALE]
     # Checker and stripes everywhere (a few cheap passes), chosen by float masks.
     inv_scale = 1 / scale
     cells = sum(torch.floor(points[i] * inv_scale) for i in range(3))
     checker = _mask(torch.lt, torch.remainder(cells, 2), 0.5)
-    direction = materials.texture_dir.T.contiguous().index_select(1, primitive)
+    direction = material[_DIRECTION]
     along = points[0] * direction[0] + points[1] * direction[1] + points[2] * direction[2]
     stripes = _mask(torch.gt, torch.sin((2 * math.pi) * along * inv_scale), 0.0)
-    is_checker, is_stripes = (_mask(torch.eq, kind, pattern, points.dtype) for pattern in (Texture.CHECKER, Texture.STRIPES))
+    is_checker, is_stripes = (_mask(torch.eq, kind, float(pattern)) for pattern in (Texture.CHECKER, Texture.STRIPES))
     t = 1 + is_checker * (checker - 1) + is_stripes * (stripes - 1)
     noisy = (kind == Texture.NOISE).nonzero(as_tuple=True)[0]
     if noisy.numel():  # the costliest pattern: evaluated only where used
         t.index_copy_(0, noisy, fractal_noise(points.index_select(1, noisy), scale.index_select(0, noisy)))
-    base = materials.kd_base.T.contiguous().index_select(1, primitive)
-    alt = materials.kd_alt.T.contiguous().index_select(1, primitive)
+    base, alt = material[_BASE], material[_ALT]
     return alt + t * (base - alt)
 
 
@@ -105,6 +119,7 @@ class _Batch:
         scene_major = (sizes.cumsum(0) - sizes)[self.prims.scene] + self.prims.local
         self.materials = Materials(**{f.name: torch.cat([getattr(spec.materials, f.name) for spec in specs])[scene_major]
                                       for f in dataclasses.fields(Materials)})
+        self.material_rows = material_rows(self.materials)
         self.n_lights = [spec.light_position.shape[0] for spec in specs]
         L = max(self.n_lights)
         self.light_position = torch.zeros(len(specs), L, 3)
@@ -210,12 +225,15 @@ def _shade(batch: _Batch, rays: _Rays, falloff: str) -> tuple[Tensor, Tensor]:
     """Unit-exposure radiance without ambient and the albedo, each ``(3, R)``, of traced rays."""
     R = rays.valid.shape[0]
     if R > _SHADE_RAYS:
-        parts = [_shade(batch, rays.narrow(start, min(_SHADE_RAYS, R - start)), falloff)
-                 for start in range(0, R, _SHADE_RAYS)]
-        return torch.cat([radiance for radiance, _ in parts], 1), torch.cat([kd for _, kd in parts], 1)
-    materials = batch.materials
+        radiance, kd = rays.points.new_empty(3, R), rays.points.new_empty(3, R)
+        for start in range(0, R, _SHADE_RAYS):
+            length = min(_SHADE_RAYS, R - start)
+            for out, part in zip((radiance, kd), _shade(batch, rays.narrow(start, length), falloff)):
+                out.narrow(1, start, length).copy_(part)
+        return radiance, kd
     valid = rays.valid.to(rays.points.dtype)
-    kd = albedo_at(materials, rays.points, rays.primitive) * valid
+    material = batch.material_rows.index_select(1, rays.primitive)  # (13, R)
+    kd = albedo_at(material, rays.points) * valid
     L = batch.light_position.shape[1]
     # Each ray's light positions and intensities (6 L, R): one gather from a (6 L, B) table
     # (a gather along a last axis is slow).
@@ -225,13 +243,12 @@ def _shade(batch: _Batch, rays: _Rays, falloff: str) -> tuple[Tensor, Tensor]:
                              specular=False)
     radiance = kd * diffuse
     # The specular term only on rays of specular primitives (most surfaces are matte).
-    shiny = (materials.ks.index_select(0, rays.primitive) * valid).nonzero(as_tuple=True)[0]
+    shiny = (material[_KS] * valid).nonzero(as_tuple=True)[0]
     if shiny.numel():
-        primitive = rays.primitive.index_select(0, shiny)
         _, specular = blinn_phong(rays.points.index_select(1, shiny), rays.normals.index_select(1, shiny),
-                                  rays.visibility.index_select(1, shiny), materials.shininess.index_select(0, primitive),
+                                  rays.visibility.index_select(1, shiny), material[_SHININESS].index_select(0, shiny),
                                   *lights.index_select(1, shiny).view(2, L, 3, -1), falloff, diffuse=False)
-        radiance.index_add_(1, shiny, materials.ks.index_select(0, primitive) * specular)
+        radiance.index_add_(1, shiny, material[_KS].index_select(0, shiny) * specular)
     return radiance, kd
 
 
@@ -248,11 +265,11 @@ def _edges(prim: Tensor, visibility: Tensor, kd: Tensor) -> tuple[Tensor, Tensor
     light (``visibility (L, B, H, W)``), and those whose only change is an albedo
     jump (``kd (3, B, H, W)``, by more than 0.02). (Four neighbours would do for
     straight edges, but not for checker corners or stripes under two pixels wide.)"""
-    stack = torch.cat([prim.to(kd.dtype)[None], visibility, kd]).transpose(0, 1)  # (B, 1 + L + 3, H, W)
+    stack = torch.cat([prim.to(kd.dtype)[None], visibility, kd])  # (1 + L + 3, B, H, W)
     change = neighbourhood_max(stack) + neighbourhood_max(-stack)
     L = visibility.shape[0]
-    geometry = (change[:, 0] > 0) | (change[:, 1 : 1 + L] > 0).any(1)
-    return geometry, (change[:, -3:] > 0.02).any(1) & ~geometry
+    geometry = (change[0] > 0) | (change[1 : 1 + L] > 0).any(0)
+    return geometry, (change[-3:] > 0.02).any(0) & ~geometry
 
 
 def _same_primitive(batch: _Batch, centre: _Rays, dirs: Tensor) -> tuple[_Rays, Tensor]:
@@ -316,8 +333,12 @@ def render_specs(specs: list[SceneSpec], samples: int = 2, falloff: str = "inver
     B = len(specs)
     batch = _Batch(specs)
     order = _tile_order(H, W)
-    centre_dirs = torch.stack([camera_rays(spec.K, H, W).T for spec in specs])  # (B, 3, H * W)
-    traced = _trace(batch, list(centre_dirs.index_select(2, order)))
+    # Camera rays through pixel centres with z = 1, (B, 3, H * W): in pixel order, and in tile order to trace.
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+    pixels = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(H * W)])
+    inverse_K = torch.linalg.inv(torch.stack([spec.K.float() for spec in specs]))
+    centre_dirs = inverse_K @ pixels
+    traced = _trace(batch, list(inverse_K @ pixels[:, order]))
     # Back to pixel order: pixel i of scene b is ray b * H * W + rank[i] of the trace.
     rank = order.argsort()
     centre = traced.take((torch.arange(B)[:, None] * (H * W) + rank[None]).reshape(-1))
@@ -334,7 +355,7 @@ def render_specs(specs: list[SceneSpec], samples: int = 2, falloff: str = "inver
         offsets = (torch.arange(samples, dtype=torch.float32) + 0.5) / samples - 0.5
         oy, ox = torch.meshgrid(offsets, offsets, indexing="ij")
         grid = torch.stack([ox.reshape(-1), oy.reshape(-1), torch.zeros(samples * samples)])
-        shift = torch.stack([torch.linalg.inv(spec.K) @ grid.to(spec.K.dtype) for spec in specs])  # (B, 3, S)
+        shift = inverse_K @ grid  # (B, 3, S)
         all_dirs = centre_dirs.transpose(0, 1).reshape(3, B * H * W)
 
         def sub_dirs(at: Tensor) -> Tensor:  # (3, E, S) of pixels at (E,) (global)
