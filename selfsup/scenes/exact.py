@@ -309,7 +309,13 @@ def render_specs(specs: list[SceneSpec], samples: int = 2, falloff: str = "inver
             Adaptive: pixels whose 3x3 neighbourhood shows no change of primitive,
             of any light's visibility or of a checker or stripe albedo (> 0.02)
             keep their centre sample, whose value the supersampled average equals
-            there up to the smooth shading's curvature. Where primitive or
+            there up to the smooth shading's curvature. The fractal albedo is not
+            judged, so it stays point-sampled: against a brute-force 2x2 average
+            (four renders with shifted principal points), scenes with much of it
+            differ by more than 1% on up to an eighth of their pixels at 128x128;
+            without it, on 0.01-0.5%. Judging it by the same 0.02 rule brings them
+            to 0.01-0.5% too, but supersamples 59% of pixels instead of 37%, 30%
+            more time. Where primitive or
             visibility change, the full grid is traced with its own shadow rays;
             where only the albedo jumps, the grid's rays are cast against the
             centre's primitive alone and keep its visibility (a pixel where one of
