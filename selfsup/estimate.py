@@ -314,7 +314,8 @@ def segment_gains(image: Tensor, model: Tensor, segments: Tensor, min_pixels: in
              + torch.arange(C, device=image.device)[None, :, None]).reshape(-1)
     model = model.reshape(B, C, H * W)
     groups = B * H * W * C
-    brightest = model.new_zeros(groups).scatter_reduce_(0, group, model.reshape(-1), "amax")
+    # Outside pixels share group 0's index (label clamped): their model values must not count there.
+    brightest = model.new_zeros(groups).scatter_reduce_(0, group, (model * inside).reshape(-1), "amax")
     ratio = (image.reshape(B, C, H * W) / model.clamp_min(1e-12)).reshape(-1)
     use = (inside & (model > lit_share * brightest[group].view_as(model))).reshape(-1) & torch.isfinite(ratio)
     values, owner = ratio[use], group[use]
