@@ -143,7 +143,7 @@ def _window(padded: list[Tensor], radius: int, height: int, width: int):
             yield [t[:, di : di + height, dj : dj + width] for t in padded]
 
 
-def plane_normals(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative_step: float = 0.1
+def plane_normals(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative_step: float = 0.1, step: int = 1
                   ) -> tuple[Tensor, Tensor]:
     """Unit normals of least-squares planes fitted to each pixel's window, for noisy depth.
 
@@ -153,7 +153,10 @@ def plane_normals(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative
     than ``max_relative_step * z`` are left out, so planes do not reach across
     depth edges (they do round creases off within the window). The normal is the
     eigenvector of the smallest eigenvalue of the window's point covariance,
-    turned to face the camera. Memory ``O(B H W)``.
+    turned to face the camera. ``step`` > 1 samples the window every ``step``
+    pixels: a wide window's leverage (the tilt error falls with the window's
+    extent) at the cost of a narrow one, ``((2 radius) / step + 1)^2`` offsets.
+    Memory ``O(B H W)``.
 
     Args:
         points: ``(B, H, W, 3)`` camera-frame points.
@@ -161,35 +164,42 @@ def plane_normals(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative
         radius: window half-size in pixels (>= 1).
         max_relative_step: largest accepted depth difference to the centre, relative
             to its depth.
+        step: pixel spacing of the window's samples (>= 1, at most ``radius``).
 
     Returns:
         ``normals (B, H, W, 3)`` (zero where missing) and ``has_normal (B, H, W)``: at
         least 3 neighbours and a well-defined plane.
     """
-    if radius < 1:
-        raise ValueError(f"plane_normals needs radius >= 1, got {radius}")
+    if radius < 1 or not 1 <= step <= radius:
+        raise ValueError(f"plane_normals needs radius >= 1 and 1 <= step <= radius, got radius {radius}, step {step}")
     B, H, W, _ = points.shape
-    pad = (0, 0, radius, radius, radius, radius)
-    padded_points = torch.nn.functional.pad(points, pad)
-    padded_mask = torch.nn.functional.pad(mask, pad[2:])
-    limit = max_relative_step * points[..., 2:].abs()
-    count = torch.zeros_like(points[..., :1])
-    first = torch.zeros_like(points)  # sums of offsets from the centre (better conditioned than raw points)
-    second = torch.zeros(B, H, W, 3, 3, dtype=points.dtype, device=points.device)
-    for neighbour, neighbour_valid in _window([padded_points, padded_mask], radius, H, W):
-        offset = neighbour - points
-        use = (neighbour_valid[..., None] & mask[..., None] & (offset[..., 2:].abs() <= limit)).to(points.dtype)
-        offset = offset * use
-        count = count + use
-        first = first + offset
-        second = second + offset[..., :, None] * offset[..., None, :]
-    mean = first / count.clamp_min(1)
-    covariance = second / count.clamp_min(1)[..., None] - mean[..., :, None] * mean[..., None, :]
+    # Channel-first, with the 6 distinct second moments: a (..., 3) last axis and a 3x3
+    # outer product per offset cost a third more time (ad hoc, 160x120).
+    p = points.permute(0, 3, 1, 2)
+    padded_points = torch.nn.functional.pad(p, (radius,) * 4)
+    padded_mask = torch.nn.functional.pad(mask, (radius,) * 4)
+    limit = max_relative_step * p[:, 2].abs()
+    count = torch.zeros_like(p[:, 0])
+    first = torch.zeros_like(p)  # sums of offsets from the centre (better conditioned than raw points)
+    rows, cols = (0, 1, 2, 0, 0, 1), (0, 1, 2, 1, 2, 2)  # xx yy zz xy xz yz
+    second = p.new_zeros(B, 6, H, W)
+    for di in range(0, 2 * radius + 1, step):
+        for dj in range(0, 2 * radius + 1, step):
+            offset = padded_points[:, :, di : di + H, dj : dj + W] - p
+            use = padded_mask[:, di : di + H, dj : dj + W] & mask & (offset[:, 2].abs() <= limit)
+            offset = offset * use[:, None]
+            count += use
+            first += offset
+            second += offset[:, rows] * offset[:, cols]
+    samples = count.clamp_min(1)[:, None]
+    mean = first / samples
+    moments = (second / samples - mean[:, rows] * mean[:, cols]).permute(0, 2, 3, 1)  # (B, H, W, 6)
+    covariance = moments[..., [0, 3, 4, 3, 1, 5, 4, 5, 2]].reshape(B, H, W, 3, 3)
     eigenvalues, eigenvectors = torch.linalg.eigh(covariance)
     n = eigenvectors[..., 0]  # smallest eigenvalue first
     # A plane needs spread in two directions: the middle eigenvalue well above zero.
     spread = eigenvalues[..., 1] > 1e-6 * eigenvalues[..., 2].clamp_min(torch.finfo(points.dtype).tiny)
-    has_normal = mask & (count[..., 0] >= 3) & spread & torch.isfinite(n).all(-1)
+    has_normal = mask & (count >= 3) & spread & torch.isfinite(n).all(-1)
     facing = (n * points).sum(-1) > 0
     n = torch.where(facing[..., None], -n, n)
     return torch.where(has_normal[..., None], n, torch.zeros_like(n)), has_normal

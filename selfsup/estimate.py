@@ -65,10 +65,14 @@ class EstimateOptions:
     the final refinement and the criterion; ``search_shadows``: that of the
     global search (``none``: shading alone, the smoother landscape).
     ``checkpoint``: the network of the ``cnn`` methods (None: the shipped one).
-    ``normal_smoothing``: ``auto`` smooths the normals (edge-preserving,
-    :func:`render.geometry.smooth_normals`) when their measured noise
+    ``normal_smoothing``: ``auto`` replaces the normals when their measured noise
     (:func:`render.geometry.normal_noise`) exceeds ``normal_noise_threshold``
-    degrees, as normals of a consumer depth sensor do; ``always`` | ``never``.
+    degrees, as normals of a consumer depth sensor do, by planes fitted to the
+    depth (:func:`render.geometry.plane_normals`, window half-size ``plane_radius``
+    sampled every ``plane_step`` pixels) then smoothed edge-preserving
+    (:func:`render.geometry.smooth_normals`); ``always`` | ``never``. A file's noisy
+    normals are refitted rather than smoothed: they come from the same noisy depth,
+    by a smaller window than the light fit needs.
     ``mask_saturated``: leave clipped pixels out (:func:`saturated_pixels`); the
     model cannot explain a highlight cut flat, and fitted it with a second light.
     ``reflectance_gains``: rounds of re-estimation with the albedo of each smooth
@@ -87,6 +91,8 @@ class EstimateOptions:
     search_shadows: str = "none"
     normal_smoothing: str = "auto"
     normal_noise_threshold: float = 0.5
+    plane_radius: int = 8
+    plane_step: int = 2
     mask_saturated: bool = True
     reflectance_gains: int = 0
     refine: RefineOptions = field(default_factory=RefineOptions)
@@ -105,6 +111,9 @@ class EstimateOptions:
             raise ValueError(f"estimate.normal_smoothing must be one of {NORMAL_SMOOTHING}, got {self.normal_smoothing!r}")
         if not self.normal_noise_threshold >= 0:
             raise ValueError(f"estimate.normal_noise_threshold must be >= 0 degrees, got {self.normal_noise_threshold}")
+        if not 1 <= self.plane_step <= self.plane_radius:
+            raise ValueError(f"estimate.plane_radius and plane_step need 1 <= plane_step <= plane_radius, got "
+                             f"{self.plane_radius}, {self.plane_step}")
         for name in ("shadows", "search_shadows"):
             if getattr(self, name) not in SHADOW_METHODS:
                 raise ValueError(f"estimate.{name} must be one of {SHADOW_METHODS}, got {getattr(self, name)!r}")
@@ -139,9 +148,11 @@ def saturated_pixels(image: Tensor, mask: Tensor, min_share: float = 0.002) -> T
 
 
 def problem_of(scene: Scene, shadows: str = "epipolar", dtype=torch.float32, normal_smoothing: str = "never",
-               normal_noise_threshold: float = 0.5, mask_saturated: bool = False) -> FitProblem:
+               normal_noise_threshold: float = 0.5, mask_saturated: bool = False, *, plane_radius: int = 8,
+               plane_step: int = 2) -> FitProblem:
     """A batch-of-one :class:`FitProblem` from a scene file's contents (see :func:`problems_of`)."""
-    return problems_of([scene], shadows, dtype, normal_smoothing, normal_noise_threshold, mask_saturated)
+    return problems_of([scene], shadows, dtype, normal_smoothing, normal_noise_threshold, mask_saturated,
+                       plane_radius=plane_radius, plane_step=plane_step)
 
 
 def _stacked_field(scenes: list[Scene], name: str, device=None) -> Tensor | None:
@@ -164,7 +175,8 @@ def _stacked_field(scenes: list[Scene], name: str, device=None) -> Tensor | None
 
 
 def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.float32, normal_smoothing: str = "never",
-                normal_noise_threshold: float = 0.5, mask_saturated: bool = False, device=None) -> FitProblem:
+                normal_noise_threshold: float = 0.5, mask_saturated: bool = False, device=None, *,
+                plane_radius: int = 8, plane_step: int = 2) -> FitProblem:
     """One :class:`FitProblem` of ``B`` same-sized scenes, on ``device`` (None: the
     scenes' own; the scenes are stacked first, so each field moves in one copy);
     the normals smoothed as ``normal_smoothing`` says (see :class:`EstimateOptions`),
@@ -201,11 +213,13 @@ def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.floa
             normal_noise(gbuffer.points, gbuffer.normals, gbuffer.mask) > normal_noise_threshold)
         if bool(noisy.any()):
             at = noisy.nonzero(as_tuple=True)[0]
-            points, normals, mask = gbuffer.points[at], gbuffer.normals[at], gbuffer.mask[at]
-            if scenes[0].normals is None:
-                # Differences of noisy neighbours are tens of degrees off: fit planes to 9x9 windows instead.
-                normals, has_normal = plane_normals(points, mask, radius=4)
-                mask = mask & has_normal
+            points, mask = gbuffer.points[at], gbuffer.mask[at]
+            # Normals of noisy depth, a file's own included (a sensor's normals come from its
+            # depth, by a few pixels' differences or a small window), are tilted by the noise:
+            # planes through a wide window average it away (sensor sets, README: a 17x17 window
+            # sampled every 2 pixels beat 9x9 windows and the file's smoothed normals).
+            normals, has_normal = plane_normals(points, mask, radius=plane_radius, step=plane_step)
+            mask = mask & has_normal
             smoothed = smooth_normals(points, normals, mask)
             gbuffer = replace(gbuffer, normals=gbuffer.normals.index_put((at,), smoothed),
                               mask=gbuffer.mask.index_put((at,), mask))
@@ -217,7 +231,8 @@ def prepare(scenes: list[Scene], options: EstimateOptions, device=None) -> FitPr
     smoothing, clipped pixels): the problem :func:`estimate_batch` expects."""
     return problems_of(scenes, options.shadows, normal_smoothing=options.normal_smoothing,
                        normal_noise_threshold=options.normal_noise_threshold,
-                       mask_saturated=options.mask_saturated, device=device)
+                       mask_saturated=options.mask_saturated, device=device, plane_radius=options.plane_radius,
+                       plane_step=options.plane_step)
 
 
 def bic(loss: float, n_values: int, n_params: int, block_px: int) -> float:

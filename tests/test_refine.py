@@ -304,6 +304,10 @@ def test_sensor_noise_in_the_depth_is_taken_out_of_the_normals():
                                       options).position[0], scene)
               for mode in ("never", "auto")}
     assert errors["never"] > 0.015 and errors["auto"] < 0.4 * errors["never"], errors
+    # A file's own normals of that depth (neighbour differences) are refitted the same way.
+    with_normals = dataclasses.replace(noisy, normals=problem_of(noisy, normal_smoothing="never").gbuffer.normals[0])
+    assert torch.equal(problem_of(with_normals, normal_smoothing="auto").gbuffer.normals,
+                       problem_of(noisy, normal_smoothing="auto").gbuffer.normals)
     # Clean normals are below the noise threshold: auto leaves them as they are.
     assert torch.equal(problem_of(scene, normal_smoothing="auto").gbuffer.normals,
                        problem_of(scene, normal_smoothing="never").gbuffer.normals)
