@@ -75,6 +75,12 @@ class EstimateOptions:
     by a smaller window than the light fit needs.
     ``mask_saturated``: leave clipped pixels out (:func:`saturated_pixels`); the
     model cannot explain a highlight cut flat, and fitted it with a second light.
+    ``criterion_robust_scale``: the Cauchy scale (x median observed value) of the
+    loss the model selection compares; the fits themselves use ``refine.robust_scale``.
+    A narrow scale fits the lights best (cast shadows and interreflections the
+    model lacks weigh little) but leaves them unexplained at little cost, and
+    then a second light that explains part of them pays for itself; the
+    criterion judges with the wider one.
     ``reflectance_gains``: rounds of re-estimation with the albedo of each smooth
     surface rescaled by what the last fit says it is (:func:`segment_gains`), for
     reflectance known only up to a factor per surface (0: trust the file's kd).
@@ -94,6 +100,7 @@ class EstimateOptions:
     plane_radius: int = 8
     plane_step: int = 2
     mask_saturated: bool = True
+    criterion_robust_scale: float = 0.2
     reflectance_gains: int = 0
     refine: RefineOptions = field(default_factory=RefineOptions)
 
@@ -105,6 +112,8 @@ class EstimateOptions:
             raise ValueError(f"estimate.method must be one of {METHODS}, got {self.method!r}")
         if self.max_lights < 1:
             raise ValueError(f"max_lights must be >= 1, got {self.max_lights}")
+        if not self.criterion_robust_scale > 0:
+            raise ValueError(f"estimate.criterion_robust_scale must be > 0, got {self.criterion_robust_scale}")
         if self.reflectance_gains < 0:
             raise ValueError(f"reflectance_gains must be >= 0 rounds, got {self.reflectance_gains}")
         if self.normal_smoothing not in NORMAL_SMOOTHING:
@@ -294,7 +303,7 @@ def _candidates(problem: FitProblem, fit: Fit, n_lights: int, specular: list[boo
                 ) -> list[Candidate]:
     # Each image's fitted model and its criterion: robust loss, 6 parameters per light,
     # the unknown ambient (3) and the specular switch.
-    loss = robust_loss(problem, fit.model, options.refine).tolist()
+    loss = robust_loss(problem, fit.model, replace(options.refine, robust_scale=options.criterion_robust_scale)).tolist()
     n_values = (problem.gbuffer.mask.flatten(1).sum(1) * 3).tolist()
     ambient = 3 if problem.ambient is None else 0
     return [Candidate(_row(fit, i), n_lights, spec, bic(loss[i], int(n_values[i]), 6 * n_lights + ambient + int(spec),
@@ -375,6 +384,7 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
     B, device = problem.batch, problem.image.device
     if options.refine.robust:
         problem.median_observed()  # the robust scale, found once: every selection below keeps its rows
+        problem.noise_level()
     searched = problem if options.search_shadows == options.shadows else problem.with_shadows(options.search_shadows)
     specular_of = has_specular(problem).tolist()
     if options.method == "refine":

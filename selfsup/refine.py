@@ -59,6 +59,7 @@ class FitProblem:
     falloff: str = "inverse_square"
     shadows: str = "epipolar"
     _median: Tensor | None = field(default=None, init=False, repr=False, compare=False)
+    _noise: Tensor | None = field(default=None, init=False, repr=False, compare=False)
 
     @property
     def batch(self) -> int:
@@ -72,6 +73,20 @@ class FitProblem:
             observed = torch.where(mask, self.image, torch.full_like(self.image, float("nan")))
             self._median = observed.flatten(1).nanmedian(1).values
         return self._median
+
+    def noise_level(self) -> Tensor:
+        """``(B,)`` robust standard deviation of the image noise: ``1.4826 median|d| / sqrt(6)``
+        of second differences ``d = I(x-1) - 2 I(x) + I(x+1)`` along rows of three valid
+        pixels (a linear shading ramp cancels; edges are too few to move the median);
+        about the shading's curvature on a clean image. Kept once found."""
+        if self._noise is None:
+            mask = self.gbuffer.mask
+            valid = (mask[..., :-2] & mask[..., 1:-1] & mask[..., 2:])[:, None].expand(-1, self.image.shape[1], -1, -1)
+            second = self.image[..., :-2] - 2 * self.image[..., 1:-1] + self.image[..., 2:]
+            second = torch.where(valid, second.abs(), torch.full_like(second, float("nan")))
+            noise = 1.4826 / math.sqrt(6) * second.flatten(1).nanmedian(1).values
+            self._noise = torch.nan_to_num(noise, nan=0.0)  # no three valid pixels in a row: no floor
+        return self._noise
 
     def select(self, index: Tensor) -> "FitProblem":
         """The images ``index`` (a 1-D long tensor), repeats allowed; ``self`` when
@@ -88,13 +103,14 @@ class FitProblem:
         # Each image's median is its own: the selection's are these rows (a sort of every
         # image's values each time was 7% of a batched estimate's GPU time).
         selected._median = None if self._median is None else self._median[index]
+        selected._noise = None if self._noise is None else self._noise[index]
         return selected
 
     def with_shadows(self, shadows: str) -> "FitProblem":
         """The same images under another shadow method (``dataclasses.replace`` would
         drop the kept median)."""
         changed = dataclasses.replace(self, shadows=shadows)
-        changed._median = self._median
+        changed._median, changed._noise = self._median, self._noise
         return changed
 
     @staticmethod
@@ -148,7 +164,9 @@ class RefineOptions:
     ``strides``: coarse-to-fine pixel strides. ``tol``: stop when the relative cost
     decrease of an accepted step falls below it (``gd`` uses the paper's 1e-4);
     ``step_tol`` (``lm``): or when it moves every light less than this, in scene sizes.
-    ``robust``: Cauchy IRLS with scale ``robust_scale`` x median observed value;
+    ``robust``: Cauchy IRLS with scale ``robust_scale`` x median observed value, at
+    least ``robust_noise_floor`` x the image's noise level (:meth:`FitProblem.noise_level`:
+    a scale below the noise would treat good pixels as outliers);
     ``irls_passes``: reweighting passes that solve the intensities and ambient of
     a robust fit at fixed positions (one pass leaves the outliers' pull in the
     closed-form solve, which skews every loss compared between candidates).
@@ -161,7 +179,8 @@ class RefineOptions:
     tol: float = 1e-4
     step_tol: float = 1e-4
     robust: bool = True
-    robust_scale: float = 0.2
+    robust_scale: float = 0.05
+    robust_noise_floor: float = 3.0
     irls_passes: int = 4
     fd_step: float = 1e-3
     learning_rate: float = 0.02
@@ -178,6 +197,9 @@ class RefineOptions:
             raise ValueError(f"tol and step_tol must be >= 0, got {self.tol}, {self.step_tol}")
         if self.irls_passes < 1:
             raise ValueError(f"irls_passes must be >= 1, got {self.irls_passes}")
+        if not (self.robust_scale > 0 and self.robust_noise_floor >= 0):
+            raise ValueError(f"robust_scale must be > 0 and robust_noise_floor >= 0, got {self.robust_scale}, "
+                             f"{self.robust_noise_floor}")
 
 
 @dataclass
@@ -209,8 +231,12 @@ def _columns(problem: FitProblem, diffuse: Tensor, specular: Tensor | None) -> T
 
 
 def _cauchy_scale(problem: FitProblem, options: RefineOptions) -> Tensor:
-    # The robust loss's scale (B,): robust_scale x the median observed value on valid pixels.
-    return options.robust_scale * problem.median_observed().clamp_min(1e-6)
+    # The robust loss's scale (B,): robust_scale x the median observed value on valid
+    # pixels, at least robust_noise_floor x the noise level.
+    scale = options.robust_scale * problem.median_observed().clamp_min(1e-6)
+    if options.robust_noise_floor > 0:
+        scale = torch.maximum(scale, options.robust_noise_floor * problem.noise_level())
+    return scale
 
 
 def _weights(problem: FitProblem, residual: Tensor | None, options: RefineOptions, scale: Tensor | None = None
