@@ -75,12 +75,14 @@ class EstimateOptions:
     by a smaller window than the light fit needs.
     ``mask_saturated``: leave clipped pixels out (:func:`saturated_pixels`); the
     model cannot explain a highlight cut flat, and fitted it with a second light.
-    ``criterion_robust_scale``: the Cauchy scale (x median observed value) of the
-    loss the model selection compares; the fits themselves use ``refine.robust_scale``.
-    A narrow scale fits the lights best (cast shadows and interreflections the
-    model lacks weigh little) but leaves them unexplained at little cost, and
-    then a second light that explains part of them pays for itself; the
-    criterion judges with the wider one.
+    ``final_robust_scale``: the Cauchy scale (x median observed value, floored at
+    ``refine.robust_noise_floor`` x the noise level) of the chosen model's last,
+    full-resolution refinement; the search, the candidates' fits and the model
+    selection use ``refine.robust_scale``. The narrow one places the lights best
+    (cast shadows and interreflections the model lacks weigh little) but, as the
+    criterion's scale, it leaves them unexplained at little cost and a second
+    light that explains part of them pays for itself; as the search's, it costs
+    more iterations.
     ``reflectance_gains``: rounds of re-estimation with the albedo of each smooth
     surface rescaled by what the last fit says it is (:func:`segment_gains`), for
     reflectance known only up to a factor per surface (0: trust the file's kd).
@@ -100,7 +102,7 @@ class EstimateOptions:
     plane_radius: int = 8
     plane_step: int = 2
     mask_saturated: bool = True
-    criterion_robust_scale: float = 0.2
+    final_robust_scale: float = 0.05
     reflectance_gains: int = 0
     refine: RefineOptions = field(default_factory=RefineOptions)
 
@@ -112,8 +114,8 @@ class EstimateOptions:
             raise ValueError(f"estimate.method must be one of {METHODS}, got {self.method!r}")
         if self.max_lights < 1:
             raise ValueError(f"max_lights must be >= 1, got {self.max_lights}")
-        if not self.criterion_robust_scale > 0:
-            raise ValueError(f"estimate.criterion_robust_scale must be > 0, got {self.criterion_robust_scale}")
+        if not self.final_robust_scale > 0:
+            raise ValueError(f"estimate.final_robust_scale must be > 0, got {self.final_robust_scale}")
         if self.reflectance_gains < 0:
             raise ValueError(f"reflectance_gains must be >= 0 rounds, got {self.reflectance_gains}")
         if self.normal_smoothing not in NORMAL_SMOOTHING:
@@ -303,7 +305,7 @@ def _candidates(problem: FitProblem, fit: Fit, n_lights: int, specular: list[boo
                 ) -> list[Candidate]:
     # Each image's fitted model and its criterion: robust loss, 6 parameters per light,
     # the unknown ambient (3) and the specular switch.
-    loss = robust_loss(problem, fit.model, replace(options.refine, robust_scale=options.criterion_robust_scale)).tolist()
+    loss = robust_loss(problem, fit.model, options.refine).tolist()
     n_values = (problem.gbuffer.mask.flatten(1).sum(1) * 3).tolist()
     ambient = 3 if problem.ambient is None else 0
     return [Candidate(_row(fit, i), n_lights, spec, bic(loss[i], int(n_values[i]), 6 * n_lights + ambient + int(spec),
@@ -447,10 +449,10 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
                     best[i] = c
                     still.append(i)
         growing = sorted(still)
-    if levels > 1:
+    if levels > 1 or options.final_robust_scale != options.refine.robust_scale:
         for (n_lights, specular), group in _groups(best).items():
             finest = replace(options.refine, specular=specular, strides=options.refine.strides[-1:],
-                             max_iters=options.refine.max_iters[-1:])
+                             max_iters=options.refine.max_iters[-1:], robust_scale=options.final_robust_scale)
             sub = problem.select(index(group))
             fit = refine(sub, torch.cat([best[i].fit.position for i in group]), finest)
             for i, c in zip(group, _candidates(sub, fit, n_lights, [specular] * len(group), options)):
@@ -499,7 +501,8 @@ def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, 
     for (n_lights, specular), group in _groups([best for best, _ in results]).items():
         at = torch.tensor(group, dtype=torch.long, device=problem.image.device)
         fit = _stacked([results[i][0].fit for i in group])
-        cov = position_covariance(problem.select(at), fit, replace(options.refine, specular=specular),
+        cov = position_covariance(problem.select(at), fit, replace(options.refine, specular=specular,
+                                                                   robust_scale=options.final_robust_scale),
                                   correlation_px=float(options.block_px**2)).cpu()
         for j, i in enumerate(group):
             covariances[i] = cov[j]

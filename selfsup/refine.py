@@ -179,8 +179,8 @@ class RefineOptions:
     tol: float = 1e-4
     step_tol: float = 1e-4
     robust: bool = True
-    robust_scale: float = 0.05
-    robust_noise_floor: float = 3.0
+    robust_scale: float = 0.2
+    robust_noise_floor: float = 1.0
     irls_passes: int = 4
     fd_step: float = 1e-3
     learning_rate: float = 0.02
