@@ -501,8 +501,7 @@ def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, 
     for (n_lights, specular), group in _groups([best for best, _ in results]).items():
         at = torch.tensor(group, dtype=torch.long, device=problem.image.device)
         fit = _stacked([results[i][0].fit for i in group])
-        cov = position_covariance(problem.select(at), fit, replace(options.refine, specular=specular,
-                                                                   robust_scale=options.final_robust_scale),
+        cov = position_covariance(problem.select(at), fit, replace(options.refine, specular=specular),
                                   correlation_px=float(options.block_px**2)).cpu()
         for j, i in enumerate(group):
             covariances[i] = cov[j]
