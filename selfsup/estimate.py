@@ -46,7 +46,7 @@ from selfsup.refine import (Fit, FitProblem, RefineOptions, position_covariance,
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
 __all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "problems_of", "prepare", "estimate_scene",
-           "estimate_batch", "records", "has_specular", "estimate_files", "scene_files", "segment_gains"]
+           "estimate_batch", "records", "has_specular", "estimate_files", "scene_files", "segment_gains", "plane_window_px"]
 
 log = logging.getLogger(__name__)
 METHODS = ("cnn+refine", "cnn", "refine")
@@ -68,11 +68,11 @@ class EstimateOptions:
     ``normal_smoothing``: ``auto`` replaces the normals when their measured noise
     (:func:`render.geometry.normal_noise`) exceeds ``normal_noise_threshold``
     degrees, as normals of a consumer depth sensor do, by planes fitted to the
-    depth (:func:`render.geometry.plane_normals`, window half-size ``plane_radius``
-    sampled every ``plane_step`` pixels) then smoothed edge-preserving
-    (:func:`render.geometry.smooth_normals`); ``always`` | ``never``. A file's noisy
-    normals are refitted rather than smoothed: they come from the same noisy depth,
-    by a smaller window than the light fit needs.
+    depth (:func:`render.geometry.plane_normals`; :func:`plane_window_px`: a window
+    of ``plane_window`` x the focal length, the same extent in metres at any image
+    resolution) then smoothed edge-preserving (:func:`render.geometry.smooth_normals`);
+    ``always`` | ``never``. A file's noisy normals are refitted rather than smoothed:
+    they come from the same noisy depth, by a smaller window than the light fit needs.
     ``mask_saturated``: leave clipped pixels out (:func:`saturated_pixels`); the
     model cannot explain a highlight cut flat, and fitted it with a second light.
     ``final_robust_scale``: the Cauchy scale (x median observed value, floored at
@@ -99,8 +99,7 @@ class EstimateOptions:
     search_shadows: str = "none"
     normal_smoothing: str = "auto"
     normal_noise_threshold: float = 0.5
-    plane_radius: int = 8
-    plane_step: int = 2
+    plane_window: float = 0.06
     mask_saturated: bool = True
     final_robust_scale: float = 0.05
     reflectance_gains: int = 0
@@ -122,9 +121,8 @@ class EstimateOptions:
             raise ValueError(f"estimate.normal_smoothing must be one of {NORMAL_SMOOTHING}, got {self.normal_smoothing!r}")
         if not self.normal_noise_threshold >= 0:
             raise ValueError(f"estimate.normal_noise_threshold must be >= 0 degrees, got {self.normal_noise_threshold}")
-        if not 1 <= self.plane_step <= self.plane_radius:
-            raise ValueError(f"estimate.plane_radius and plane_step need 1 <= plane_step <= plane_radius, got "
-                             f"{self.plane_radius}, {self.plane_step}")
+        if not 0 < self.plane_window < 1:
+            raise ValueError(f"estimate.plane_window must be in (0, 1) (of the focal length), got {self.plane_window}")
         for name in ("shadows", "search_shadows"):
             if getattr(self, name) not in SHADOW_METHODS:
                 raise ValueError(f"estimate.{name} must be one of {SHADOW_METHODS}, got {getattr(self, name)!r}")
@@ -159,11 +157,11 @@ def saturated_pixels(image: Tensor, mask: Tensor, min_share: float = 0.002) -> T
 
 
 def problem_of(scene: Scene, shadows: str = "epipolar", dtype=torch.float32, normal_smoothing: str = "never",
-               normal_noise_threshold: float = 0.5, mask_saturated: bool = False, *, plane_radius: int = 8,
-               plane_step: int = 2) -> FitProblem:
+               normal_noise_threshold: float = 0.5, mask_saturated: bool = False, *,
+               plane_window: float = 0.06) -> FitProblem:
     """A batch-of-one :class:`FitProblem` from a scene file's contents (see :func:`problems_of`)."""
     return problems_of([scene], shadows, dtype, normal_smoothing, normal_noise_threshold, mask_saturated,
-                       plane_radius=plane_radius, plane_step=plane_step)
+                       plane_window=plane_window)
 
 
 def _stacked_field(scenes: list[Scene], name: str, device=None) -> Tensor | None:
@@ -185,9 +183,19 @@ def _stacked_field(scenes: list[Scene], name: str, device=None) -> Tensor | None
     return torch.stack(values, out=staged).to(device, non_blocking=True)
 
 
+def plane_window_px(focal_px: float, plane_window: float) -> tuple[int, int]:
+    """``(radius, step)`` in pixels of the plane-fit window for noisy normals: half-size
+    ``plane_window x focal_px`` (at least 1), sampled every ``radius / 4`` pixels, rounded
+    (about 9x9 samples whatever the size, so the cost per pixel stays put). A window of fixed
+    extent in metres: at half the resolution the same pixels' noise is spread over
+    twice the pixel spacing (devset noisy at 80x60: radius 4 kept 6/6, radius 8 lost a light)."""
+    radius = max(1, round(plane_window * focal_px))
+    return radius, max(1, round(radius / 4))
+
+
 def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.float32, normal_smoothing: str = "never",
                 normal_noise_threshold: float = 0.5, mask_saturated: bool = False, device=None, *,
-                plane_radius: int = 8, plane_step: int = 2) -> FitProblem:
+                plane_window: float = 0.06) -> FitProblem:
     """One :class:`FitProblem` of ``B`` same-sized scenes, on ``device`` (None: the
     scenes' own; the scenes are stacked first, so each field moves in one copy);
     the normals smoothed as ``normal_smoothing`` says (see :class:`EstimateOptions`),
@@ -224,16 +232,19 @@ def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.floa
             normal_noise(gbuffer.points, gbuffer.normals, gbuffer.mask) > normal_noise_threshold)
         if bool(noisy.any()):
             at = noisy.nonzero(as_tuple=True)[0]
-            points, mask = gbuffer.points[at], gbuffer.mask[at]
             # Normals of noisy depth, a file's own included (a sensor's normals come from its
             # depth, by a few pixels' differences or a small window), are tilted by the noise:
-            # planes through a wide window average it away (sensor sets, README: a 17x17 window
+            # planes through a wide window average it away (README: at 160x120 a 17x17 window
             # sampled every 2 pixels beat 9x9 windows and the file's smoothed normals).
-            normals, has_normal = plane_normals(points, mask, radius=plane_radius, step=plane_step)
-            mask = mask & has_normal
-            smoothed = smooth_normals(points, normals, mask)
-            gbuffer = replace(gbuffer, normals=gbuffer.normals.index_put((at,), smoothed),
-                              mask=gbuffer.mask.index_put((at,), mask))
+            windows = [plane_window_px(float(gbuffer.intrinsics[i, 0, 0]), plane_window) for i in at.tolist()]
+            for radius, step in sorted(set(windows)):
+                rows = at[torch.tensor([w == (radius, step) for w in windows], device=at.device)]
+                points, mask = gbuffer.points[rows], gbuffer.mask[rows]
+                normals, has_normal = plane_normals(points, mask, radius=radius, step=step)
+                mask = mask & has_normal
+                smoothed = smooth_normals(points, normals, mask)
+                gbuffer = replace(gbuffer, normals=gbuffer.normals.index_put((rows,), smoothed),
+                                  mask=gbuffer.mask.index_put((rows,), mask))
     return FitProblem(gbuffer, material, image, _stacked_field(scenes, "ambient", device), scenes[0].falloff, shadows)
 
 
@@ -242,8 +253,7 @@ def prepare(scenes: list[Scene], options: EstimateOptions, device=None) -> FitPr
     smoothing, clipped pixels): the problem :func:`estimate_batch` expects."""
     return problems_of(scenes, options.shadows, normal_smoothing=options.normal_smoothing,
                        normal_noise_threshold=options.normal_noise_threshold,
-                       mask_saturated=options.mask_saturated, device=device, plane_radius=options.plane_radius,
-                       plane_step=options.plane_step)
+                       mask_saturated=options.mask_saturated, device=device, plane_window=options.plane_window)
 
 
 def bic(loss: float, n_values: int, n_params: int, block_px: int) -> float:

@@ -315,6 +315,18 @@ def test_sensor_noise_in_the_depth_is_taken_out_of_the_normals():
         EstimateOptions(normal_smoothing="sometimes")
 
 
+def test_the_plane_window_follows_the_focal_length():
+    from selfsup.estimate import plane_window_px
+
+    # The same extent in metres at any resolution, about 9x9 samples.
+    assert plane_window_px(132.3, 0.06) == (8, 2)
+    assert plane_window_px(66.2, 0.06) == (4, 1)
+    assert plane_window_px(264.6, 0.06) == (16, 4)
+    assert plane_window_px(5.0, 0.06) == (1, 1)
+    with pytest.raises(ValueError, match="plane_window"):
+        EstimateOptions(plane_window=0)
+
+
 def test_noise_level_measures_added_noise_and_floors_the_robust_scale():
     from selfsup.refine import _cauchy_scale
 
