@@ -46,7 +46,7 @@ from selfsup.refine import (Fit, FitProblem, RefineOptions, position_covariance,
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
 __all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "problems_of", "prepare", "estimate_scene",
-           "estimate_batch", "records", "has_specular", "estimate_files", "scene_files", "segment_gains", "plane_window_px"]
+           "estimate_batch", "records", "has_specular", "estimate_files", "scene_files", "segment_gains", "plane_window_px", "block_px"]
 
 log = logging.getLogger(__name__)
 METHODS = ("cnn+refine", "cnn", "refine")
@@ -59,9 +59,11 @@ class EstimateOptions:
     """Settings of ``mode=estimate`` (mirrors ``configs/estimate/default.yaml``).
 
     ``max_lights``: the most lights a scene may get; each must carry at least
-    ``min_light_share`` of the rendered direct light. ``block_px``: residuals are
-    spatially correlated, so the criterion counts one independent sample per
-    ``block_px x block_px`` pixels. ``shadows``: the renderer's shadow method of
+    ``min_light_share`` of the rendered direct light. ``block_width``: residuals are
+    spatially correlated, so the criterion and the uncertainty count one
+    independent sample per square block of ``block_width`` x the image width
+    (:func:`block_px`; 8 pixels at 160x120): the model's errors follow the scene's
+    structure, which a finer image samples with more pixels, not more independent ones. ``shadows``: the renderer's shadow method of
     the final refinement and the criterion; ``search_shadows``: that of the
     global search (``none``: shading alone, the smoother landscape).
     ``checkpoint``: the network of the ``cnn`` methods (None: the shipped one).
@@ -93,7 +95,7 @@ class EstimateOptions:
     cnn_grid: tuple[int, int, int] = (7, 6, 7)  # cnn+refine: the grid searched beside the network's slots
     cnn_starts: int = 8
     max_lights: int = 2
-    block_px: int = 8
+    block_width: float = 0.05
     min_light_share: float = 0.1
     shadows: str = "none"
     search_shadows: str = "none"
@@ -113,6 +115,8 @@ class EstimateOptions:
             raise ValueError(f"estimate.method must be one of {METHODS}, got {self.method!r}")
         if self.max_lights < 1:
             raise ValueError(f"max_lights must be >= 1, got {self.max_lights}")
+        if not 0 < self.block_width <= 1:
+            raise ValueError(f"estimate.block_width must be in (0, 1] (of the image width), got {self.block_width}")
         if not self.final_robust_scale > 0:
             raise ValueError(f"estimate.final_robust_scale must be > 0, got {self.final_robust_scale}")
         if self.reflectance_gains < 0:
@@ -256,6 +260,14 @@ def prepare(scenes: list[Scene], options: EstimateOptions, device=None) -> FitPr
                        mask_saturated=options.mask_saturated, device=device, plane_window=options.plane_window)
 
 
+def block_px(options: EstimateOptions, width: int) -> int:
+    """Side in pixels of the criterion's independent-sample block for an image ``width``
+    pixels wide: ``options.block_width x width``, rounded, at least 1 (a procedural
+    sensor-noise scene rendered at 320x240 got a spurious second light with 8-pixel
+    blocks and the right one with 16, as at 160x120 with 8)."""
+    return max(1, round(options.block_width * width))
+
+
 def bic(loss: float, n_values: int, n_params: int, block_px: int) -> float:
     """Bayesian information criterion on ``n_values / block_px^2`` independent samples.
 
@@ -319,7 +331,7 @@ def _candidates(problem: FitProblem, fit: Fit, n_lights: int, specular: list[boo
     n_values = (problem.gbuffer.mask.flatten(1).sum(1) * 3).tolist()
     ambient = 3 if problem.ambient is None else 0
     return [Candidate(_row(fit, i), n_lights, spec, bic(loss[i], int(n_values[i]), 6 * n_lights + ambient + int(spec),
-                                                        options.block_px))
+                                                        block_px(options, problem.image.shape[-1])))
             for i, spec in enumerate(specular)]
 
 
@@ -512,7 +524,7 @@ def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, 
         at = torch.tensor(group, dtype=torch.long, device=problem.image.device)
         fit = _stacked([results[i][0].fit for i in group])
         cov = position_covariance(problem.select(at), fit, replace(options.refine, specular=specular),
-                                  correlation_px=float(options.block_px**2)).cpu()
+                                  correlation_px=float(block_px(options, problem.image.shape[-1]) ** 2)).cpu()
         for j, i in enumerate(group):
             covariances[i] = cov[j]
     return [_record(scene_id, best, tried, cov) for scene_id, (best, tried), cov in zip(ids, results, covariances)]

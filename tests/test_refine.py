@@ -327,6 +327,15 @@ def test_the_plane_window_follows_the_focal_length():
         EstimateOptions(plane_window=0)
 
 
+def test_the_criterion_block_follows_the_image_width():
+    from selfsup.estimate import block_px
+
+    options = EstimateOptions()
+    assert [block_px(options, w) for w in (160, 80, 320, 8)] == [8, 4, 16, 1]
+    with pytest.raises(ValueError, match="block_width"):
+        EstimateOptions(block_width=0)
+
+
 def test_noise_level_measures_added_noise_and_floors_the_robust_scale():
     from selfsup.refine import _cauchy_scale
 
