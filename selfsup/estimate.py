@@ -187,13 +187,15 @@ def _stacked_field(scenes: list[Scene], name: str, device=None) -> Tensor | None
     return torch.stack(values, out=staged).to(device, non_blocking=True)
 
 
-def plane_window_px(focal_px: float, plane_window: float) -> tuple[int, int]:
+def plane_window_px(focal_px: float, plane_window: float, image_px: int) -> tuple[int, int]:
     """``(radius, step)`` in pixels of the plane-fit window for noisy normals: half-size
-    ``plane_window x focal_px`` (at least 1), sampled every ``radius / 4`` pixels, rounded
-    (about 9x9 samples whatever the size, so the cost per pixel stays put). A window of fixed
+    ``plane_window x focal_px``, at least 1 and at most an eighth of ``image_px`` (the
+    image's shorter side: a telephoto lens, or a wrong focal length, must not make one
+    window the whole image), sampled every ``radius / 4`` pixels, rounded (about 9x9
+    samples whatever the size, so the cost per pixel stays put). A window of fixed
     extent in metres: at half the resolution the same pixels' noise is spread over
     twice the pixel spacing (devset noisy at 80x60: radius 4 kept 6/6, radius 8 lost a light)."""
-    radius = max(1, round(plane_window * focal_px))
+    radius = max(1, min(round(plane_window * focal_px), image_px // 8))
     return radius, max(1, round(radius / 4))
 
 
@@ -240,7 +242,8 @@ def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.floa
             # depth, by a few pixels' differences or a small window), are tilted by the noise:
             # planes through a wide window average it away (README: at 160x120 a 17x17 window
             # sampled every 2 pixels beat 9x9 windows and the file's smoothed normals).
-            windows = [plane_window_px(float(gbuffer.intrinsics[i, 0, 0]), plane_window) for i in at.tolist()]
+            shorter = min(gbuffer.mask.shape[1:])
+            windows = [plane_window_px(float(gbuffer.intrinsics[i, 0, 0]), plane_window, shorter) for i in at.tolist()]
             for radius, step in sorted(set(windows)):
                 rows = at[torch.tensor([w == (radius, step) for w in windows], device=at.device)]
                 points, mask = gbuffer.points[rows], gbuffer.mask[rows]

@@ -319,10 +319,11 @@ def test_the_plane_window_follows_the_focal_length():
     from selfsup.estimate import plane_window_px
 
     # The same extent in metres at any resolution, about 9x9 samples.
-    assert plane_window_px(132.3, 0.06) == (8, 2)
-    assert plane_window_px(66.2, 0.06) == (4, 1)
-    assert plane_window_px(264.6, 0.06) == (16, 4)
-    assert plane_window_px(5.0, 0.06) == (1, 1)
+    assert plane_window_px(132.3, 0.06, 120) == (8, 2)
+    assert plane_window_px(66.2, 0.06, 60) == (4, 1)
+    assert plane_window_px(264.6, 0.06, 240) == (16, 4)
+    assert plane_window_px(5.0, 0.06, 120) == (1, 1)
+    assert plane_window_px(1e6, 0.06, 120) == (15, 4)  # capped at an eighth of the shorter side
     with pytest.raises(ValueError, match="plane_window"):
         EstimateOptions(plane_window=0)
 
