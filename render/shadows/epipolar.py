@@ -165,12 +165,14 @@ def _angle_from_camera_ray(points: Tensor, light_position: Tensor) -> Tensor:
     """
     c = -light_position
     d = points - light_position
-    c, d = torch.broadcast_tensors(c, d)
-    cross = torch.linalg.cross(c, d)
+    # |c x d| by components: torch.linalg.cross over a last axis of 3 ran 3-5x slower
+    # on the CPU (16 x 19200 points: 5.4-6.7 ms against 1.1-2.1 ms, ad hoc).
+    (c0, c1, c2), (d0, d1, d2) = c.unbind(-1), d.unbind(-1)
+    x0, x1, x2 = c1 * d2 - c2 * d1, c2 * d0 - c0 * d2, c0 * d1 - c1 * d0
     # sqrt guard: |c x d| is 0 for points on the line L-O; the floor keeps sqrt'
     # finite there (atan2 itself is smooth away from (0, 0)).
-    sin_part = dot3(cross, cross).clamp_min(torch.finfo(points.dtype).tiny).sqrt()
-    return torch.atan2(sin_part, dot3(c, d))
+    sin_part = (x0 * x0 + x1 * x1 + x2 * x2).clamp_min(torch.finfo(points.dtype).tiny).sqrt()
+    return torch.atan2(sin_part, c0 * d0 + c1 * d1 + c2 * d2)
 
 
 def _masked_angle(angle_image: Tensor, grid: Tensor) -> tuple[Tensor, Tensor]:
