@@ -63,8 +63,9 @@ class EstimateOptions:
     spatially correlated, so the criterion and the uncertainty count one
     independent sample per square block of ``block_width`` x the image width
     (:func:`block_px`; 8 pixels at 160x120): the model's errors follow the scene's
-    structure, which a finer image samples with more pixels, not more independent ones. ``shadows``: the renderer's shadow method of
-    the final refinement and the criterion; ``search_shadows``: that of the
+    structure, which a finer image samples with more pixels, not more independent
+    ones. ``shadows``: the renderer's shadow method of the final refinement and the
+    criterion; ``search_shadows``: that of the
     global search (``none``: shading alone, the smoother landscape).
     ``checkpoint``: the network of the ``cnn`` methods (None: the shipped one).
     ``normal_smoothing``: ``auto`` replaces the normals when their measured noise
