@@ -244,7 +244,7 @@ def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.floa
             # planes through a wide window average it away (README: at 160x120 a 17x17 window
             # sampled every 2 pixels beat 9x9 windows and the file's smoothed normals).
             shorter = min(gbuffer.mask.shape[1:])
-            windows = [plane_window_px(float(gbuffer.intrinsics[i, 0, 0]), plane_window, shorter) for i in at.tolist()]
+            windows = [plane_window_px(fx, plane_window, shorter) for fx in gbuffer.intrinsics[at, 0, 0].tolist()]
             for radius, step in sorted(set(windows)):
                 rows = at[torch.tensor([w == (radius, step) for w in windows], device=at.device)]
                 points, mask = gbuffer.points[rows], gbuffer.mask[rows]

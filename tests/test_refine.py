@@ -328,6 +328,19 @@ def test_the_plane_window_follows_the_focal_length():
         EstimateOptions(plane_window=0)
 
 
+def test_noisy_normals_of_a_batch_are_each_scenes_own():
+    # Scenes of different focal lengths get different plane windows, batched or alone.
+    from selfsup.estimate import plane_window_px, problems_of
+    from selfsup.scenes.degrade import Degradations, degrade
+
+    noisy = [degrade(_scene(seed, config=MEDIUM), Degradations(depth_noise=0.003), seed) for seed in (2, 3)]
+    assert len({plane_window_px(float(s.K[0, 0]), 0.06, 96) for s in noisy}) == 2
+    together = problems_of(noisy, "none", normal_smoothing="auto").gbuffer
+    for i, scene in enumerate(noisy):
+        alone = problems_of([scene], "none", normal_smoothing="auto").gbuffer
+        assert torch.equal(together.normals[i], alone.normals[0]) and torch.equal(together.mask[i], alone.mask[0])
+
+
 def test_the_criterion_block_follows_the_image_width():
     from selfsup.estimate import block_px
 
