@@ -33,7 +33,7 @@ from torch import Tensor
 from render import GBuffer, Material, light_transport, light_transport_jacobian
 from selfsup.linear import basis_images, solve_intensities
 
-__all__ = ["FitProblem", "RefineOptions", "Fit", "refine", "search", "solve_linear", "evaluate", "grid_candidates",
+__all__ = ["FitProblem", "RefineOptions", "Fit", "refine", "search", "solve_linear", "reweighted", "evaluate", "grid_candidates",
            "robust_loss", "position_covariance", "subsample"]
 
 
@@ -273,6 +273,19 @@ def _transport(problem: FitProblem, position: Tensor, specular: bool):
     return t.diffuse, t.specular
 
 
+def reweighted(problem: FitProblem, diffuse: Tensor, specular: Tensor | None, options: RefineOptions,
+               passes: int | None = None) -> Tensor:
+    """IRLS weights ``(B, 3, H, W)`` of the robust fit of fixed transport maps ``(B, L, H, W)``:
+    ``passes`` (``options.irls_passes`` by default) reweightings from the plain
+    least-squares solve; the valid mask alone when ``options.robust`` is off."""
+    weights = _weights(problem, None, options)
+    scale = _cauchy_scale(problem, options) if options.robust else None
+    for _ in range((passes or options.irls_passes) if options.robust else 0):
+        _, _, model = solve_linear(problem, diffuse, specular, weights)
+        weights = _weights(problem, model - problem.image, options, scale)
+    return weights
+
+
 def evaluate(problem: FitProblem, position: Tensor, options: RefineOptions, weights: Tensor | None = None,
              passes: int | None = None):
     """Solve intensities/ambient at ``position (B, L, 3)``; returns
@@ -283,11 +296,7 @@ def evaluate(problem: FitProblem, position: Tensor, options: RefineOptions, weig
     """
     diffuse, specular = _transport(problem, position, options.specular)
     if weights is None:
-        weights = _weights(problem, None, options)
-        scale = _cauchy_scale(problem, options) if options.robust else None
-        for _ in range((passes or options.irls_passes) if options.robust else 0):
-            _, _, model = solve_linear(problem, diffuse, specular, weights)
-            weights = _weights(problem, model - problem.image, options, scale)
+        weights = reweighted(problem, diffuse, specular, options, passes)
     intensity, ambient, model = solve_linear(problem, diffuse, specular, weights)
     cost = (weights * (model - problem.image) ** 2).flatten(1).sum(1)
     return cost, intensity, ambient, model, weights, diffuse, specular

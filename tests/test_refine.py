@@ -341,6 +341,24 @@ def test_noisy_normals_of_a_batch_are_each_scenes_own():
         assert torch.equal(together.normals[i], alone.normals[0]) and torch.equal(together.mask[i], alone.mask[0])
 
 
+def test_a_true_light_shows_its_shadows_and_a_stand_in_does_not():
+    from selfsup.estimate import shadow_gain
+
+    for seed in (2, 3, 4):
+        two = _scene(seed, n_lights=2, config=MEDIUM)
+        gains = [float(shadow_gain(problem_of(two, "none"), two.light_pos[None], torch.tensor([j]), False,
+                                   RefineOptions())) for j in (0, 1)]
+        assert min(gains) > 0.1, gains  # measured 0.21-0.64
+        # A second light in a one-light image, away in front of the scene: its shadows are not there.
+        one = _scene(seed, config=MEDIUM)
+        problem = problem_of(one, "none")
+        centre = problem.gbuffer.points[0][problem.gbuffer.mask[0]].mean(0)
+        stand_in = torch.stack([one.light_pos[0], centre + torch.tensor([0.0, -1.0, -1.5])])[None]
+        assert float(shadow_gain(problem, stand_in, torch.tensor([1]), False, RefineOptions())) < 0.01
+    with pytest.raises(ValueError, match="weak_light_shadow_gain"):
+        EstimateOptions(weak_light_shadow_gain=-1)
+
+
 def test_the_criterion_block_follows_the_image_width():
     from selfsup.estimate import block_px
 
