@@ -512,7 +512,7 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
                 tried[i].append(c)
                 # A light that does not pay for itself: more would not either. A weak one
                 # pays only with its own cast shadows in the image as evidence.
-                if pays[j] and (share >= options.min_light_share or gains.get(j, 0.0) >= options.weak_light_shadow_gain):
+                if pays[j] and (share >= options.min_light_share or gains.get(j, -math.inf) >= options.weak_light_shadow_gain):
                     best[i] = c
                     still.append(i)
         growing = sorted(still)
