@@ -46,7 +46,8 @@ from selfsup.refine import (Fit, FitProblem, RefineOptions, position_covariance,
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
 __all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "problems_of", "prepare", "estimate_scene",
-           "estimate_batch", "records", "has_specular", "estimate_files", "scene_files", "segment_gains", "plane_window_px", "block_px", "shadow_gain"]
+           "estimate_batch", "records", "has_specular", "estimate_files", "scene_files", "segment_gains",
+           "plane_window_px", "block_px", "shadow_gain"]
 
 log = logging.getLogger(__name__)
 METHODS = ("cnn+refine", "cnn", "refine")
@@ -61,14 +62,14 @@ class EstimateOptions:
     ``max_lights``: the most lights a scene may get; each must carry at least
     ``min_light_share`` of the rendered direct light, or, weaker, show its own cast
     shadows: modelling them (:func:`shadow_gain`) must lower the robust loss by at
-    least ``weak_light_shadow_gain`` (0: weak lights never kept). ``block_width``: residuals are
-    spatially correlated, so the criterion and the uncertainty count one
-    independent sample per square block of ``block_width`` x the image width
+    least ``weak_light_shadow_gain`` (0: weak lights never kept). ``block_width``:
+    residuals are spatially correlated, so the criterion and the uncertainty count
+    one independent sample per square block of ``block_width`` x the image width
     (:func:`block_px`; 8 pixels at 160x120): the model's errors follow the scene's
     structure, which a finer image samples with more pixels, not more independent
     ones. ``shadows``: the renderer's shadow method of the final refinement and the
-    criterion; ``search_shadows``: that of the
-    global search (``none``: shading alone, the smoother landscape).
+    criterion; ``search_shadows``: that of the global search (``none``: shading
+    alone, the smoother landscape).
     ``checkpoint``: the network of the ``cnn`` methods (None: the shipped one).
     ``normal_smoothing``: ``auto`` replaces the normals when their measured noise
     (:func:`render.geometry.normal_noise`) exceeds ``normal_noise_threshold``
@@ -512,7 +513,8 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
                 tried[i].append(c)
                 # A light that does not pay for itself: more would not either. A weak one
                 # pays only with its own cast shadows in the image as evidence.
-                if pays[j] and (share >= options.min_light_share or gains.get(j, -math.inf) >= options.weak_light_shadow_gain):
+                shown = gains.get(j, -math.inf) >= options.weak_light_shadow_gain
+                if pays[j] and (share >= options.min_light_share or shown):
                     best[i] = c
                     still.append(i)
         growing = sorted(still)
