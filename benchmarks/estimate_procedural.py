@@ -10,6 +10,7 @@ chi-square 95.4% point).
 
     python -m benchmarks.estimate_procedural --scenes 20 --method cnn+refine [--shadows none --search-shadows none]
         [--normal-smoothing auto] [--reflectance-gains 1] [--sets "sensor depth and image noise"]  # a subset is printed, not written
+        [--option block_width=0.1 --option refine.robust_scale=0.05]  # any other setting: printed, not written
 
 Results: benchmarks/results/estimate_procedural_<method>_shadows_<s>_search_<s>_<device>_<date>.{md,json}.
 """
@@ -17,6 +18,7 @@ Results: benchmarks/results/estimate_procedural_<method>_shadows_<s>_search_<s>_
 from __future__ import annotations
 
 import argparse
+import ast
 import statistics
 import time
 
@@ -25,6 +27,7 @@ import torch
 from benchmarks.common import write_results
 from render import GBuffer
 from selfsup.estimate import EstimateOptions, estimate_scene
+from selfsup.refine import RefineOptions
 from selfsup.metrics import light_errors, pair_lights
 from selfsup.scenes.dataset import render_item
 from selfsup.scenes.degrade import Degradations
@@ -87,11 +90,27 @@ def run_set(name: str, count: int, seed: int, options: EstimateOptions) -> dict:
             "median_seconds": round(statistics.median(seconds), 3)}
 
 
+def parse_options(pairs: list[str]) -> dict:
+    """``["block_width=0.1", "refine.robust_scale=0.05"]`` -> keyword arguments of
+    :class:`EstimateOptions` (``refine.*`` become a :class:`RefineOptions`); values are
+    Python literals."""
+    estimate, refine = {}, {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep:
+            raise ValueError(f"--option takes KEY=VALUE, got {pair!r}")
+        target, key = (refine, key[len("refine."):]) if key.startswith("refine.") else (estimate, key)
+        target[key] = ast.literal_eval(value)
+    if refine:
+        estimate["refine"] = RefineOptions(**refine)
+    return estimate
+
+
 def run(scenes: int = 20, method: str = "cnn+refine", seed: int = 9100, sets: list[str] | None = None,
         write: bool = True, shadows: str = "none", search_shadows: str = "none", normal_smoothing: str = "auto",
-        reflectance_gains: int = 0):
+        reflectance_gains: int = 0, extra: dict | None = None):
     options = EstimateOptions(method=method, shadows=shadows, search_shadows=search_shadows,
-                              normal_smoothing=normal_smoothing, reflectance_gains=reflectance_gains)
+                              normal_smoothing=normal_smoothing, reflectance_gains=reflectance_gains, **(extra or {}))
     rows = []
     for name in SETS:
         if sets and name not in sets:
@@ -122,8 +141,10 @@ if __name__ == "__main__":
     parser.add_argument("--normal-smoothing", default="auto")
     parser.add_argument("--reflectance-gains", type=int, default=0)
     parser.add_argument("--sets", nargs="*", help="names of the sets to run (default: all)")
+    parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                        help="another EstimateOptions field (refine.* for RefineOptions); printed, not written")
     args = parser.parse_args()
     torch.set_num_threads(2)
-    print(run(args.scenes, args.method, args.seed, sets=args.sets, write=not args.sets, shadows=args.shadows,
-              search_shadows=args.search_shadows, normal_smoothing=args.normal_smoothing,
-              reflectance_gains=args.reflectance_gains)[1])
+    print(run(args.scenes, args.method, args.seed, sets=args.sets, write=not (args.sets or args.option),
+              shadows=args.shadows, search_shadows=args.search_shadows, normal_smoothing=args.normal_smoothing,
+              reflectance_gains=args.reflectance_gains, extra=parse_options(args.option))[1])
