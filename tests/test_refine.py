@@ -496,3 +496,13 @@ def test_reflectance_gains_correct_albedo_wrong_by_a_factor_per_surface():
     assert errors[1] < 0.01 and errors[1] < 0.6 * errors[0], errors
     with pytest.raises(ValueError, match="reflectance_gains"):
         EstimateOptions(reflectance_gains=-1)
+
+
+def test_benchmark_options_reach_estimate_and_refine_settings():
+    from benchmarks.estimate_procedural import parse_options
+
+    extra = parse_options(["block_width=0.1", "refine.robust_scale=0.05", "weak_light_shadow_gain=0"])
+    options = EstimateOptions(**extra)
+    assert (options.block_width, options.weak_light_shadow_gain, options.refine.robust_scale) == (0.1, 0, 0.05)
+    with pytest.raises(ValueError, match="KEY=VALUE"):
+        parse_options(["block_width"])
