@@ -23,7 +23,7 @@ from selfsup.scenes.raycast import (_CHUNK, _FAR, _KINDS, Bundles, PrimitiveBatc
                                     bundle_rays, cast_bundles, hit_normals)
 from selfsup.scenes.sampler import Materials, SceneSpec, Texture
 
-__all__ = ["RenderedScene", "render_spec", "render_specs", "albedo_at", "material_rows", "fractal_noise",
+__all__ = ["RenderedScene", "render_spec", "render_specs", "albedo_at", "pattern_at", "material_rows", "fractal_noise",
            "neighbourhood_max"]
 
 GENERATOR_NAME = "shadowlight.procedural v1 (exact ray casting)"
@@ -79,9 +79,10 @@ def material_rows(materials: Materials) -> Tensor:
                       materials.shininess[None]]).contiguous()
 
 
-def albedo_at(material: Tensor, points: Tensor) -> Tensor:
-    """Albedo ``(3, N)`` at ``points (3, N)`` of primitives whose :func:`material_rows`
-    columns are ``material (13, N)``."""
+def pattern_at(material: Tensor, points: Tensor) -> Tensor:
+    """Where ``points (3, N)`` fall between the base (1) and the alternate (0) albedo
+    of primitives whose :func:`material_rows` columns are ``material (13, N)``: ``(N,)``,
+    0 or 1 on checkers and stripes, in [0, 1] on fractal noise, 1 on uniform albedo."""
     kind, scale = material[_KIND], material[_SCALE]
     # Checker and stripes everywhere (a few cheap passes), chosen by float masks.
     inv_scale = 1 / scale
@@ -95,6 +96,13 @@ def albedo_at(material: Tensor, points: Tensor) -> Tensor:
     noisy = (kind == Texture.NOISE).nonzero(as_tuple=True)[0]
     if noisy.numel():  # the costliest pattern: evaluated only where used
         t.index_copy_(0, noisy, fractal_noise(points.index_select(1, noisy), scale.index_select(0, noisy)))
+    return t
+
+
+def albedo_at(material: Tensor, points: Tensor, pattern: Tensor | None = None) -> Tensor:
+    """Albedo ``(3, N)`` at ``points (3, N)`` of primitives whose :func:`material_rows`
+    columns are ``material (13, N)`` (``pattern``: their :func:`pattern_at`, if known)."""
+    t = pattern_at(material, points) if pattern is None else pattern
     base, alt = material[_BASE], material[_ALT]
     return alt + t * (base - alt)
 
@@ -224,19 +232,21 @@ def _trace(batch: _Batch, dirs: list[Tensor]) -> _Rays:
 _SHADE_RAYS = 65536
 
 
-def _shade(batch: _Batch, rays: _Rays, falloff: str) -> tuple[Tensor, Tensor]:
-    """Unit-exposure radiance without ambient and the albedo, each ``(3, R)``, of traced rays."""
+def _shade(batch: _Batch, rays: _Rays, falloff: str) -> tuple[Tensor, Tensor, Tensor]:
+    """Unit-exposure radiance without ambient and the albedo, each ``(3, R)``, of traced
+    rays, and their albedo pattern ``(R,)`` (:func:`pattern_at`)."""
     R = rays.valid.shape[0]
     if R > _SHADE_RAYS:
-        radiance, kd = rays.points.new_empty(3, R), rays.points.new_empty(3, R)
+        radiance, kd, pattern = rays.points.new_empty(3, R), rays.points.new_empty(3, R), rays.points.new_empty(R)
         for start in range(0, R, _SHADE_RAYS):
             length = min(_SHADE_RAYS, R - start)
-            for out, part in zip((radiance, kd), _shade(batch, rays.narrow(start, length), falloff)):
-                out.narrow(1, start, length).copy_(part)
-        return radiance, kd
+            for out, part in zip((radiance, kd, pattern), _shade(batch, rays.narrow(start, length), falloff)):
+                out.narrow(-1, start, length).copy_(part)
+        return radiance, kd, pattern
     valid = rays.valid.to(rays.points.dtype)
     material = batch.material_rows.index_select(1, rays.primitive)  # (13, R)
-    kd = albedo_at(material, rays.points) * valid
+    pattern = pattern_at(material, rays.points)
+    kd = albedo_at(material, rays.points, pattern) * valid
     L = batch.light_position.shape[1]
     lights = batch.light_rows.index_select(1, rays.scene)  # (6 L, R): each ray's light positions and intensities
     diffuse, _ = blinn_phong(rays.points, rays.normals, rays.visibility, None, *lights.view(2, L, 3, -1), falloff,
@@ -249,27 +259,63 @@ def _shade(batch: _Batch, rays: _Rays, falloff: str) -> tuple[Tensor, Tensor]:
                                   rays.visibility.index_select(1, shiny), material[_SHININESS].index_select(0, shiny),
                                   *lights.index_select(1, shiny).view(2, L, 3, -1), falloff, diffuse=False)
         radiance.index_add_(1, shiny, material[_KS].index_select(0, shiny) * specular)
-    return radiance, kd
+    return radiance, kd, pattern
 
 
 def neighbourhood_max(x: Tensor) -> Tensor:
     """Maximum over each pixel's 3x3 neighbourhood of ``x (..., H, W)`` (the image's
     edge pixels over the part inside): shifted maxima, 6x faster than ``max_pool2d`` on CPU."""
+    return _neighbourhood(x, torch.maximum)
+
+
+def _neighbourhood(x: Tensor, combine) -> Tensor:
+    # combine (an associative elementwise op) over each pixel's 3x3 neighbourhood, edges replicated.
     x = F.pad(x[None] if x.dim() == 2 else x, (1, 1, 1, 1), mode="replicate").view(*x.shape[:-2], x.shape[-2] + 2, -1)
-    x = torch.maximum(torch.maximum(x[..., :-2, :], x[..., 1:-1, :]), x[..., 2:, :])
-    return torch.maximum(torch.maximum(x[..., :-2], x[..., 1:-1]), x[..., 2:])
+    x = combine(combine(x[..., :-2, :], x[..., 1:-1, :]), x[..., 2:, :])
+    return combine(combine(x[..., :-2], x[..., 1:-1]), x[..., 2:])
 
 
-def _edges(prim: Tensor, visibility: Tensor, kd: Tensor) -> tuple[Tensor, Tensor]:
-    """Pixels ``(B, H, W)`` whose 3x3 neighbourhood changes primitive or shadow of any
-    light (``visibility (L, B, H, W)``), and those whose only change is an albedo
-    jump (``kd (3, B, H, W)``, by more than 0.02). (Four neighbours would do for
-    straight edges, but not for checker corners or stripes under two pixels wide.)"""
-    stack = torch.cat([prim.to(kd.dtype)[None], visibility, kd])  # (1 + L + 3, B, H, W)
-    change = neighbourhood_max(stack) + neighbourhood_max(-stack)
+# Albedo classes of a pixel's centre sample for the anti-aliasing (:func:`_edges`): 0 no
+# checker or stripes there (or no surface: albedo 0), 1 its alternate, 2 its base albedo.
+# Pairs of classes are bits: 0-1, 0-2, 1-2.
+_CLASS_PAIRS = ((0, 1), (0, 2), (1, 2))
+
+
+def _albedo_jumps(material_rows: Tensor) -> Tensor:
+    """Per primitive ``(P,)`` uint8: the bits of the class pairs whose albedos differ by more
+    than 0.02 in a channel, computed as :func:`albedo_at` computes them."""
+    base, alt = material_rows[_BASE], material_rows[_ALT]
+    values = torch.stack([torch.zeros_like(alt), alt + torch.zeros_like(alt[0]) * (base - alt),
+                          alt + torch.ones_like(alt[0]) * (base - alt)])  # (3 classes, 3, P)
+    bits = torch.zeros(alt.shape[1], dtype=torch.uint8)
+    for bit, (i, j) in enumerate(_CLASS_PAIRS):
+        bits |= ((values[i] - values[j]).abs() > 0.02).any(0).to(torch.uint8) << bit
+    return bits
+
+
+def _edges(local: Tensor, visibility: Tensor, albedo_class: Tensor, jumps: Tensor) -> tuple[Tensor, Tensor]:
+    """Pixels ``(B, H, W)`` whose 3x3 neighbourhood changes primitive (``local (B, H, W)``,
+    its index within its scene) or shadow of any light (``visibility (L, B, H, W)``, 0 or 1),
+    and those whose only change is an albedo jump by more than 0.02 in a channel
+    (``albedo_class (B, H, W)`` uint8, see :data:`_CLASS_PAIRS`; ``jumps (B, H, W)``: the
+    :func:`_albedo_jumps` bits of each pixel's primitive). (Four neighbours would do for
+    straight edges, but not for checker corners or stripes under two pixels wide.)
+
+    The neighbourhood is compared through one integer key of primitive and shadows and one
+    set of albedo classes per pixel: the same pixels as the range of those values (5x less
+    memory traffic than float ranges of each)."""
     L = visibility.shape[0]
-    geometry = (change[0] > 0) | (change[1 : 1 + L] > 0).any(0)
-    return geometry, (change[-3:] > 0.02).any(0) & ~geometry
+    dtype = torch.int16 if (int(local.max()) + 1) << L < 2**15 else torch.int64
+    key = local.to(dtype)
+    for light in range(L):
+        key = key * 2 + visibility[light].to(dtype)
+    geometry = neighbourhood_max(key) != -neighbourhood_max(-key)
+    seen = _neighbourhood(torch.ones_like(albedo_class) << albedo_class, torch.bitwise_or)  # bit k: class k near
+    pairs = torch.zeros_like(seen)
+    for bit, (i, j) in enumerate(_CLASS_PAIRS):
+        both = (1 << i) | (1 << j)
+        pairs |= ((seen & both) == both).to(torch.uint8) << bit
+    return geometry, ((pairs & jumps) != 0) & ~geometry
 
 
 def _same_primitive(batch: _Batch, centre: _Rays, dirs: Tensor) -> tuple[_Rays, Tensor]:
@@ -348,15 +394,24 @@ def render_specs(specs: list[SceneSpec], samples: int = 2, falloff: str = "inver
     # Back to pixel order: pixel i of scene b is ray b * H * W + rank[i] of the trace.
     rank = order.argsort()
     centre = traced.take((torch.arange(B)[:, None] * (H * W) + rank[None]).reshape(-1))
-    radiance, kd = _shade(batch, centre, falloff)
+    radiance, kd, pattern = _shade(batch, centre, falloff)
     supersampled = [0] * B
     if samples > 1:
-        # Albedo jumps only where the pattern is discontinuous (checker, stripes).
+        # Albedo jumps only where the pattern is discontinuous (checker, stripes): there the
+        # pattern is 0 or 1, the class 1 or 2; elsewhere, and off the surfaces, class 0.
         kind = batch.materials.texture.index_select(0, centre.primitive)
-        jumps = kd * ((kind == Texture.CHECKER) | (kind == Texture.STRIPES))
+        patterned = centre.valid & ((kind == Texture.CHECKER) | (kind == Texture.STRIPES))
+        albedo_class = (patterned * (1 + pattern)).to(torch.uint8)
         # A pixel's primitive as its index within its scene, so that scenes compare alike.
         local = batch.prims.local.index_select(0, centre.primitive)
-        geometry, albedo = _edges(local.view(B, H, W), centre.visibility.view(-1, B, H, W), jumps.view(3, B, H, W))
+        # Pixels without a surface count as their scene's first primitive (as in local), so
+        # they take its jumps: global index of (scene, local).
+        width = int(batch.prims.local.max()) + 1
+        global_of = torch.zeros(B * width, dtype=torch.long)
+        global_of[batch.prims.scene * width + batch.prims.local] = torch.arange(batch.prims.local.shape[0])
+        jumps = _albedo_jumps(batch.material_rows).index_select(0, global_of.index_select(0, centre.scene * width + local))
+        geometry, albedo = _edges(local.view(B, H, W), centre.visibility.view(-1, B, H, W), albedo_class.view(B, H, W),
+                                  jumps.view(B, H, W))
         # Sub-pixel offsets on a regular grid, as camera-ray direction shifts (3, S) per scene.
         offsets = (torch.arange(samples, dtype=torch.float32) + 0.5) / samples - 0.5
         oy, ox = torch.meshgrid(offsets, offsets, indexing="ij")
@@ -368,7 +423,7 @@ def render_specs(specs: list[SceneSpec], samples: int = 2, falloff: str = "inver
             return all_dirs.index_select(1, at)[:, :, None] + shift.index_select(0, at // (H * W)).permute(1, 0, 2)
 
         def average(at: Tensor, sub: _Rays, sub_batch: _Batch) -> None:  # the S samples of pixels at (E,)
-            sub_radiance, sub_kd = _shade(sub_batch, sub, falloff)
+            sub_radiance, sub_kd, _ = _shade(sub_batch, sub, falloff)
             radiance.index_copy_(1, at, sub_radiance.unflatten(1, (-1, samples * samples)).mean(2))
             kd.index_copy_(1, at, sub_kd.unflatten(1, (-1, samples * samples)).mean(2) * centre.valid.index_select(0, at))
 

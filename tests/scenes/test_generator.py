@@ -98,6 +98,46 @@ def test_antialiasing_averages_edges_only():
     torch.testing.assert_close(sharp.depth, smooth.depth)
 
 
+def test_edge_keys_flag_the_pixels_the_value_ranges_flag():
+    # _edges compares one integer key and one set of albedo classes per pixel; the
+    # definition is the range over the 3x3 neighbourhood of the primitive, of each light's
+    # visibility and of each channel of the patterned albedo (0 off patterns and off the
+    # surface): any change, or over 0.02. Random maps with small regions and thin stripes.
+    from selfsup.scenes.exact import _albedo_jumps, _edges, material_rows, neighbourhood_max
+    from selfsup.scenes.sampler import Materials
+
+    generator = torch.Generator().manual_seed(0)
+    B, H, W, L, P = 3, 24, 32, 2, 4
+    base = torch.rand(P, 3, generator=generator)
+    alt = base.clone()
+    alt[0] += 0.01  # a jump below the threshold
+    alt[1:] *= 0.4
+    materials = Materials(kd_base=base, kd_alt=alt, texture=torch.tensor([1, 2, 1, 0]), texture_scale=torch.ones(P),
+                          texture_dir=torch.ones(P, 3), ks=torch.zeros(P), shininess=torch.ones(P))
+    rows = material_rows(materials)
+
+    def blocky(high, cells):
+        return torch.randint(0, high, (B, H // cells, W // cells), generator=generator).repeat_interleave(
+            cells, 1).repeat_interleave(cells, 2)
+
+    local = blocky(P, 4)
+    visibility = torch.stack([blocky(2, 8), blocky(2, 2)]).float()
+    side = torch.randint(0, 2, (B, H, W), generator=generator)
+    valid = torch.rand(B, H, W, generator=generator) > 0.05
+    patterned = valid & (materials.texture[local] != 0)
+    albedo_class = (patterned * (1 + side)).to(torch.uint8)
+    kd = alt[local] + side[..., None] * (base[local] - alt[local])
+    kd = (kd * patterned[..., None]).permute(3, 0, 1, 2)
+    geometry, albedo = _edges(local, visibility, albedo_class, _albedo_jumps(rows)[local])
+
+    stack = torch.cat([local.float()[None], visibility, kd])
+    change = neighbourhood_max(stack) + neighbourhood_max(-stack)
+    expected_geometry = (change[: 1 + L] > 0).any(0)
+    assert torch.equal(geometry, expected_geometry)
+    assert torch.equal(albedo, (change[-3:] > 0.02).any(0) & ~expected_geometry)
+    assert 0 < albedo.sum() and 0 < geometry.sum() < geometry.numel()
+
+
 @pytest.mark.parametrize("seed", [1, 5])
 def test_adaptive_antialiasing_matches_four_shifted_renders(seed):
     # The 2x2 samples of a pixel are the centre samples of renders whose principal point
