@@ -61,7 +61,11 @@ def _loader(config: SamplerConfig, samples: int, count: int, batch: int, workers
     return arrived[-1][0] - start, steady
 
 
-def run(count: int = 128, batch: int = 32, workers: int = 2, loader_count: int = 512, write: bool = True) -> list[dict]:
+def run(count: int = 128, batch: int = 32, workers: int = 2, loader_count: int = 512, loader_runs: int = 3,
+        write: bool = True) -> list[dict]:
+    """Every setting in process; the target setting through a DataLoader too, ``loader_runs``
+    times (the shared 2-core machine's speed drifts by 20% between minutes: the rows give
+    the median run and the range)."""
     rows = []
     for name, size, samples in SETTINGS:
         config = dataclasses.replace(SamplerConfig(), **size)
@@ -69,16 +73,18 @@ def run(count: int = 128, batch: int = 32, workers: int = 2, loader_count: int =
             seconds, aa_share = _in_process(config, samples, count, together)
             rows.append({"setting": name, "how": "one per call" if together == 1 else f"{together} per call",
                          "scenes_per_s": round(count / seconds, 1), "ms_per_scene": round(1e3 * seconds / count, 1),
-                         "supersampled_pixels": f"{aa_share:.0%}"})
+                         "supersampled_pixels": f"{aa_share:.0%}", "runs": 1, "range_scenes_per_s": ""})
         if workers and samples == 2 and size["height"] == 128:
-            seconds, steady = _loader(config, samples, loader_count, batch, workers)
+            runs = [_loader(config, samples, loader_count, batch, workers) for _ in range(max(1, loader_runs))]
+            with_start = sorted(loader_count / seconds for seconds, _ in runs)
+            steady = sorted(rate for _, rate in runs)
             how = f"DataLoader, {workers} workers, batch {batch}"
-            rows.append({"setting": name, "how": f"{how}, {loader_count} scenes with start-up",
-                         "scenes_per_s": round(loader_count / seconds, 1),
-                         "ms_per_scene": round(1e3 * seconds / loader_count, 1), "supersampled_pixels": ""})
-            rows.append({"setting": name, "how": f"{how}, steady (after each worker's first batch)",
-                         "scenes_per_s": round(steady, 1), "ms_per_scene": round(1e3 / steady, 1),
-                         "supersampled_pixels": ""})
+            for label, rates in ((f"{loader_count} scenes with start-up", with_start),
+                                 ("steady (after each worker's first batch)", steady)):
+                median = rates[len(rates) // 2]
+                rows.append({"setting": name, "how": f"{how}, {label}", "scenes_per_s": round(median, 1),
+                             "ms_per_scene": round(1e3 / median, 1), "supersampled_pixels": "", "runs": len(rates),
+                             "range_scenes_per_s": f"{rates[0]:.1f}-{rates[-1]:.1f}"})
 
     if write:
         print(write_results("generate_speed", torch.device("cpu"), rows,
@@ -86,6 +92,7 @@ def run(count: int = 128, batch: int = 32, workers: int = 2, loader_count: int =
                             "depth and image noise). 'one per call': render_item; 'N per call': render_items, the "
                             "scenes ray cast together; DataLoader: ProceduralScenes through worker processes "
                             "(one torch thread each), with their start-up, and steady: after every worker "
-                            "delivered its first batch.",
-                            ["setting", "how", "scenes_per_s", "ms_per_scene", "supersampled_pixels"]))
+                            "delivered its first batch; the DataLoader rows give the median of their runs and the range.",
+                            ["setting", "how", "scenes_per_s", "ms_per_scene", "supersampled_pixels", "runs",
+                             "range_scenes_per_s"]))
     return rows

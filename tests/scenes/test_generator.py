@@ -233,3 +233,15 @@ def test_generate_mode_writes_readable_files_and_contact_sheet(tmp_path):
     assert len(paths) == 3 and (tmp_path / "contact_sheet.png").stat().st_size > 0
     scene = read_scene(paths[0])
     assert scene.image.shape == (24, 32, 3) and scene.light_pos.shape == (1, 3) and float(scene.scene_scale) > 0
+
+
+def test_generate_speed_benchmark_reports_the_median_loader_run_and_its_range():
+    from benchmarks.generate_speed import run
+
+    rows = run(count=2, batch=2, workers=1, loader_count=6, loader_runs=3, write=False)
+    loader = [row for row in rows if row["how"].startswith("DataLoader")]
+    assert len(loader) == 2 and all(row["runs"] == 3 for row in loader)
+    for row in loader:
+        low, high = map(float, row["range_scenes_per_s"].split("-"))
+        assert low <= row["scenes_per_s"] <= high
+    assert all(row["scenes_per_s"] > 0 for row in rows)
