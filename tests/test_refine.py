@@ -391,6 +391,20 @@ def test_noise_level_measures_added_noise_and_floors_the_robust_scale():
         EstimateOptions(final_robust_scale=0)
 
 
+def test_a_light_with_no_intensity_is_never_kept_on_a_clean_image():
+    # An empty room (no cast shadows), rendered without noise: one light fits it to float
+    # precision, and the relative shadow gain of a second, dark light is rounding (5.5%
+    # here). Without the share floor that light was kept, with intensity 0 or 1e-6.
+    scene = _scene(4, 1, config=dataclasses.replace(MEDIUM, n_objects=(0, 0)))
+    record = estimate_scene(scene, EstimateOptions())
+    assert len(record["lights"]) == 1 and _rel_error(torch.tensor(record["lights"][0]["position"]), scene) < 1e-3
+    unfloored = estimate_scene(scene, EstimateOptions(weak_light_min_share=0.0))
+    brightness = sorted(max(light["intensity"]) for light in unfloored["lights"])
+    assert len(brightness) == 2 and brightness[0] < 1e-4 * brightness[1]
+    with pytest.raises(ValueError, match="weak_light_min_share"):
+        EstimateOptions(weak_light_min_share=-0.1)
+
+
 def test_the_narrow_final_scale_places_the_light_closer():
     # The exact images hold cast shadows that the default fit (shading alone) lacks: a
     # narrow Cauchy scale in the last refinement weighs them less (2026-11-23, seeds
