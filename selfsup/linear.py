@@ -14,7 +14,7 @@ from torch import Tensor
 
 from render.shading import Falloff
 
-__all__ = ["basis_images", "solve_intensities", "single_light_costs", "pseudo_huber"]
+__all__ = ["basis_images", "solve_intensities", "intensity_design", "solve_design", "single_light_costs", "pseudo_huber"]
 
 
 def basis_images(kd: Tensor, ks: Tensor | None, diffuse: Tensor, specular: Tensor | None) -> Tensor:
@@ -47,15 +47,26 @@ def solve_intensities(cols: Tensor, kd: Tensor, image: Tensor, weights: Tensor, 
         intensity ``(B, L, 3)`` (>= 0), ambient ``(B, 3)`` (the known one if given,
         else solved, >= 0) and the model image ``(B, 3, H, W)`` (not masked).
     """
-    L = cols.shape[2]
+    return solve_design(intensity_design(cols, kd, ambient), cols.shape[2], kd, image, weights, ambient, ridge)
+
+
+def intensity_design(cols: Tensor, kd: Tensor, ambient: Tensor | None) -> Tensor:
+    """The columns ``(B, 3, k, H*W)`` of :func:`solve_intensities`' least-squares problem:
+    the basis images ``cols (B, 3, L, H, W)`` and, when the ``ambient`` is unknown (None),
+    ``kd (B, H, W, 3)``'s image as its column (``k = L + 1``). Several solves with other
+    weights (reweighting) share one: :func:`solve_design`."""
+    if ambient is None:
+        cols = torch.cat([cols, kd.permute(0, 3, 1, 2)[:, :, None]], 2)
+    return cols.flatten(3)
+
+
+def solve_design(a: Tensor, L: int, kd: Tensor, image: Tensor, weights: Tensor, ambient: Tensor | None = None,
+                 ridge: float = 1e-9) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`solve_intensities` on its :func:`intensity_design` ``a (B, 3, k, H*W)`` of ``L`` lights."""
     kd_image = kd.permute(0, 3, 1, 2)
     target = image
     if ambient is not None:
         target = target - kd_image * ambient[:, :, None, None]
-    else:
-        cols = torch.cat([cols, kd_image[:, :, None]], 2)
-    k = cols.shape[2]
-    a = cols.flatten(3)  # (B, 3, k, N)
     w = weights.flatten(2)[:, :, None]  # (B, 3, 1, N)
     weighted = a * w
     normal = weighted @ a.transpose(-1, -2)  # (B, 3, k, k)

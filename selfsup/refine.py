@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from render import GBuffer, Material, light_transport, light_transport_jacobian
-from selfsup.linear import basis_images, solve_intensities
+from selfsup.linear import basis_images, intensity_design, solve_design
 
 __all__ = ["FitProblem", "RefineOptions", "Fit", "refine", "search", "solve_linear", "reweighted", "evaluate", "grid_candidates",
            "robust_loss", "position_covariance", "subsample"]
@@ -250,21 +250,30 @@ def _weights(problem: FitProblem, residual: Tensor | None, options: RefineOption
     return mask / (1 + (residual / scale[:, None, None, None]) ** 2)
 
 
-def solve_linear(problem: FitProblem, diffuse: Tensor, specular: Tensor | None, weights: Tensor
-                 ) -> tuple[Tensor, Tensor, Tensor]:
+def solve_linear(problem: FitProblem, diffuse: Tensor, specular: Tensor | None, weights: Tensor,
+                 design: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
     """Closed-form intensities and ambient for fixed light transport.
 
     Args:
         diffuse, specular: ``(B, L, H, W)`` transport maps (specular may be None).
         weights: ``(B, 3, H, W)`` per-value weights (0 on invalid pixels).
+        design: these maps' least-squares columns (:func:`selfsup.linear.intensity_design`
+            of their basis images), if the caller has them: solves that differ in
+            their weights alone share them.
 
     Returns:
         intensity ``(B, L, 3)`` (>= 0), ambient ``(B, 3)`` (the known one if given,
         else solved, >= 0) and the model image ``(B, 3, H, W)``.
     """
-    intensity, ambient, model = solve_intensities(_columns(problem, diffuse, specular), problem.material.kd,
-                                                  problem.image, weights, problem.ambient)
+    a = _design(problem, diffuse, specular) if design is None else design
+    intensity, ambient, model = solve_design(a, diffuse.shape[1], problem.material.kd, problem.image, weights,
+                                             problem.ambient)
     return intensity, ambient, model * problem.gbuffer.mask[:, None]
+
+
+def _design(problem: FitProblem, diffuse: Tensor, specular: Tensor | None) -> Tensor:
+    # The least-squares columns (B, 3, k, H*W) of transport maps (B, L, H, W).
+    return intensity_design(_columns(problem, diffuse, specular), problem.material.kd, problem.ambient)
 
 
 def _transport(problem: FitProblem, position: Tensor, specular: bool):
@@ -274,14 +283,18 @@ def _transport(problem: FitProblem, position: Tensor, specular: bool):
 
 
 def reweighted(problem: FitProblem, diffuse: Tensor, specular: Tensor | None, options: RefineOptions,
-               passes: int | None = None) -> Tensor:
+               passes: int | None = None, design: Tensor | None = None) -> Tensor:
     """IRLS weights ``(B, 3, H, W)`` of the robust fit of fixed transport maps ``(B, L, H, W)``:
     ``passes`` (``options.irls_passes`` by default) reweightings from the plain
-    least-squares solve; the valid mask alone when ``options.robust`` is off."""
+    least-squares solve; the valid mask alone when ``options.robust`` is off. The
+    solves share one least-squares design (``design``, if the caller has it)."""
     weights = _weights(problem, None, options)
     scale = _cauchy_scale(problem, options) if options.robust else None
-    for _ in range((passes or options.irls_passes) if options.robust else 0):
-        _, _, model = solve_linear(problem, diffuse, specular, weights)
+    passes = (passes or options.irls_passes) if options.robust else 0
+    if passes and design is None:
+        design = _design(problem, diffuse, specular)
+    for _ in range(passes):
+        _, _, model = solve_linear(problem, diffuse, specular, weights, design)
         weights = _weights(problem, model - problem.image, options, scale)
     return weights
 
@@ -295,9 +308,10 @@ def evaluate(problem: FitProblem, position: Tensor, options: RefineOptions, weig
     (``options.irls_passes`` by default) from the plain least-squares solve.
     """
     diffuse, specular = _transport(problem, position, options.specular)
+    design = _design(problem, diffuse, specular)
     if weights is None:
-        weights = reweighted(problem, diffuse, specular, options, passes)
-    intensity, ambient, model = solve_linear(problem, diffuse, specular, weights)
+        weights = reweighted(problem, diffuse, specular, options, passes, design)
+    intensity, ambient, model = solve_linear(problem, diffuse, specular, weights, design)
     cost = (weights * (model - problem.image) ** 2).flatten(1).sum(1)
     return cost, intensity, ambient, model, weights, diffuse, specular
 

@@ -238,6 +238,30 @@ def test_a_light_that_lights_nothing_has_a_finite_gradient(known_ambient):
     assert torch.isfinite(diffuse.grad).all()
 
 
+@pytest.mark.parametrize("known_ambient", [False, True])
+def test_reweighting_shares_one_design_and_gets_what_fresh_solves_get(known_ambient, monkeypatch):
+    # reweighted and evaluate build the least-squares columns once for all their solves.
+    import selfsup.refine as refine_module
+    from selfsup.refine import reweighted
+
+    problem = problem_of(_scene(5), "none")
+    problem = dataclasses.replace(problem, ambient=torch.full((1, 3), 0.05) if known_ambient else None)
+    diffuse, specular = refine_module._transport(problem, problem.image.new_tensor([[[0.5, -1.0, 2.0]]]), False)
+    options = RefineOptions(irls_passes=3)
+    built = []
+    original = refine_module.intensity_design
+    monkeypatch.setattr(refine_module, "intensity_design", lambda *a: built.append(1) or original(*a))
+    shared = reweighted(problem, diffuse, specular, options)
+    assert len(built) == 1
+    weights = refine_module._weights(problem, None, options)
+    for _ in range(3):  # each pass solved afresh, as before the design was shared
+        model = refine_module.solve_linear(problem, diffuse, specular, weights)[2]
+        weights = refine_module._weights(problem, model - problem.image, options)
+    assert len(built) == 4 and torch.equal(shared, weights)
+    k = 1 if known_ambient else 2  # the ambient's column when it is unknown
+    assert refine_module._design(problem, diffuse, specular).shape == (1, 3, k, problem.image[0, 0].numel())
+
+
 @pytest.mark.parametrize("method", ["gd", "adam"])
 def test_first_order_steps_never_leave_a_nan_position(method, monkeypatch):
     import selfsup.refine as refine_module
