@@ -67,7 +67,10 @@ def cases(height: int = 120, width: int = 160, seed: int = 3):
     glossy = dataclasses.replace(base, specular_prob=1.0, ks_range=(0.5, 0.5), shininess_range=(2000.0, 2000.0))
     yield "shininess 2000", with_light(glossy, (0.6, 0.8, 0.6))
     yield "tiny scene (x 1e-3)", with_light(dataclasses.replace(base, scale_range=(1e-3, 1e-3), light_margin=3e-4), (0.6, 0.8, 0.6))
-    yield "huge scene (x 1e3)", with_light(dataclasses.replace(base, scale_range=(1e3, 1e3), light_margin=300.0), (0.6, 0.8, 0.6))
+    huge = with_light(dataclasses.replace(base, scale_range=(1e3, 1e3), light_margin=300.0), (0.6, 0.8, 0.6))
+    yield "huge scene (x 1e3)", huge
+    # Unknown ambient: its column (kd) outweighs the lights' (1/d^2) a million-fold.
+    yield "huge scene (x 1e3), ambient unknown", dataclasses.replace(huge, ambient=None)
 
 
 def evaluate_case(name: str, scene: Scene, options: EstimateOptions) -> dict:

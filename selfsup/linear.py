@@ -72,16 +72,22 @@ def solve_design(a: Tensor, L: int, kd: Tensor, image: Tensor, weights: Tensor, 
     normal = weighted @ a.transpose(-1, -2)  # (B, 3, k, k)
     # As a row times a matrix: BLAS runs that 3-6x faster than the matrix times a column.
     rhs = (target.flatten(2)[:, :, None] @ weighted.transpose(-1, -2)).squeeze(-2)  # (B, 3, k)
-    # The ridge keeps a nearly dark light solvable (intensity -> 0). A light that lights
-    # nothing at all (an all-zero column) gets a unit-scale diagonal instead: its
-    # intensity is then exactly 0 and, unlike a 1e-9 ridge in float32, the solve's
-    # backward stays finite (a gradient step may carry a light behind a wall).
-    # With a known ambient and every light dark the whole system is zero: scale 1 then.
+    # The ridge keeps a nearly dark light solvable (intensity -> 0); it is relative to
+    # each column's own diagonal, so it does not depend on units: the lights' columns
+    # (1/d^2) and the ambient's (kd) differ by d^2, and a ridge relative to the trace
+    # silenced the lights of a scene given in centimetres. A light that lights nothing
+    # (a column under 1e-12 of the brightest light's) gets a unit-scale diagonal
+    # instead: its intensity is then exactly 0 and, unlike a 1e-9 ridge in float32,
+    # the solve's backward stays finite (a gradient step may carry a light behind a
+    # wall). With a known ambient and every light dark the whole system is zero: scale
+    # 1 then.
     diagonal = normal.diagonal(dim1=-2, dim2=-1)
     trace = diagonal.sum(-1)
     trace = torch.where(trace > 0, trace, torch.ones_like(trace))
-    dead = (diagonal <= 1e-12 * trace[..., None]).to(a.dtype)
-    x, info = torch.linalg.solve_ex(normal + torch.diag_embed((ridge + dead) * trace[..., None]), rhs[..., None])
+    brightest = diagonal[..., :L].amax(-1, keepdim=True) if L else diagonal.new_zeros(diagonal.shape[:-1] + (1,))
+    dead = torch.cat([diagonal[..., :L] <= 1e-12 * brightest, diagonal[..., L:] <= 0], -1).to(a.dtype)
+    x, info = torch.linalg.solve_ex(normal + torch.diag_embed(ridge * diagonal + dead * trace[..., None]),
+                                    rhs[..., None])
     # A singular system (no lit pixel at all) gives no light rather than an exception.
     x = torch.where((info == 0)[..., None, None] & torch.isfinite(x), x, torch.zeros_like(x)).squeeze(-1).clamp_min(0)
     model = (x[:, :, None] @ a).view_as(image)  # sum_j x_j cols_j, as a product: 2-4x faster than the sum over j

@@ -238,6 +238,32 @@ def test_a_light_that_lights_nothing_has_a_finite_gradient(known_ambient):
     assert torch.isfinite(diffuse.grad).all()
 
 
+def test_intensities_solve_alike_whatever_the_units():
+    # A scene in centimetres: transport 1/d^2 shrinks 1e4-fold against the ambient's
+    # column (kd), the intensities must grow 1e4-fold and the model stay. A ridge
+    # relative to the normal matrix's trace silenced the lights of a devset scene
+    # given in centimetres (depth x 100).
+    from selfsup.linear import basis_images, solve_intensities
+
+    generator = torch.Generator().manual_seed(0)
+    diffuse = torch.rand(1, 2, 8, 9, generator=generator, dtype=torch.float64)
+    kd = torch.rand(1, 8, 9, 3, generator=generator, dtype=torch.float64)
+    truth = torch.tensor([[[1.0, 0.8, 0.6], [0.3, 0.4, 0.5]]], dtype=torch.float64)
+    image = (basis_images(kd, None, diffuse, None) * truth.transpose(1, 2)[..., None, None]).sum(2)
+    image = image + 0.1 * kd.permute(0, 3, 1, 2)
+    weights = torch.ones_like(image)
+    for dtype in (torch.float64, torch.float32):
+        results = []
+        for scale in (1.0, 1e-4, 1e-8):
+            cols = basis_images(kd.to(dtype), None, (diffuse * scale).to(dtype), None)
+            intensity, ambient, model = solve_intensities(cols, kd.to(dtype), image.to(dtype), weights.to(dtype))
+            results.append((intensity.double() * scale, ambient.double(), model.double()))
+        for intensity, ambient, model in results:
+            torch.testing.assert_close(intensity, truth, rtol=1e-4, atol=0)
+            torch.testing.assert_close(ambient, torch.full((1, 3), 0.1, dtype=torch.float64), rtol=1e-4, atol=0)
+            torch.testing.assert_close(model, image, rtol=1e-4, atol=1e-6)
+
+
 @pytest.mark.parametrize("known_ambient", [False, True])
 def test_reweighting_shares_one_design_and_gets_what_fresh_solves_get(known_ambient, monkeypatch):
     # reweighted and evaluate build the least-squares columns once for all their solves.
