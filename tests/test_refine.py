@@ -455,6 +455,26 @@ def test_a_light_with_no_intensity_is_never_kept_on_a_clean_image():
         EstimateOptions(weak_light_min_share=-0.1)
 
 
+def test_a_mirrored_scene_gets_the_mirrored_light():
+    # Flipping the image left-right (K's principal point and the x axis with it) is the
+    # same scene seen in a mirror: the estimate must mirror too (grid, starts, pyramid
+    # and criterion hold no preferred side).
+    scene = _scene(7, config=MEDIUM)
+    W = scene.depth.shape[1]
+    K = scene.K.clone()
+    K[0, 2] = W - 1 - K[0, 2]
+    mirror = torch.tensor([-1.0, 1.0, 1.0])
+    flipped = dataclasses.replace(scene, image=scene.image.flip(1), depth=scene.depth.flip(1), kd=scene.kd.flip(1),
+                                  ks=None if scene.ks is None else scene.ks.flip(1), K=K,
+                                  shininess=scene.shininess.flip(1) if scene.shininess.dim() == 2 else scene.shininess,
+                                  normals=None if scene.normals is None else scene.normals.flip(1) * mirror)
+    options = EstimateOptions(method="refine", refine=RefineOptions(max_iters=(15, 5)))
+    plain, mirrored = estimate_scene(scene, options), estimate_scene(flipped, options)
+    assert len(plain["lights"]) == len(mirrored["lights"]) == 1
+    back = torch.tensor(mirrored["lights"][0]["position"]) * mirror
+    assert float((back - torch.tensor(plain["lights"][0]["position"])).norm() / scene.scene_scale) < 1e-3
+
+
 def test_the_narrow_final_scale_places_the_light_closer():
     # The exact images hold cast shadows that the default fit (shading alone) lacks: a
     # narrow Cauchy scale in the last refinement weighs them less (2026-11-23, seeds
