@@ -47,7 +47,7 @@ def solve_intensities(cols: Tensor, kd: Tensor, image: Tensor, weights: Tensor, 
         intensity ``(B, L, 3)`` (>= 0), ambient ``(B, 3)`` (the known one if given,
         else solved, >= 0) and the model image ``(B, 3, H, W)`` (not masked).
     """
-    return solve_design(intensity_design(cols, kd, ambient), cols.shape[2], kd, image, weights, ambient, ridge)
+    return solve_design(intensity_design(cols, kd, ambient), kd, image, weights, ambient, ridge)
 
 
 def intensity_design(cols: Tensor, kd: Tensor, ambient: Tensor | None) -> Tensor:
@@ -60,9 +60,11 @@ def intensity_design(cols: Tensor, kd: Tensor, ambient: Tensor | None) -> Tensor
     return cols.flatten(3)
 
 
-def solve_design(a: Tensor, L: int, kd: Tensor, image: Tensor, weights: Tensor, ambient: Tensor | None = None,
+def solve_design(a: Tensor, kd: Tensor, image: Tensor, weights: Tensor, ambient: Tensor | None = None,
                  ridge: float = 1e-9) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`solve_intensities` on its :func:`intensity_design` ``a (B, 3, k, H*W)`` of ``L`` lights."""
+    """:func:`solve_intensities` on its :func:`intensity_design` ``a (B, 3, k, H*W)`` (the same
+    ``ambient``: ``k - 1`` lights when it is unknown, else ``k``)."""
+    L = a.shape[2] - (ambient is None)
     kd_image = kd.permute(0, 3, 1, 2)
     target = image
     if ambient is not None:

@@ -266,8 +266,7 @@ def solve_linear(problem: FitProblem, diffuse: Tensor, specular: Tensor | None, 
         else solved, >= 0) and the model image ``(B, 3, H, W)``.
     """
     a = _design(problem, diffuse, specular) if design is None else design
-    intensity, ambient, model = solve_design(a, diffuse.shape[1], problem.material.kd, problem.image, weights,
-                                             problem.ambient)
+    intensity, ambient, model = solve_design(a, problem.material.kd, problem.image, weights, problem.ambient)
     return intensity, ambient, model * problem.gbuffer.mask[:, None]
 
 

@@ -99,9 +99,10 @@ def pattern_at(material: Tensor, points: Tensor) -> Tensor:
     return t
 
 
-def albedo_at(material: Tensor, points: Tensor, pattern: Tensor | None = None) -> Tensor:
+def albedo_at(material: Tensor, points: Tensor | None, pattern: Tensor | None = None) -> Tensor:
     """Albedo ``(3, N)`` at ``points (3, N)`` of primitives whose :func:`material_rows`
-    columns are ``material (13, N)`` (``pattern``: their :func:`pattern_at`, if known)."""
+    columns are ``material (13, N)`` (``pattern``: their :func:`pattern_at`, if known;
+    then ``points`` may be None)."""
     t = pattern_at(material, points) if pattern is None else pattern
     base, alt = material[_BASE], material[_ALT]
     return alt + t * (base - alt)
@@ -284,10 +285,10 @@ _CLASS_PAIRS = ((0, 1), (0, 2), (1, 2))
 def _albedo_jumps(material_rows: Tensor) -> Tensor:
     """Per primitive ``(P,)`` uint8: the bits of the class pairs whose albedos differ by more
     than 0.02 in a channel, computed as :func:`albedo_at` computes them."""
-    base, alt = material_rows[_BASE], material_rows[_ALT]
-    values = torch.stack([torch.zeros_like(alt), alt + torch.zeros_like(alt[0]) * (base - alt),
-                          alt + torch.ones_like(alt[0]) * (base - alt)])  # (3 classes, 3, P)
-    bits = torch.zeros(alt.shape[1], dtype=torch.uint8)
+    side = material_rows[_KIND]
+    values = torch.stack([torch.zeros_like(material_rows[_ALT]), albedo_at(material_rows, None, torch.zeros_like(side)),
+                          albedo_at(material_rows, None, torch.ones_like(side))])  # (3 classes, 3, P)
+    bits = torch.zeros(side.shape[0], dtype=torch.uint8)
     for bit, (i, j) in enumerate(_CLASS_PAIRS):
         bits |= ((values[i] - values[j]).abs() > 0.02).any(0).to(torch.uint8) << bit
     return bits
