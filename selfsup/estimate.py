@@ -22,6 +22,13 @@ Methods (``estimate.method``):
   refinement, which makes it one to two orders of magnitude faster;
 - ``cnn``: the network alone (slots with presence above one half), intensities
   and ambient solved in closed form at its positions.
+
+Reflectance (``estimate.reflectance``): a file whose kd is one constant over every
+valid pixel says nothing of the albedo (the paper's protocol row "m = 0" gives
+kd = ks = 0.5 over textured scenes). With ``auto`` (default) such files are fitted
+by :mod:`selfsup.albedo_free` (the shading's log-differences between neighbours,
+which no piecewise-constant albedo error moves) and every other file by the image
+fit above; ``given`` | ``albedo_free`` force one of the two.
 """
 
 from __future__ import annotations
@@ -41,18 +48,20 @@ from torch import Tensor
 from render import GBuffer, Material, light_transport
 from render.geometry import normal_noise, plane_normals, smooth_normals, surface_segments
 from render.shadows import ShadowMethod
-from selfsup.refine import (Fit, FitProblem, RefineOptions, position_covariance, refine, reweighted, robust_loss,
-                            search, solve_linear)
+from selfsup import albedo_free
+from selfsup.refine import (Fit, FitProblem, RefineOptions, evaluate, position_covariance, refine, reweighted,
+                            robust_loss, search, solve_linear)
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
 __all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "problems_of", "prepare", "estimate_scene",
            "estimate_batch", "records", "has_specular", "estimate_files", "scene_files", "segment_gains",
-           "plane_window_px", "block_px", "shadow_gain"]
+           "plane_window_px", "block_px", "shadow_gain", "reflectance_unknown"]
 
 log = logging.getLogger(__name__)
 METHODS = ("cnn+refine", "cnn", "refine")
 SHADOW_METHODS = tuple(m.value for m in ShadowMethod)
 NORMAL_SMOOTHING = ("auto", "always", "never")
+REFLECTANCE = ("auto", "given", "albedo_free")
 
 
 @dataclass
@@ -95,6 +104,10 @@ class EstimateOptions:
     ``reflectance_gains``: rounds of re-estimation with the albedo of each smooth
     surface rescaled by what the last fit says it is (:func:`segment_gains`), for
     reflectance known only up to a factor per surface (0: trust the file's kd).
+    ``reflectance``: ``auto`` fits a file whose kd is one constant (:func:`reflectance_unknown`)
+    by :mod:`selfsup.albedo_free`, any other by the image; ``given`` | ``albedo_free``
+    force one. ``albedo_free_scale``: that fit's Cauchy scale, a relative change of
+    the shading between neighbouring pixels (at least the image's relative noise).
     """
 
     method: str = "cnn+refine"
@@ -114,6 +127,8 @@ class EstimateOptions:
     mask_saturated: bool = True
     final_robust_scale: float = 0.05
     reflectance_gains: int = 0
+    reflectance: str = "auto"
+    albedo_free_scale: float = 0.02
     refine: RefineOptions = field(default_factory=RefineOptions)
 
     def __post_init__(self):
@@ -134,6 +149,10 @@ class EstimateOptions:
             raise ValueError(f"estimate.final_robust_scale must be > 0, got {self.final_robust_scale}")
         if self.reflectance_gains < 0:
             raise ValueError(f"reflectance_gains must be >= 0 rounds, got {self.reflectance_gains}")
+        if self.reflectance not in REFLECTANCE:
+            raise ValueError(f"estimate.reflectance must be one of {REFLECTANCE}, got {self.reflectance!r}")
+        if not self.albedo_free_scale > 0:
+            raise ValueError(f"estimate.albedo_free_scale must be > 0, got {self.albedo_free_scale}")
         if self.normal_smoothing not in NORMAL_SMOOTHING:
             raise ValueError(f"estimate.normal_smoothing must be one of {NORMAL_SMOOTHING}, got {self.normal_smoothing!r}")
         if not self.normal_noise_threshold >= 0:
@@ -153,6 +172,8 @@ class Candidate:
     n_lights: int
     specular: bool
     criterion: float
+    covariance: Tensor | None = None  # (L, 3, 3) when the fit found its own (the albedo-free one's)
+    reflectance: str = "given"  # which data the fit explained: "given" (the image) | "albedo_free"
 
 
 def saturated_pixels(image: Tensor, mask: Tensor, min_share: float = 0.002) -> Tensor:
@@ -422,6 +443,80 @@ def segment_gains(image: Tensor, model: Tensor, segments: Tensor, min_pixels: in
     return factor.view(B, C, H, W).permute(0, 2, 3, 1)
 
 
+def reflectance_unknown(problem: FitProblem, rel_tol: float = 1e-6) -> Tensor:
+    """``(B,)``: the image's kd is one constant on its valid pixels (every channel within
+    ``rel_tol`` of its maximum), so it says nothing of the surfaces' albedo."""
+    kd = problem.material.kd
+    mask = problem.gbuffer.mask[..., None].expand_as(kd)
+    hi = torch.where(mask, kd, torch.full_like(kd, -math.inf)).flatten(1, 2).amax(1)  # (B, 3)
+    lo = torch.where(mask, kd, torch.full_like(kd, math.inf)).flatten(1, 2).amin(1)
+    return ((hi - lo) <= rel_tol * hi.abs().clamp_min(1e-30)).all(1)
+
+
+def _albedo_free_images(problem: FitProblem, options: EstimateOptions) -> list[bool]:
+    if options.method == "cnn" or options.reflectance == "given":
+        return [False] * problem.batch
+    if options.reflectance == "albedo_free":
+        return [True] * problem.batch
+    return reflectance_unknown(problem).tolist()
+
+
+def _estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
+    """Lights fitted to the log shading's neighbour differences (:mod:`selfsup.albedo_free`),
+    1 .. ``max_lights`` while :func:`bic` of their Cauchy loss falls and each light
+    carries ``min_light_share`` of the fitted shading; intensities and ambient then
+    solved against the image with the file's kd (diffuse only: a constant ks says
+    nothing of the highlights either)."""
+    B, device = problem.batch, problem.image.device
+    block = block_px(options, problem.image.shape[-1])
+    found = albedo_free.search(problem, 1, robust_scale=options.albedo_free_scale)
+
+    def criterion(fit: albedo_free.AlbedoFreeFit) -> list[float]:
+        n_params = 4 * fit.position.shape[1]  # position, and a contrast per light (the ambient's for the first)
+        return [bic(loss, int(pairs), n_params, block) for loss, pairs in zip(fit.loss.tolist(), fit.pairs.tolist())]
+
+    best = [(found, i, c) for i, c in enumerate(criterion(found))]  # (fit, row, criterion) per image
+    tried = [[(1, c)] for _, _, c in best]
+    growing = list(range(B))
+    for n_lights in range(2, options.max_lights + 1):
+        if not growing:
+            break
+        at = torch.tensor(growing, dtype=torch.long, device=device)
+        fixed = [best[i] for i in growing]
+        before = albedo_free.AlbedoFreeFit(*(torch.stack([getattr(f, name)[r] for f, r, _ in fixed])
+                                             for name in ("position", "log_weight", "loss", "pairs")))
+        sub = problem.select(at)
+        more = albedo_free.search(sub, n_lights, fixed=before, robust_scale=options.albedo_free_scale)
+        shares = albedo_free.light_shares(sub, more).amin(1).tolist()
+        still = []
+        for j, (i, c, share) in enumerate(zip(growing, criterion(more), shares)):
+            tried[i].append((n_lights, c))
+            if c < best[i][2] and share >= options.min_light_share:
+                best[i] = (more, j, c)
+                still.append(i)
+        growing = still
+    results = []
+    refine_options = replace(options.refine, specular=False)
+    for i in range(B):
+        fit, row, c = best[i]
+        one = problem.select(torch.tensor([i], device=device))
+        chosen = albedo_free.AlbedoFreeFit(fit.position[row : row + 1], fit.log_weight[row : row + 1],
+                                           fit.loss[row : row + 1], fit.pairs[row : row + 1])
+        cost, intensity, ambient, model, _, _, _ = evaluate(one, chosen.position, refine_options)
+        mask = one.gbuffer.mask[:, None]
+        rss = ((model - one.image) ** 2 * mask).flatten(1).sum(1)
+        n_values = mask.flatten(1).sum(1) * 3
+        iterations = torch.zeros(1, dtype=torch.long, device=device)
+        cov = albedo_free.position_covariance(albedo_free.observe(one, options.albedo_free_scale), chosen,
+                                              correlation_px=float(block**2))[0].cpu()
+        n_lights = chosen.position.shape[1]
+        candidate = Candidate(Fit(chosen.position, intensity, ambient, cost, model, iterations, rss, n_values),
+                              n_lights, False, c, cov, "albedo_free")
+        others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
+        results.append((candidate, others))
+    return results
+
+
 def estimate_batch(problem: FitProblem, options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
     """Estimate the lights of a batch of same-sized images; each image's chosen model
     and every model tried (see :func:`estimate_scene`).
@@ -434,7 +529,30 @@ def estimate_batch(problem: FitProblem, options: EstimateOptions) -> list[tuple[
     smooth surface (:func:`render.geometry.surface_segments`) by :func:`segment_gains`
     of the last round's chosen fit and estimates again; ``problem.material`` is then
     replaced by the last albedo, which the records' covariances need.
+
+    Images whose reflectance is fitted albedo-free (``options.reflectance``,
+    :func:`reflectance_unknown`) go to :func:`_estimate_albedo_free` instead.
     """
+    free = _albedo_free_images(problem, options)
+    if any(free):
+        results: list = [None] * problem.batch
+        for flag, run in ((True, _estimate_albedo_free), (False, _estimate_given)):
+            rows = [i for i, f in enumerate(free) if f == flag]
+            if not rows:
+                continue
+            at = torch.tensor(rows, dtype=torch.long, device=problem.image.device)
+            sub = problem.select(at)
+            for i, result in zip(rows, run(sub, options)):
+                results[i] = result
+            if not flag and options.reflectance_gains:  # the records' covariances need the rescaled albedo
+                problem.material = Material(kd=problem.material.kd.index_put((at,), sub.material.kd),
+                                            ks=problem.material.ks, shininess=problem.material.shininess)
+        return results
+    return _estimate_given(problem, options)
+
+
+def _estimate_given(problem: FitProblem, options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
+    # The image fit with the file's reflectance (and its reflectance_gains rounds).
     results = _estimate_once(problem, options)
     if options.reflectance_gains:
         g = problem.gbuffer
@@ -573,8 +691,10 @@ def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, 
             options: EstimateOptions) -> list[dict]:
     """The JSON-ready records (no ``seconds``) of :func:`estimate_batch`'s results, with
     each light's position covariance (one batched call per light count and switch)."""
-    covariances: list[Tensor | None] = [None] * len(results)
-    for (n_lights, specular), group in _groups([best for best, _ in results]).items():
+    covariances: list[Tensor | None] = [best.covariance for best, _ in results]
+    own = [i for i, c in enumerate(covariances) if c is None]
+    for (n_lights, specular), indices in _groups([results[i][0] for i in own]).items():
+        group = [own[j] for j in indices]
         at = torch.tensor(group, dtype=torch.long, device=problem.image.device)
         fit = _stacked([results[i][0].fit for i in group])
         cov = position_covariance(problem.select(at), fit, replace(options.refine, specular=specular),
@@ -598,7 +718,7 @@ def _record(scene_id: str, best: Candidate, tried: list[Candidate], cov: Tensor)
     ]
     return {
         "id": scene_id, "lights": lights, "ambient": fit.ambient[0].tolist(),
-        "specular": best.specular,
+        "specular": best.specular, "reflectance": best.reflectance,
         "candidates": [{"n_lights": c.n_lights, "specular": c.specular, "criterion": round(c.criterion, 3)}
                        for c in tried],
     }

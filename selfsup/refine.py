@@ -34,7 +34,7 @@ from render import GBuffer, Material, light_transport, light_transport_jacobian
 from selfsup.linear import basis_images, intensity_design, solve_design
 
 __all__ = ["FitProblem", "RefineOptions", "Fit", "refine", "search", "solve_linear", "reweighted", "evaluate", "grid_candidates",
-           "robust_loss", "position_covariance", "subsample"]
+           "robust_loss", "position_covariance", "subsample", "spread_best"]
 
 
 RUNAWAY_SIZES = 10.0  # the LM stops an image whose light is this many scene sizes from the centre
@@ -517,7 +517,7 @@ def robust_loss(problem: FitProblem, model: Tensor, options: RefineOptions) -> T
     return (c[:, None] ** 2 * torch.log1p((residual.flatten(1) / c[:, None]) ** 2)).sum(1)
 
 
-def _spread_best(points: Tensor, score: Tensor, size: Tensor, count: int, min_gap: float) -> tuple[Tensor, Tensor]:
+def spread_best(points: Tensor, score: Tensor, size: Tensor, count: int, min_gap: float) -> tuple[Tensor, Tensor]:
     """The ``count`` best-scored of ``points (B, G, D)`` per image, each more than
     ``min_gap * size (B,)`` from those chosen before it (greedy, best first).
 
@@ -596,7 +596,7 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
         tiled = _tiled(ranked, G)
         _, _, _, model, _, _, _ = evaluate(tiled, positions.flatten(0, 1), options, passes=1)  # a coarse ranking
         score = robust_loss(tiled, model, options).reshape(B, G)
-    starts_at = _pick(positions, _spread_best(cands, score, size, starts, 0.15)[0])  # (B, S, L, 3)
+    starts_at = _pick(positions, spread_best(cands, score, size, starts, 0.15)[0])  # (B, S, L, 3)
     if extra_starts is not None:
         guesses = torch.cat([base[:, None].expand(B, extra_starts.shape[1], -1, -1), extra_starts[:, :, None]], 2)
         starts_at = torch.cat([guesses, starts_at], 1)
@@ -613,7 +613,7 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
     score = robust_loss(tiled, short.model, options).reshape(B, S)
     ends = short.position.reshape(B, S, n_lights, 3)
     # Starts that the short LM took to one place are one finalist, not several.
-    index, distinct = _spread_best(ends.flatten(2), score, size, finalists, 0.02)
+    index, distinct = spread_best(ends.flatten(2), score, size, finalists, 0.02)
     F = int(distinct.max())
     tiled = _tiled(problem, F)
     full = refine(tiled, _pick(ends, index[:, :F]).flatten(0, 1), options)

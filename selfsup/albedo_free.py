@@ -1,0 +1,295 @@
+"""Light positions from the shading's log-gradients: a fit no piecewise-constant albedo error moves.
+
+Where the file's ``kd`` is not the surfaces' albedo (the paper's protocol row
+"m = 0" gives kd = ks = 0.5 over a textured scene), ``image / kd`` is the shading
+times the albedo's error. Between two neighbouring pixels of one patch of
+albedo that error cancels in the difference of logarithms::
+
+    log(I_p / kd_p) - log(I_q / kd_q) = log S_p - log S_q,   S = a + sum_i L_i D_i
+
+with ``D_i`` the unit-intensity diffuse transport of light ``i`` (shading alone,
+no cast shadows) and ``a`` the ambient. The fit here matches these differences
+between right and lower neighbours under a Cauchy loss, whose outliers are the
+pairs across an albedo edge (and cast-shadow edges, which the model lacks). It
+sees the light's positions and the intensities' ratios (to the first light, and
+the ambient's), not their overall scale. The observation is the mean over the
+channels of ``image / kd`` (the grey shading, exact for white lights).
+
+On clean procedural scenes with kd = ks = 0.5, 20 of 24 lights came within 0.05
+of the scene size this way, against 6 of 24 for the fit of the image itself
+(README). It is no substitute where kd is right: pixel-to-pixel differences are
+small beside a sensor's depth and image noise, and fitting them put the light
+0.08-0.36 off on the sensor-noise scenes that the image fit gets right.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from render import GBuffer, Material
+from render.functional import light_transport, light_transport_jacobian
+from selfsup.refine import FitProblem, grid_candidates, spread_best, subsample
+
+__all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "shading_loss", "search", "refine_positions",
+           "light_shares", "position_covariance"]
+
+# Contrasts tried in the grid search: the ambient at exp(g) x the median unit-light shading.
+AMBIENT_STEPS = (-4.0, -2.0, -1.0, 0.0, 1.0)
+# A second light's intensity tried at these ratios to the first's.
+RATIO_STEPS = (0.1, 0.3, 1.0, 3.0)
+
+
+@dataclass
+class LogShading:
+    """A batch's observed log shading and what its model needs.
+
+    Attributes:
+        log_shading: ``(B, H, W)`` log of the channels' mean of ``image / kd``.
+        pairs: ``(B, P)`` valid neighbour pairs (:func:`pair_differences` order).
+        observed: ``(B, P)`` the observation's pair differences.
+        gbuffer, material, falloff: the geometry and renderer settings of the transport.
+        scale: ``(B,)`` Cauchy scale of the pair residuals (log units).
+    """
+
+    log_shading: Tensor
+    pairs: Tensor
+    observed: Tensor
+    gbuffer: GBuffer
+    material: Material
+    falloff: str
+    scale: Tensor
+
+
+@dataclass
+class AlbedoFreeFit:
+    """Result of a batch: ``position (B, L, 3)``, ``log_weight (B, L + 1)`` (the ambient's,
+    then each light's, log intensity relative to the first light's, which is 0),
+    ``loss (B,)`` (Cauchy loss of the pair residuals), ``pairs (B,)`` (valid pairs)."""
+
+    position: Tensor
+    log_weight: Tensor
+    loss: Tensor
+    pairs: Tensor
+
+
+def pair_differences(x: Tensor) -> Tensor:
+    """``x (..., H, W)`` -> ``(..., P)``: each pixel minus its left neighbour, then minus
+    its upper one, flattened (``P = H (W - 1) + (H - 1) W``)."""
+    return torch.cat([(x[..., :, 1:] - x[..., :, :-1]).flatten(-2), (x[..., 1:, :] - x[..., :-1, :]).flatten(-2)], -1)
+
+
+def _pair_mask(mask: Tensor) -> Tensor:
+    # (B, H, W) -> (B, P): both pixels of the pair valid.
+    return torch.cat([(mask[..., :, 1:] & mask[..., :, :-1]).flatten(-2),
+                      (mask[..., 1:, :] & mask[..., :-1, :]).flatten(-2)], -1)
+
+
+def observe(problem: FitProblem, robust_scale: float = 0.05, noise_floor: float = 1.0) -> LogShading:
+    """The observed log shading of ``problem``; pixels with kd or the image at zero left out.
+
+    The Cauchy scale is ``robust_scale`` (a relative change between neighbours), at
+    least ``noise_floor`` x the image's noise level relative to its median (the
+    pair difference of a log carries about that noise).
+    """
+    kd = problem.material.kd.permute(0, 3, 1, 2)  # (B, 3, H, W)
+    lit = (kd > 0).all(1) & problem.gbuffer.mask
+    grey = torch.where(lit[:, None], problem.image / kd.clamp_min(1e-12), torch.zeros_like(problem.image)).mean(1)
+    median = torch.where(lit, grey, torch.full_like(grey, float("nan"))).flatten(1).nanmedian(1).values
+    median = torch.nan_to_num(median, nan=1.0).clamp_min(1e-30)
+    valid = lit & (grey > 1e-6 * median[:, None, None])
+    log_shading = torch.log(torch.where(valid, grey, median[:, None, None]))
+    relative_noise = problem.noise_level() / problem.median_observed().clamp_min(1e-30)
+    scale = torch.clamp_min(noise_floor * relative_noise, robust_scale)
+    pairs = _pair_mask(valid)
+    return LogShading(log_shading, pairs, pair_differences(log_shading), problem.gbuffer,
+                      Material(kd=problem.material.kd), problem.falloff, scale.to(grey.dtype))
+
+
+def _tiled(obs: LogShading, count: int) -> LogShading:
+    # Every image ``count`` times in a row.
+    g = obs.gbuffer
+    rep = lambda x: None if x is None else x.repeat_interleave(count, 0)  # noqa: E731
+    return LogShading(rep(obs.log_shading), rep(obs.pairs), rep(obs.observed),
+                      GBuffer(rep(g.points), rep(g.normals), rep(g.mask), rep(g.intrinsics)),
+                      Material(kd=rep(obs.material.kd)), obs.falloff, rep(obs.scale))
+
+
+def _transport(obs: LogShading, position: Tensor) -> Tensor:
+    # Unit diffuse transport (B, L, H, W), shading alone.
+    return light_transport(obs.gbuffer, obs.material, position, falloff=obs.falloff, shadows="none",
+                           specular=False).diffuse
+
+
+def _log_model(diffuse: Tensor, log_weight: Tensor) -> tuple[Tensor, Tensor]:
+    # log S (B, H, W) and S of transport (B, L, H, W) and log weights (B, L + 1).
+    w = log_weight.exp()
+    shading = w[:, :1, None] + (w[:, 1:, None, None] * diffuse).sum(1)
+    shading = shading.clamp_min(1e-12 * shading.flatten(1).amax(1).clamp_min(1e-30)[:, None, None])
+    return shading.log(), shading
+
+
+def shading_loss(obs: LogShading, residual: Tensor) -> Tensor:
+    """Cauchy loss ``(B,)`` of pair residuals ``(B, P)``: ``sum c^2 log(1 + (r / c)^2)``."""
+    c = obs.scale[:, None]
+    return (c**2 * torch.log1p((residual / c) ** 2) * obs.pairs).sum(1)
+
+
+def _residual(obs: LogShading, log_model: Tensor) -> Tensor:
+    return torch.where(obs.pairs, obs.observed - pair_differences(log_model), torch.zeros_like(obs.observed))
+
+
+def _evaluate(obs: LogShading, position: Tensor, log_weight: Tensor) -> Tensor:
+    log_model, _ = _log_model(_transport(obs, position), log_weight)
+    return shading_loss(obs, _residual(obs, log_model))
+
+
+def _jacobian(obs: LogShading, position: Tensor, log_weight: Tensor) -> tuple[Tensor, Tensor]:
+    """Residual ``(B, P)`` and its Jacobian ``(B, k, P)`` with respect to the free
+    parameters: each light's position (3L), the ambient's log weight, and the log
+    weights of lights 2.. (the first light's is the gauge)."""
+    B, L, _ = position.shape
+    jac = light_transport_jacobian(obs.gbuffer, obs.material, position, 1.0, falloff=obs.falloff, shadows="none",
+                                   specular=False)
+    diffuse = jac.transport.diffuse  # (B, L, H, W)
+    log_model, shading = _log_model(diffuse, log_weight)
+    w = log_weight.exp()
+    # d log S / d p_i = w_i dD_i/dp_i / S; d log S / d u_0 = w_0 / S; d log S / d u_i = w_i D_i / S.
+    d_pos = (w[:, 1:, None, None, None] * jac.diffuse).permute(0, 1, 4, 2, 3).reshape(B, 3 * L, *diffuse.shape[-2:])
+    d_ambient = w[:, :1, None, None].expand(B, 1, *diffuse.shape[-2:])
+    d_lights = w[:, 2:, None, None] * diffuse[:, 1:]
+    d_log = torch.cat([d_pos, d_ambient, d_lights], 1) / shading[:, None]
+    return _residual(obs, log_model), -pair_differences(d_log) * obs.pairs[:, None]
+
+
+def _unpack(step: Tensor, L: int) -> tuple[Tensor, Tensor]:
+    # A free-parameter step (B, 4L) -> position step (B, L, 3), log-weight step (B, L + 1).
+    B = step.shape[0]
+    d_pos = step[:, : 3 * L].reshape(B, L, 3)
+    d_u = torch.cat([step[:, 3 * L : 3 * L + 1], step.new_zeros(B, 1), step[:, 3 * L + 1 :]], 1)
+    return d_pos, d_u
+
+
+def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iterations: int = 20,
+                     tol: float = 1e-6) -> AlbedoFreeFit:
+    """Damped Gauss-Newton (Levenberg-Marquardt) with Cauchy IRLS weights from
+    ``position (B, L, 3)`` and ``log_weight (B, L + 1)``; each image stops on its own
+    (relative loss decrease below ``tol``, or damping run out)."""
+    position, log_weight = position.detach().clone(), log_weight.detach().clone()
+    B, L, _ = position.shape
+    loss = _evaluate(obs, position, log_weight)
+    damping = torch.full((B,), 1e-3, dtype=position.dtype, device=position.device)
+    active = torch.ones(B, dtype=torch.bool, device=position.device)
+    for _ in range(iterations):
+        if not bool(active.any()):
+            break
+        residual, jac = _jacobian(obs, position, log_weight)
+        c = obs.scale[:, None]
+        weights = obs.pairs / (1 + (residual / c) ** 2)
+        weighted = jac * weights[:, None]
+        jtj = (weighted @ jac.transpose(1, 2)).double()
+        jtr = (weighted @ residual[..., None]).double()
+        diag = jtj.diagonal(dim1=-2, dim2=-1)
+        peak = diag.amax(-1, keepdim=True)
+        diag = torch.where(peak > 0, diag.clamp_min(1e-9 * peak), torch.ones_like(diag))
+        system = jtj + damping.double()[:, None, None] * torch.diag_embed(diag)
+        # residual r = observed - model, J = d r / d theta: the step solves (J W J^T) d = -J W r.
+        step = -torch.linalg.solve_ex(system, jtr)[0].squeeze(-1).to(position.dtype)
+        finite = torch.isfinite(step).all(-1) & active
+        step = torch.where(finite[:, None], step, torch.zeros_like(step))
+        d_pos, d_u = _unpack(step, L)
+        trial_pos, trial_u = position + d_pos, log_weight + d_u
+        trial = _evaluate(obs, trial_pos, trial_u)
+        better = finite & (trial < loss)
+        rel = (loss - trial) / loss.clamp_min(1e-30)
+        position = torch.where(better[:, None, None], trial_pos, position)
+        log_weight = torch.where(better[:, None], trial_u, log_weight)
+        loss = torch.where(better, trial, loss)
+        damping = torch.where(better, damping * 0.3, damping * 10).clamp(1e-9, 1e9)
+        active &= ~((better & (rel < tol)) | (damping >= 1e9))
+    return AlbedoFreeFit(position, log_weight, loss, obs.pairs.sum(1))
+
+
+def _grid_losses(obs: LogShading, fixed: AlbedoFreeFit | None, cands: Tensor) -> tuple[Tensor, Tensor]:
+    """Loss ``(B, G)`` of each grid candidate ``(B, G, 3)`` as the searched light, at its
+    best contrast step, and that step's log weights ``(B, G, L + 1)``."""
+    B, G, _ = cands.shape
+    tiled = _tiled(obs, G)
+    diffuse = _transport(tiled, cands.reshape(B * G, 1, 3))  # (B G, 1, H, W)
+    if fixed is None:
+        unit = torch.where(tiled.gbuffer.mask, diffuse[:, 0], torch.full_like(diffuse[:, 0], float("nan")))
+        base = torch.nan_to_num(unit.flatten(1).nanmedian(1).values, nan=1.0).clamp_min(1e-30).log()
+        steps = [torch.stack([base + g, torch.zeros_like(base)], 1) for g in AMBIENT_STEPS]
+    else:
+        before = _transport(tiled, fixed.position.repeat_interleave(G, 0))
+        diffuse = torch.cat([before, diffuse], 1)
+        u = fixed.log_weight.repeat_interleave(G, 0)
+        steps = [torch.cat([u, torch.full_like(u[:, :1], float(torch.tensor(r).log()))], 1) for r in RATIO_STEPS]
+    losses, weights = [], []
+    for u in steps:
+        log_model, _ = _log_model(diffuse, u)
+        losses.append(shading_loss(tiled, _residual(tiled, log_model)))
+        weights.append(u)
+    losses, weights = torch.stack(losses, 1), torch.stack(weights, 1)  # (B G, K), (B G, K, L + 1)
+    best = losses.argmin(1)
+    rows = torch.arange(B * G, device=best.device)
+    return losses[rows, best].reshape(B, G), weights[rows, best].reshape(B, G, -1)
+
+
+def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None = None, robust_scale: float = 0.05,
+           per_axis: tuple[int, int, int] = (7, 7, 7), starts: int = 4, rank_stride: int = 4, start_stride: int = 2,
+           iterations: tuple[int, int] = (15, 15)) -> AlbedoFreeFit:
+    """Fit ``n_lights`` lights to the log shading of ``problem``, every image at once.
+
+    The last light is searched, the others (``fixed``, the fit of ``n_lights - 1``)
+    start where they are: every grid candidate (:func:`selfsup.refine.grid_candidates`)
+    with a few contrast steps is scored at every ``rank_stride``-th pixel, the
+    ``starts`` best well-spread ones run ``iterations[0]`` LM steps at
+    ``start_stride``, and the best of those ``iterations[1]`` at full resolution.
+    """
+    B = problem.batch
+    if (fixed is None) != (n_lights == 1) or (fixed is not None and fixed.position.shape[1] != n_lights - 1):
+        raise ValueError(f"searching light {n_lights} needs the fit of the {n_lights - 1} before it")
+    ranked = observe(subsample(problem, rank_stride), robust_scale)
+    cands = grid_candidates(subsample(problem, rank_stride), per_axis)
+    with torch.no_grad():
+        losses, weights = _grid_losses(ranked, fixed, cands)
+    size = (lambda e: (e[2] - e[1]).norm(dim=-1).clamp_min(1e-6))(problem.gbuffer.extent())
+    index, _ = spread_best(cands, losses, size, starts, 0.15)  # (B, S)
+    S = index.shape[1]
+    rows = torch.arange(B, device=index.device)[:, None]
+    base = cands.new_zeros(B, 0, 3) if fixed is None else fixed.position
+    position = torch.cat([base[:, None].expand(B, S, -1, -1), cands[rows, index][:, :, None]], 2)
+    coarse = _tiled(observe(subsample(problem, start_stride), robust_scale), S)
+    fit = refine_positions(coarse, position.flatten(0, 1), weights[rows, index].flatten(0, 1), iterations[0])
+    best = fit.loss.reshape(B, S).argmin(1)
+    pick = torch.arange(B, device=best.device) * S + best
+    full = observe(problem, robust_scale)
+    return refine_positions(full, fit.position[pick], fit.log_weight[pick], iterations[1])
+
+
+def light_shares(problem: FitProblem, fit: AlbedoFreeFit) -> Tensor:
+    """Each light's share ``(B, L)`` of the fitted direct shading over the valid pixels."""
+    diffuse = light_transport(problem.gbuffer, Material(kd=problem.material.kd), fit.position,
+                              falloff=problem.falloff, shadows="none", specular=False).diffuse
+    direct = (fit.log_weight[:, 1:].exp()[..., None, None] * diffuse * problem.gbuffer.mask[:, None]).flatten(2).sum(2)
+    return direct / direct.sum(1, keepdim=True).clamp_min(1e-30)
+
+
+def position_covariance(obs: LogShading, fit: AlbedoFreeFit, correlation_px: float = 1.0) -> Tensor:
+    """Gauss-Newton covariance ``(B, L, 3, 3)`` of each light's position under the pair
+    residuals' Cauchy weights (the albedo edges' pairs weigh nothing); the noise
+    variance is the weighted residual's, inflated by ``correlation_px``."""
+    B, L, _ = fit.position.shape
+    residual, jac = _jacobian(obs, fit.position, fit.log_weight)
+    weights = obs.pairs / (1 + (residual / obs.scale[:, None]) ** 2)
+    k = jac.shape[1]
+    sigma2 = (weights * residual**2).sum(1) / (weights.sum(1) - k).clamp_min(1) * correlation_px
+    info = ((jac * weights[:, None]) @ jac.transpose(1, 2)).double()
+    info = info + 1e-12 * info.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] * torch.eye(k, dtype=info.dtype,
+                                                                                              device=info.device)
+    cov = (torch.linalg.pinv(info, hermitian=True) * sigma2.double()[:, None, None]).to(fit.position.dtype)
+    pos = cov[:, : 3 * L, : 3 * L].reshape(B, L, 3, L, 3)
+    return torch.stack([pos[:, i, :, i, :] for i in range(L)], 1)
