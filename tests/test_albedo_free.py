@@ -102,3 +102,35 @@ def test_two_lights_are_told_from_one_without_the_albedo():
 def test_bad_reflectance_settings_are_named(options, word):
     with pytest.raises(ValueError, match=word):
         EstimateOptions(**options)
+
+
+def test_a_kd_of_zero_everywhere_is_named_not_a_crash(tmp_path):
+    from selfsup.estimate import estimate_files
+    from selfsup.scenes.io import write_scene
+
+    scene = _scene(3)
+    with pytest.raises(ValueError, match="pairs of neighbouring pixels with kd > 0"):
+        estimate_scene(_unknown_albedo(scene, 0.0), EstimateOptions())
+    (tmp_path / "in").mkdir()
+    write_scene(tmp_path / "in" / "black.npz", _unknown_albedo(scene, 0.0))
+    write_scene(tmp_path / "in" / "fine.npz", _unknown_albedo(scene))
+    summary = estimate_files(tmp_path / "in", tmp_path / "out.jsonl", EstimateOptions(), progress=False, batch=2)
+    lines = (tmp_path / "out.jsonl").read_text().splitlines()
+    assert len(lines) == 1 and summary["done"] == 1 and summary["failed"] == 1
+
+
+def test_a_batch_mixing_both_reflectances_answers_each_as_alone():
+    from selfsup.estimate import estimate_batch, prepare, records
+
+    scenes = [_unknown_albedo(_scene(3)), _scene(5), _unknown_albedo(_scene(5))]
+    options = EstimateOptions(max_lights=1)
+    problem = prepare(scenes, options)
+    together = records([s.id for s in scenes], problem, estimate_batch(problem, options), options)
+    for scene, record in zip(scenes, together):
+        alone = estimate_scene(scene, options)
+        assert record["reflectance"] == alone["reflectance"]
+        torch.testing.assert_close(torch.tensor(record["lights"][0]["position"]),
+                                   torch.tensor(alone["lights"][0]["position"]), atol=1e-4, rtol=0)
+        torch.testing.assert_close(torch.tensor(record["lights"][0]["position_cov"]),
+                                   torch.tensor(alone["lights"][0]["position_cov"]), atol=1e-8, rtol=1e-3)
+    assert [r["reflectance"] for r in together] == ["albedo_free", "given", "albedo_free"]
