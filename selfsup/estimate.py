@@ -499,25 +499,25 @@ def _estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list
                 best[i] = (more, j, c)
                 still.append(i)
         growing = still
-    results = []
+    results: list = [None] * B
     refine_options = replace(options.refine, specular=False)
-    for i in range(B):
-        fit, row, c = best[i]
-        one = problem.select(torch.tensor([i], device=device))
-        chosen = albedo_free.AlbedoFreeFit(fit.position[row : row + 1], fit.log_weight[row : row + 1],
-                                           fit.loss[row : row + 1], fit.pairs[row : row + 1])
-        cost, intensity, ambient, model, _, _, _ = evaluate(one, chosen.position, refine_options)
-        mask = one.gbuffer.mask[:, None]
-        rss = ((model - one.image) ** 2 * mask).flatten(1).sum(1)
-        n_values = mask.flatten(1).sum(1) * 3
-        iterations = torch.zeros(1, dtype=torch.long, device=device)
-        cov = albedo_free.position_covariance(albedo_free.observe(one, options.albedo_free_scale), chosen,
-                                              correlation_px=float(block**2))[0].cpu()
-        n_lights = chosen.position.shape[1]
-        candidate = Candidate(Fit(chosen.position, intensity, ambient, cost, model, iterations, rss, n_values),
-                              n_lights, False, c, cov, "albedo_free")
-        others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
-        results.append((candidate, others))
+    counts = [best[i][0].position.shape[1] for i in range(B)]
+    for n_lights in sorted(set(counts)):  # one batched solve and covariance per light count
+        group = [i for i in range(B) if counts[i] == n_lights]
+        chosen = albedo_free.AlbedoFreeFit(*(torch.stack([getattr(best[i][0], name)[best[i][1]] for i in group])
+                                             for name in ("position", "log_weight", "loss", "pairs")))
+        sub = problem.select(torch.tensor(group, dtype=torch.long, device=device))
+        cost, intensity, ambient, model, _, _, _ = evaluate(sub, chosen.position, refine_options)
+        mask = sub.gbuffer.mask[:, None]
+        rss = ((model - sub.image) ** 2 * mask).flatten(1).sum(1)
+        fit = Fit(chosen.position, intensity, ambient, cost, model, torch.zeros_like(cost, dtype=torch.long), rss,
+                  mask.flatten(1).sum(1) * 3)
+        cov = albedo_free.position_covariance(albedo_free.observe(sub, options.albedo_free_scale), chosen,
+                                              correlation_px=float(block**2)).cpu()
+        for j, i in enumerate(group):
+            candidate = Candidate(_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free")
+            others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
+            results[i] = (candidate, others)
     return results
 
 
