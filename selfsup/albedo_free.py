@@ -24,6 +24,7 @@ small beside a sensor's depth and image noise, and fitting them put the light
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -31,7 +32,7 @@ from torch import Tensor
 
 from render import GBuffer, Material
 from render.functional import light_transport, light_transport_jacobian
-from selfsup.refine import FitProblem, grid_candidates, spread_best, subsample
+from selfsup.refine import FitProblem, grid_candidates, scene_frame, spread_best, subsample
 
 __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "shading_loss", "search", "refine_positions",
            "light_shares", "position_covariance"]
@@ -226,7 +227,7 @@ def _grid_losses(obs: LogShading, fixed: AlbedoFreeFit | None, cands: Tensor) ->
         before = _transport(tiled, fixed.position.repeat_interleave(G, 0))
         diffuse = torch.cat([before, diffuse], 1)
         u = fixed.log_weight.repeat_interleave(G, 0)
-        steps = [torch.cat([u, torch.full_like(u[:, :1], float(torch.tensor(r).log()))], 1) for r in RATIO_STEPS]
+        steps = [torch.cat([u, torch.full_like(u[:, :1], math.log(r))], 1) for r in RATIO_STEPS]
     losses, weights = [], []
     for u in steps:
         log_model, _ = _log_model(diffuse, u)
@@ -256,7 +257,7 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     cands = grid_candidates(subsample(problem, rank_stride), per_axis)
     with torch.no_grad():
         losses, weights = _grid_losses(ranked, fixed, cands)
-    size = (lambda e: (e[2] - e[1]).norm(dim=-1).clamp_min(1e-6))(problem.gbuffer.extent())
+    size = scene_frame(problem)[1]
     index, _ = spread_best(cands, losses, size, starts, 0.15)  # (B, S)
     S = index.shape[1]
     rows = torch.arange(B, device=index.device)[:, None]

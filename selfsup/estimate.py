@@ -469,11 +469,11 @@ def _estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list
     nothing of the highlights either)."""
     B, device = problem.batch, problem.image.device
     block = block_px(options, problem.image.shape[-1])
-    pairs = albedo_free.observe(problem, options.albedo_free_scale).pairs.sum(1).tolist()
+    found = albedo_free.search(problem, 1, robust_scale=options.albedo_free_scale)
+    pairs = found.pairs.tolist()
     if min(pairs) < 100:
         raise ValueError(f"kd is one constant, so the lights are fitted albedo-free, but image {pairs.index(min(pairs))} "
                          f"has {min(pairs)} pairs of neighbouring pixels with kd > 0 and light (at least 100 needed)")
-    found = albedo_free.search(problem, 1, robust_scale=options.albedo_free_scale)
 
     def criterion(fit: albedo_free.AlbedoFreeFit) -> list[float]:
         n_params = 4 * fit.position.shape[1]  # position, and a contrast per light (the ambient's for the first)

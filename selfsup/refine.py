@@ -34,7 +34,7 @@ from render import GBuffer, Material, light_transport, light_transport_jacobian
 from selfsup.linear import basis_images, intensity_design, solve_design
 
 __all__ = ["FitProblem", "RefineOptions", "Fit", "refine", "search", "solve_linear", "reweighted", "evaluate", "grid_candidates",
-           "robust_loss", "position_covariance", "subsample", "spread_best"]
+           "robust_loss", "position_covariance", "subsample", "spread_best", "scene_frame"]
 
 
 RUNAWAY_SIZES = 10.0  # the LM stops an image whose light is this many scene sizes from the centre
@@ -219,8 +219,8 @@ class Fit:
     n: Tensor
 
 
-def _scene_frame(problem: FitProblem) -> tuple[Tensor, Tensor]:
-    # Centroid (B, 3) and size (B,) (bounding-box diagonal) of the valid points.
+def scene_frame(problem: FitProblem) -> tuple[Tensor, Tensor]:
+    """Centroid ``(B, 3)`` and size ``(B,)`` (bounding-box diagonal, at least 1e-6) of the valid points."""
     centre, lo, hi = problem.gbuffer.extent()
     return centre, (hi - lo).norm(dim=-1).clamp_min(1e-6)
 
@@ -363,7 +363,7 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
     # alone, intensities held, ignores that the re-solve absorbs what a move does to
     # brightness (inverse-square distance against intensity) and crept in tiny steps.
     B, L, _ = position.shape
-    centre, size = _scene_frame(problem)
+    centre, size = scene_frame(problem)
     h = (options.fd_step * size)[:, None, None]  # (B, 1, 1)
     damping = torch.full((B,), 1e-3, dtype=position.dtype, device=position.device)
     active = torch.ones(B, dtype=torch.bool, device=position.device)
@@ -431,7 +431,7 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
 
 def _first_order(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters: int) -> tuple[Tensor, Tensor]:
     B = position.shape[0]
-    centre, size = _scene_frame(problem)
+    centre, size = scene_frame(problem)
     unit = ((position - centre[:, None]) / size[:, None, None]).detach().requires_grad_(True)
     tol = 1e-4 if options.method == "gd" else options.tol
     optimiser = (torch.optim.SGD([unit], lr=options.learning_rate) if options.method == "gd"
@@ -590,7 +590,7 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
     ranked = subsample(problem, _stride_for(problem, rank_pixels))
     cands = grid_candidates(coarse, per_axis)  # (B, G, 3)
     G = cands.shape[1]
-    size = _scene_frame(coarse)[1]  # (B,)
+    size = scene_frame(coarse)[1]  # (B,)
     with torch.no_grad():
         positions = torch.cat([base[:, None].expand(B, G, -1, -1), cands[:, :, None]], 2)  # (B, G, L, 3)
         tiled = _tiled(ranked, G)
@@ -631,7 +631,7 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     spatially correlated residuals.
     """
     B, L, _ = fit.position.shape
-    _, size = _scene_frame(problem)
+    _, size = scene_frame(problem)
     h = (options.fd_step * size)[:, None, None]
     cols, j_pos = _jacobians(problem, fit.position, fit.intensity, h, options.specular)  # (B, 3, L, H, W), (B, 3L, 3HW)
     jac = torch.cat([j_pos, _linear_jacobian(problem, cols)], 1)
