@@ -49,8 +49,8 @@ from render import GBuffer, Material, light_transport
 from render.geometry import normal_noise, plane_normals, smooth_normals, surface_segments
 from render.shadows import ShadowMethod
 from selfsup import albedo_free
-from selfsup.refine import (Fit, FitProblem, RefineOptions, evaluate, position_covariance, refine, reweighted,
-                            robust_loss, search, solve_linear)
+from selfsup.refine import (Fit, FitProblem, RefineOptions, position_covariance, refine, reweighted, robust_loss,
+                            search, solve_linear)
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
 __all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "problems_of", "prepare", "estimate_scene",
@@ -486,9 +486,7 @@ def _estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list
         if not growing:
             break
         at = torch.tensor(growing, dtype=torch.long, device=device)
-        fixed = [best[i] for i in growing]
-        before = albedo_free.AlbedoFreeFit(*(torch.stack([getattr(f, name)[r] for f, r, _ in fixed])
-                                             for name in ("position", "log_weight", "loss", "pairs")))
+        before = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in growing])
         sub = problem.select(at)
         more = albedo_free.search(sub, n_lights, fixed=before, robust_scale=options.albedo_free_scale)
         shares = albedo_free.light_shares(sub, more).amin(1).tolist()
@@ -500,22 +498,19 @@ def _estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list
                 still.append(i)
         growing = still
     results: list = [None] * B
-    refine_options = replace(options.refine, specular=False)
+    # No iterations: the intensities and ambient solved and the fit evaluated at the positions.
+    solve = replace(options.refine, specular=False, max_iters=(0,), strides=(1,))
     counts = [best[i][0].position.shape[1] for i in range(B)]
     for n_lights in sorted(set(counts)):  # one batched solve and covariance per light count
         group = [i for i in range(B) if counts[i] == n_lights]
-        chosen = albedo_free.AlbedoFreeFit(*(torch.stack([getattr(best[i][0], name)[best[i][1]] for i in group])
-                                             for name in ("position", "log_weight", "loss", "pairs")))
+        chosen = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in group])
         sub = problem.select(torch.tensor(group, dtype=torch.long, device=device))
-        cost, intensity, ambient, model, _, _, _ = evaluate(sub, chosen.position, refine_options)
-        mask = sub.gbuffer.mask[:, None]
-        rss = ((model - sub.image) ** 2 * mask).flatten(1).sum(1)
-        fit = Fit(chosen.position, intensity, ambient, cost, model, torch.zeros_like(cost, dtype=torch.long), rss,
-                  mask.flatten(1).sum(1) * 3)
+        fit = refine(sub, chosen.position, solve)
         cov = albedo_free.position_covariance(albedo_free.observe(sub, options.albedo_free_scale), chosen,
                                               correlation_px=float(block**2)).cpu()
         for j, i in enumerate(group):
             candidate = Candidate(_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free")
+            # The records keep the tried models' counts and criteria only.
             others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
             results[i] = (candidate, others)
     return results

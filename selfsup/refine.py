@@ -34,7 +34,7 @@ from render import GBuffer, Material, light_transport, light_transport_jacobian
 from selfsup.linear import basis_images, intensity_design, solve_design
 
 __all__ = ["FitProblem", "RefineOptions", "Fit", "refine", "search", "solve_linear", "reweighted", "evaluate", "grid_candidates",
-           "robust_loss", "position_covariance", "subsample", "spread_best", "scene_frame"]
+           "robust_loss", "position_covariance", "subsample", "spread_best", "scene_frame", "position_blocks"]
 
 
 RUNAWAY_SIZES = 10.0  # the LM stops an image whose light is this many scene sizes from the centre
@@ -637,10 +637,18 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     jac = torch.cat([j_pos, _linear_jacobian(problem, cols)], 1)
     mask = problem.gbuffer.mask[:, None].expand_as(problem.image).flatten(1).to(jac.dtype)
     jac = jac * mask[:, None]
-    k = jac.shape[1]
-    sigma2 = fit.rss / (fit.n - k).clamp_min(1) * correlation_px
-    info = jac @ jac.transpose(1, 2)
-    info = info + 1e-12 * info.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] * torch.eye(k, dtype=jac.dtype, device=jac.device)
+    sigma2 = fit.rss / (fit.n - jac.shape[1]).clamp_min(1) * correlation_px
+    return position_blocks(jac @ jac.transpose(1, 2), sigma2, L)
+
+
+def position_blocks(info: Tensor, sigma2: Tensor, n_lights: int) -> Tensor:
+    """Each light's ``(B, L, 3, 3)`` block of the covariance ``sigma2 (B,) x info^-1`` of a
+    Gauss-Newton information matrix ``info (B, k, k)`` whose first ``3 L`` parameters
+    are the lights' positions (a ridge of 1e-12 of its mean curvature, then the
+    pseudo-inverse: a parameter nothing constrains gets no variance, not a failure)."""
+    B, k, _ = info.shape
+    info = info + 1e-12 * info.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] * torch.eye(k, dtype=info.dtype,
+                                                                                              device=info.device)
     cov = torch.linalg.pinv(info, hermitian=True) * sigma2[:, None, None]
-    pos_cov = cov[:, : 3 * L, : 3 * L].reshape(B, L, 3, L, 3)
-    return torch.stack([pos_cov[:, i, :, i, :] for i in range(L)], 1)
+    pos_cov = cov[:, : 3 * n_lights, : 3 * n_lights].reshape(B, n_lights, 3, n_lights, 3)
+    return torch.stack([pos_cov[:, i, :, i, :] for i in range(n_lights)], 1)
