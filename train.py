@@ -99,9 +99,9 @@ def run(cfg: DictConfig):
 
         est = _plain(cfg.estimate)
         refine = RefineOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in est.pop("refine").items()})
-        io = {k: est.pop(k) for k in ("input", "output", "progress", "batch", "device")}
+        io = {k: est.pop(k) for k in ("input", "output", "progress", "batch", "device", "workers")}
         return estimate_files(io["input"], io["output"], EstimateOptions(refine=refine, **est), progress=io["progress"],
-                              batch=io["batch"], device=io["device"])
+                              batch=io["batch"], device=io["device"], workers=io["workers"])
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")

@@ -516,6 +516,16 @@ def test_throughput_benchmark_scores_a_batch_end_to_end():
     assert abs(row["inputs_share"] + row["estimate_share"] + row["records_share"] - 1) < 0.05
 
 
+def test_files_speed_benchmark_times_the_command_on_a_directory():
+    from benchmarks.estimate_files_speed import run
+
+    rows, path = run(scenes=2, workers=(1,), batches=(2,), sets=("true reflectance, 1 light",), rounds=1, write=False,
+                     options=EstimateOptions(refine=RefineOptions(max_iters=(15, 5))))
+    assert path is None and len(rows) == 1
+    row = rows[0]
+    assert row["scenes"] == 2 and row["workers"] == 1 and row["seconds_per_scene"] > 0 and row["success_rate"] == 1.0
+
+
 def test_batched_files_match_single_files_and_a_bad_one_costs_no_other(tmp_path):
     config = dataclasses.replace(SMALL, height=24, width=32)
     for seed in (6, 7):
@@ -536,6 +546,35 @@ def test_batched_files_match_single_files_and_a_bad_one_costs_no_other(tmp_path)
         assert np.allclose(a["lights"][0]["position"], b["lights"][0]["position"], atol=1e-3)
     with pytest.raises(ValueError, match="estimate.batch must be >= 1"):
         estimate_files(tmp_path, tmp_path / "x.jsonl", options, progress=False, batch=0)
+
+
+def test_worker_processes_write_what_one_process_writes_in_the_files_order(tmp_path):
+    config = dataclasses.replace(SMALL, height=24, width=32)
+    for seed in (6, 7, 8):
+        write_scene(tmp_path / f"good_{seed}.npz", _scene(seed, config=config))
+    np.savez(tmp_path / "good_7_missing.npz", image=np.zeros((4, 4, 3), np.float32))
+    options = EstimateOptions(max_lights=1, refine=RefineOptions(max_iters=(10, 3)))
+    alone = estimate_files(tmp_path, tmp_path / "one.jsonl", options, progress=False, workers=1)
+    spread = estimate_files(tmp_path, tmp_path / "two.jsonl", options, progress=False, workers=2)
+    assert spread["workers"] == 2 and alone["workers"] == 1
+    assert alone["done"] == spread["done"] == 3 and list(spread["failures"]) == [str(tmp_path / "good_7_missing.npz")]
+    one, two = ([json.loads(line) for line in (tmp_path / name).read_text().splitlines()] for name in ("one.jsonl", "two.jsonl"))
+    assert [r["id"] for r in two] == [r["id"] for r in one] == ["procedural_6", "procedural_7", "procedural_8"]
+    for a, b in zip(one, two):
+        assert np.allclose(a["lights"][0]["position"], b["lights"][0]["position"], atol=1e-3)
+    assert spread["wall_seconds"] > 0
+
+
+def test_worker_count_auto_spreads_only_directories_worth_a_start():
+    from selfsup.estimate import FILES_PER_AUTO_WORKER, usable_cores, worker_count
+
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    assert worker_count("auto", 1, cpu) == 1 and worker_count("auto", FILES_PER_AUTO_WORKER - 1, cpu) == 1
+    assert worker_count("auto", 1000 * FILES_PER_AUTO_WORKER, cpu) == usable_cores()
+    assert worker_count("auto", 1000, cuda) == 1 and worker_count(3, 1, cpu) == 3
+    for bad in (0, -1, "two", 1.5, True):
+        with pytest.raises(ValueError, match="estimate.workers must be"):
+            worker_count(bad, 10, cpu)
 
 
 def test_segment_gains_recover_each_surfaces_albedo_factor():
