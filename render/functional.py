@@ -14,7 +14,7 @@ from torch import Tensor
 
 from render.geometry import dot3, fit_intrinsics
 from render.shading import (Falloff, blinn_phong_lobe, falloff_factor, light_geometry, light_offset,
-                            shading_position_gradients)
+                            shading_and_position_gradients)
 from render.shadows import ShadowMethod, shadow_visibility
 from render.types import GBuffer, Material, PointLights, check_ambient
 
@@ -189,13 +189,11 @@ def light_transport_jacobian(
     falloff, shadows = Falloff(falloff), ShadowMethod(shadows)
     with_specular = bool(specular) and material.ks is not None
     geometry = _geometry(gbuffer, light_position)
-    unshadowed = _transport(gbuffer, material, light_position, falloff, ShadowMethod.NONE, None, with_specular,
-                            geometry)
-    diffuse, spec = unshadowed.diffuse, unshadowed.specular
     normals = gbuffer.normals[:, None]
-    d_diffuse, d_specular = shading_position_gradients(normals, geometry, _shininess(material), falloff, with_specular)
+    diffuse, spec, d_diffuse, d_specular = shading_and_position_gradients(normals, geometry, _shininess(material),
+                                                                          falloff, with_specular)
     if shadows is ShadowMethod.NONE:
-        return TransportJacobian(unshadowed, d_diffuse, d_specular)
+        return TransportJacobian(LightTransport(diffuse, spec, None), d_diffuse, d_specular)
 
     K = _shadow_intrinsics(gbuffer, shadows)
     cast = shadow_visibility(shadows, gbuffer.points, gbuffer.mask, K, light_position, shadow_options)

@@ -14,7 +14,8 @@ from torch import Tensor
 
 from render.geometry import dot3, norm3
 
-__all__ = ["Falloff", "LightGeometry", "light_geometry", "falloff_factor", "blinn_phong_lobe", "shading_position_gradients"]
+__all__ = ["Falloff", "LightGeometry", "light_geometry", "falloff_factor", "blinn_phong_lobe", "shading_position_gradients",
+           "shading_and_position_gradients"]
 
 
 class Falloff(str, Enum):
@@ -134,21 +135,34 @@ def shading_position_gradients(normals: Tensor, geometry: LightGeometry, shinine
     Returns:
         ``d diffuse_i / d p_i`` and ``d specular_i / d p_i``, ``(B, L, H, W, 3)`` each.
     """
+    return shading_and_position_gradients(normals, geometry, shininess, falloff, with_specular)[2:]
+
+
+def shading_and_position_gradients(normals: Tensor, geometry: LightGeometry, shininess: Tensor,
+                                   falloff: Falloff | str, with_specular: bool = True
+                                   ) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
+    """The unshadowed transport ``diffuse = f(d) max(0, n.l)`` and ``specular = f(d)
+    max(0, n.h)^alpha`` ``(B, L, H, W)`` and their :func:`shading_position_gradients`
+    ``(B, L, H, W, 3)``, sharing every intermediate (a Gauss-Newton step needs all four;
+    computed apart they cost a third more). Specular terms are None without ``with_specular``.
+    """
     to_light, distance, to_viewer = geometry
     f = falloff_factor(distance, falloff)
     # f'(d) / f: -2/d for 1/d^2, 0 for no falloff.
     log_slope = -2.0 / distance if Falloff(falloff) is Falloff.INVERSE_SQUARE else torch.zeros_like(distance)
     n_dot_l = dot3(normals, to_light)
+    lit = n_dot_l > 0
+    diffuse = f * n_dot_l.clamp_min(0)
     d_n_dot_l = (normals - n_dot_l[..., None] * to_light) / distance[..., None]
     d_diffuse = f[..., None] * (d_n_dot_l + (n_dot_l * log_slope)[..., None] * to_light)
-    d_diffuse = torch.where((n_dot_l > 0)[..., None], d_diffuse, torch.zeros_like(d_diffuse))
+    d_diffuse = torch.where(lit[..., None], d_diffuse, torch.zeros_like(d_diffuse))
     if not with_specular:
-        return d_diffuse, None
-    half, length, safe, lit = _half_vector(normals, to_light, to_viewer)
-    lobe = torch.where(lit, safe.pow(shininess), torch.zeros_like(safe))
+        return diffuse, None, d_diffuse, None
+    half, length, safe, lobe_lit = _half_vector(normals, to_light, to_viewer)
+    lobe = torch.where(lobe_lit, safe.pow(shininess), torch.zeros_like(safe))
     # d(n.h)/dp = (I - l l^T)(n - (n.h) h) / (d |l + v|); 0 where unlit (lobe = 0)
     tangent = normals - safe[..., None] * half
     d_n_dot_h = (tangent - dot3(tangent, to_light)[..., None] * to_light) / (distance * length)[..., None]
     d_lobe = (shininess * lobe / safe)[..., None] * d_n_dot_h
     d_specular = f[..., None] * (d_lobe + (lobe * log_slope)[..., None] * to_light)
-    return d_diffuse, d_specular
+    return diffuse, f * lobe, d_diffuse, d_specular
