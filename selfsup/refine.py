@@ -175,7 +175,7 @@ class RefineOptions:
 
     method: str = "lm"
     max_iters: tuple[int, ...] = (30, 10)
-    strides: tuple[int, ...] = (2, 1)
+    strides: tuple[int, ...] = (4, 1)
     tol: float = 1e-4
     step_tol: float = 1e-4
     robust: bool = True
