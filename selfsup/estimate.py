@@ -776,9 +776,11 @@ def _device(name: str) -> torch.device:
     return torch.device(name)
 
 
-# A scene takes about 0.45 s on one core (160x120, cnn+refine) and a worker 2-3 s to
-# start: 8 files a worker win back its start-up several times over.
-FILES_PER_AUTO_WORKER = 8
+# A worker takes 3-4 s to start (spawn, imports, the network) and two of them ran a
+# directory 1.4x as fast as one process (0.27 against 0.39 s per scene, batches of 4,
+# 2-core CPU): on 18 devset files two workers were slower (6.5 against 5.2 s); from
+# about 30 files a core they win.
+FILES_PER_AUTO_WORKER = 32
 
 
 def usable_cores() -> int:
@@ -792,7 +794,7 @@ def usable_cores() -> int:
 def worker_count(workers: int | str, files: int, device: torch.device) -> int:
     """Processes ``estimate_files`` spreads ``files`` over: ``workers`` as given (at least
     1), or for ``"auto"`` one per usable core on the CPU once there are at least
-    :data:`FILES_PER_AUTO_WORKER` files for each (a worker's start, about 2-3 s of
+    :data:`FILES_PER_AUTO_WORKER` files for each (a worker's start, about 3-4 s of
     imports and the network, must pay for itself), and 1 on an accelerator (one
     process fills it)."""
     if workers == "auto":
@@ -863,7 +865,7 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
     batch's time; a failing batch is retried file by file. ``device``: ``cpu``,
     ``cuda`` or ``auto``. ``workers``: processes the batches are spread over
     (:func:`worker_count`; ``auto``: one per core on the CPU for a directory of at
-    least 8 files per core); a record's ``seconds`` is then the time in its
+    least 32 files per core); a record's ``seconds`` is then the time in its
     worker, and the run's time per scene is ``wall_seconds / done``. Records are
     written in the files' order whatever the workers.
     """
