@@ -569,6 +569,44 @@ def test_worker_processes_write_what_one_process_writes_in_the_files_order(tmp_p
     assert spread["wall_seconds"] > 0
 
 
+def test_files_of_a_worker_that_died_are_estimated_here(tmp_path, monkeypatch):
+    # A worker killed mid-run (out of memory, a signal) breaks the pool: every chunk it
+    # had not answered is estimated again in this process, none is lost.
+    from concurrent.futures import Future
+    from concurrent.futures.process import BrokenProcessPool
+
+    import selfsup.estimate as estimate_module
+
+    class DyingPool:  # answers the first chunk, then breaks as a pool whose worker died
+        def __init__(self, *args, **kwargs):
+            self.calls = 0
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def submit(self, fn, *args):
+            future = Future()
+            if self.calls == 0:
+                future.set_result(fn(*args))
+            else:
+                future.set_exception(BrokenProcessPool("a worker stopped"))
+            self.calls += 1
+            return future
+
+    monkeypatch.setattr(estimate_module, "ProcessPoolExecutor", DyingPool)
+    config = dataclasses.replace(SMALL, height=24, width=32)
+    for seed in (6, 7, 8):
+        write_scene(tmp_path / f"good_{seed}.npz", _scene(seed, config=config))
+    options = EstimateOptions(max_lights=1, refine=RefineOptions(max_iters=(10, 3)))
+    summary = estimate_files(tmp_path, tmp_path / "out.jsonl", options, progress=False, workers=2)
+    assert summary["done"] == 3 and summary["failed"] == 0
+    ids = [json.loads(line)["id"] for line in (tmp_path / "out.jsonl").read_text().splitlines()]
+    assert ids == ["procedural_6", "procedural_7", "procedural_8"]
+
+
 def test_worker_count_auto_spreads_only_directories_worth_a_start():
     from selfsup.estimate import FILES_PER_AUTO_WORKER, usable_cores, worker_count
 
