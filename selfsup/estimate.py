@@ -907,7 +907,7 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
     summary = {"done": len(seconds), "failed": len(failed), "failures": failed,
                "median_seconds": sorted(seconds)[len(seconds) // 2] if seconds else None,
                "wall_seconds": round(wall, 3), "workers": workers, "output": str(output)}
-    log.info("estimated %d scene(s), %d failed, in %.1f s (%d worker(s), %.3f s per scene; median %.3f s each); "
+    log.info("estimated %d scene(s), %d failed, in %.1f s (%d worker(s), %.3f s per file; median %.3f s each); "
              "wrote %s", summary["done"], summary["failed"], wall, workers, wall / max(len(files), 1),
              summary["median_seconds"] or 0.0, output)
     return summary
