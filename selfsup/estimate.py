@@ -844,13 +844,19 @@ def _chunk_results(chunks: list[list[Path]], options: EstimateOptions, device: t
     context = multiprocessing.get_context("spawn")  # fork would copy this process's OpenMP threads' state
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start, initargs=(threads,)) as pool:
         futures = [pool.submit(_estimate_chunk, chunk, options, device) for chunk in chunks]
-        for chunk, future in zip(chunks, futures):
-            try:
-                done, reasons = future.result()
-            except BrokenProcessPool as error:
-                log.warning("a worker stopped (%s); estimating %s here", error, ", ".join(map(str, chunk)))
-                done, reasons = _estimate_chunk(chunk, options, device)
-            yield chunk, done, reasons
+        try:
+            for chunk, future in zip(chunks, futures):
+                try:
+                    done, reasons = future.result()
+                except BrokenProcessPool as error:
+                    log.warning("a worker stopped (%s); estimating %s here", error, ", ".join(map(str, chunk)))
+                    done, reasons = _estimate_chunk(chunk, options, device)
+                yield chunk, done, reasons
+        finally:
+            # Stopped early (Ctrl-C, a failed write): the pool's exit would otherwise
+            # wait for every queued chunk to be estimated.
+            for future in futures:
+                future.cancel()
 
 
 def estimate_files(input: str | Path, output: str | Path, options: EstimateOptions, progress: bool = True,

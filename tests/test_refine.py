@@ -607,6 +607,39 @@ def test_files_of_a_worker_that_died_are_estimated_here(tmp_path, monkeypatch):
     assert ids == ["procedural_6", "procedural_7", "procedural_8"]
 
 
+def test_a_run_stopped_early_cancels_the_chunks_still_queued(monkeypatch):
+    # Ctrl-C or a failed write while the workers run: the queued chunks are cancelled,
+    # so the pool's exit does not wait for them all to be estimated.
+    from concurrent.futures import Future
+
+    import selfsup.estimate as estimate_module
+
+    futures: list[Future] = []
+
+    class QueuedPool:  # the first chunk answered, the others still queued
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def submit(self, fn, *args):
+            future = Future()
+            if not futures:
+                future.set_result(({}, {}))
+            futures.append(future)
+            return future
+
+    monkeypatch.setattr(estimate_module, "ProcessPoolExecutor", QueuedPool)
+    results = estimate_module._chunk_results([["a"], ["b"], ["c"]], EstimateOptions(), torch.device("cpu"), workers=2)
+    assert next(results)[0] == ["a"]
+    results.close()  # what an exception in the consumer does to the generator
+    assert [f.cancelled() for f in futures] == [False, True, True]
+
+
 def test_worker_count_auto_spreads_only_directories_worth_a_start():
     from selfsup.estimate import FILES_PER_AUTO_WORKER, usable_cores, worker_count
 
