@@ -569,34 +569,46 @@ def test_worker_processes_write_what_one_process_writes_in_the_files_order(tmp_p
     assert spread["wall_seconds"] > 0
 
 
+class _FakePool:
+    """Stands in for ``ProcessPoolExecutor`` (constructed like it, a context manager):
+    ``answer(index, future, fn, args)`` settles, or leaves pending, each submitted future."""
+
+    def __init__(self, answer):
+        self.answer = answer
+        self.futures = []
+
+    def __call__(self, *args, **kwargs):
+        return self
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def submit(self, fn, *args):
+        from concurrent.futures import Future
+
+        future = Future()
+        self.answer(len(self.futures), future, fn, args)
+        self.futures.append(future)
+        return future
+
+
 def test_files_of_a_worker_that_died_are_estimated_here(tmp_path, monkeypatch):
     # A worker killed mid-run (out of memory, a signal) breaks the pool: every chunk it
     # had not answered is estimated again in this process, none is lost.
-    from concurrent.futures import Future
     from concurrent.futures.process import BrokenProcessPool
 
     import selfsup.estimate as estimate_module
 
-    class DyingPool:  # answers the first chunk, then breaks as a pool whose worker died
-        def __init__(self, *args, **kwargs):
-            self.calls = 0
+    def dying(index, future, fn, args):  # the first chunk answered, then the pool breaks
+        if index == 0:
+            future.set_result(fn(*args))
+        else:
+            future.set_exception(BrokenProcessPool("a worker stopped"))
 
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
-
-        def submit(self, fn, *args):
-            future = Future()
-            if self.calls == 0:
-                future.set_result(fn(*args))
-            else:
-                future.set_exception(BrokenProcessPool("a worker stopped"))
-            self.calls += 1
-            return future
-
-    monkeypatch.setattr(estimate_module, "ProcessPoolExecutor", DyingPool)
+    monkeypatch.setattr(estimate_module, "ProcessPoolExecutor", _FakePool(dying))
     config = dataclasses.replace(SMALL, height=24, width=32)
     for seed in (6, 7, 8):
         write_scene(tmp_path / f"good_{seed}.npz", _scene(seed, config=config))
@@ -610,34 +622,18 @@ def test_files_of_a_worker_that_died_are_estimated_here(tmp_path, monkeypatch):
 def test_a_run_stopped_early_cancels_the_chunks_still_queued(monkeypatch):
     # Ctrl-C or a failed write while the workers run: the queued chunks are cancelled,
     # so the pool's exit does not wait for them all to be estimated.
-    from concurrent.futures import Future
-
     import selfsup.estimate as estimate_module
 
-    futures: list[Future] = []
+    def queued(index, future, fn, args):  # the first chunk answered, the others still queued
+        if index == 0:
+            future.set_result(({}, {}))
 
-    class QueuedPool:  # the first chunk answered, the others still queued
-        def __init__(self, *args, **kwargs):
-            pass
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
-
-        def submit(self, fn, *args):
-            future = Future()
-            if not futures:
-                future.set_result(({}, {}))
-            futures.append(future)
-            return future
-
-    monkeypatch.setattr(estimate_module, "ProcessPoolExecutor", QueuedPool)
+    pool = _FakePool(queued)
+    monkeypatch.setattr(estimate_module, "ProcessPoolExecutor", pool)
     results = estimate_module._chunk_results([["a"], ["b"], ["c"]], EstimateOptions(), torch.device("cpu"), workers=2)
     assert next(results)[0] == ["a"]
     results.close()  # what an exception in the consumer does to the generator
-    assert [f.cancelled() for f in futures] == [False, True, True]
+    assert [f.cancelled() for f in pool.futures] == [False, True, True]
 
 
 def test_worker_count_auto_spreads_only_directories_worth_a_start():
