@@ -78,7 +78,7 @@ def run(scenes: int = 16, workers: tuple[int, ...] = (1, 2), batches: tuple[int,
         started = time.perf_counter()
         truth = write_sets(Path(folder), sets, scenes, seed)
         print(f"wrote {len(truth)} scene files in {time.perf_counter() - started:.1f} s", flush=True)
-        runs: dict[tuple[int, int], list[dict]] = {}
+        runs: dict[tuple[int, int], list[dict]] = {}  # by (workers asked, batch)
         for _ in range(rounds):
             for w in workers:
                 for batch in batches:
@@ -88,7 +88,7 @@ def run(scenes: int = 16, workers: tuple[int, ...] = (1, 2), batches: tuple[int,
     rows = []
     for (w, batch), measured in runs.items():
         # The answers do not depend on the round: the errors are the first run's.
-        rows.append({**measured[0], "workers": w, "rounds": len(measured),
+        rows.append({**measured[0], "rounds": len(measured),
                      "seconds_per_scene": round(statistics.median(r["seconds_per_scene"] for r in measured), 3),
                      "median_latency": round(statistics.median(r["median_latency"] for r in measured), 3)})
     path = None

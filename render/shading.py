@@ -144,7 +144,8 @@ def shading_and_position_gradients(normals: Tensor, geometry: LightGeometry, shi
     """The unshadowed transport ``diffuse = f(d) max(0, n.l)`` and ``specular = f(d)
     max(0, n.h)^alpha`` ``(B, L, H, W)`` and their :func:`shading_position_gradients`
     ``(B, L, H, W, 3)``, sharing every intermediate (a Gauss-Newton step needs all four;
-    computed apart they cost a third more). Specular terms are None without ``with_specular``.
+    computed apart, n.l, the falloff and the half vector are computed twice). Specular
+    terms are None without ``with_specular``.
     """
     to_light, distance, to_viewer = geometry
     f = falloff_factor(distance, falloff)

@@ -778,8 +778,8 @@ def _device(name: str) -> torch.device:
 
 # A worker takes 3-4 s to start (spawn, imports, the network) and two of them ran a
 # directory 1.4x as fast as one process (0.27 against 0.39 s per scene, batches of 4,
-# 2-core CPU): on 18 devset files two workers were slower (6.5 against 5.2 s); from
-# about 30 files a core they win.
+# 2-core CPU; benchmarks/estimate_files_speed.py): on 18 devset files two workers were
+# slower (6.5 against 5.2 s); from about 30 files a core they win.
 FILES_PER_AUTO_WORKER = 32
 
 
