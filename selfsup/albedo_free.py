@@ -118,10 +118,9 @@ def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float 
 
 def _tiled(obs: LogShading, count: int) -> LogShading:
     # Every image ``count`` times in a row.
-    g = obs.gbuffer
     rep = lambda x: None if x is None else x.repeat_interleave(count, 0)  # noqa: E731
-    return LogShading(rep(obs.log_shading), rep(obs.pairs), rep(obs.observed),
-                      GBuffer(rep(g.points), rep(g.normals), rep(g.mask), rep(g.intrinsics)),
+    rows = torch.arange(obs.gbuffer.batch_size, device=obs.gbuffer.points.device).repeat_interleave(count)
+    return LogShading(rep(obs.log_shading), rep(obs.pairs), rep(obs.observed), obs.gbuffer.select(rows),
                       Material(kd=rep(obs.material.kd)), obs.falloff, rep(obs.scale))
 
 

@@ -96,7 +96,7 @@ class FitProblem:
         g, m = self.gbuffer, self.material
         shin = m.shininess if m.shininess.dim() == 0 else m.shininess[index]
         selected = FitProblem(
-            GBuffer(g.points[index], g.normals[index], g.mask[index], None if g.intrinsics is None else g.intrinsics[index]),
+            g.select(index),
             Material(kd=m.kd[index], ks=None if m.ks is None else m.ks[index], shininess=shin),
             self.image[index], None if self.ambient is None else self.ambient[index], self.falloff, self.shadows,
         )

@@ -60,6 +60,19 @@ def test_missing_depth_stays_masked_and_zero():
     assert torch.isfinite(g.points).all() and torch.isfinite(g.normals).all()
 
 
+def test_select_takes_the_rows_of_a_checked_buffer_as_a_fresh_one_would():
+    depth = torch.rand(3, 6, 7) + 1.0
+    depth[1, 2, 3] = float("nan")  # a hole: its zeros travel with the row
+    g = GBuffer.from_depth(depth, K1.expand(3, 3, 3))
+    index = torch.tensor([2, 1, 1])
+    selected = g.select(index)
+    fresh = GBuffer(g.points[index], g.normals[index], g.mask[index], g.intrinsics[index])
+    for name in ("points", "normals", "mask", "intrinsics"):
+        assert torch.equal(getattr(selected, name), getattr(fresh, name))
+    assert selected.batch_size == 3 and not selected.mask[1, 2, 3]
+    assert GBuffer(g.points, g.normals, g.mask).select(index).intrinsics is None
+
+
 def test_given_normals_are_normalised_and_zero_ones_masked():
     n = torch.zeros(1, 6, 6, 3)
     n[..., 2] = -2.0
