@@ -11,7 +11,8 @@ import torch
 from selfsup.estimate import (EstimateOptions, estimate_batch, estimate_files, estimate_scene, prepare, problem_of,
                               problems_of, records)
 from selfsup.metrics import light_errors
-from selfsup.refine import RefineOptions, evaluate, refine, robust_loss, search
+from render import GBuffer, Material
+from selfsup.refine import FitProblem, RefineOptions, _normal_equations, evaluate, refine, robust_loss, search
 from selfsup.scenes.exact import render_spec
 from selfsup.scenes.io import write_scene
 from selfsup.scenes.sampler import SamplerConfig, sample_scene
@@ -174,6 +175,42 @@ def test_uncertainty_is_present_finite_and_small_on_an_exact_scene():
     std = torch.tensor(record["lights"][0]["position_std"])
     assert std.shape == (3,) and torch.isfinite(std).all() and (std > 0).all()
     assert float(std.max()) < 0.05 * float(scene.scene_scale)
+
+
+@pytest.mark.parametrize("known_ambient", [False, True])
+def test_block_normal_equations_equal_those_of_the_dense_jacobian(known_ambient):
+    # The dense Jacobian over every parameter, written out: the positions' rows, then a
+    # row per (channel, light) holding that light's basis image in that channel alone,
+    # then (ambient unknown) a row per channel holding kd there.
+    generator = torch.Generator().manual_seed(3)
+    B, L, H, W = 2, 2, 3, 4
+    kd = torch.rand(B, H, W, 3, generator=generator, dtype=torch.float64)
+    problem = FitProblem(GBuffer(torch.rand(B, H, W, 3, dtype=torch.float64), torch.rand(B, H, W, 3, dtype=torch.float64),
+                                 torch.ones(B, H, W, dtype=torch.bool)),
+                         Material(kd=kd), torch.rand(B, 3, H, W, dtype=torch.float64),
+                         ambient=torch.rand(B, 3, dtype=torch.float64) if known_ambient else None)
+    j_pos = torch.randn(B, 3 * L, 3 * H * W, generator=generator, dtype=torch.float64)
+    cols = torch.rand(B, 3, L, H, W, generator=generator, dtype=torch.float64)
+    weights = torch.rand(B, 3, H, W, generator=generator, dtype=torch.float64)
+    residual = torch.randn(B, 3, H, W, generator=generator, dtype=torch.float64)
+    columns = [cols[:, c, i] for c in range(3) for i in range(L)] + ([] if known_ambient else [kd[..., c] for c in range(3)])
+    channels = [c for c in range(3) for _ in range(L)] + ([] if known_ambient else [0, 1, 2])
+    linear = torch.zeros(B, len(columns), 3, H * W, dtype=torch.float64)
+    for row, (column, c) in enumerate(zip(columns, channels)):
+        linear[:, row, c] = column.flatten(1)
+    dense = torch.cat([j_pos, linear.flatten(2)], 1)
+    weighted = dense * weights.flatten(1)[:, None]
+    normal, gradient = _normal_equations(problem, j_pos, cols, weights, residual)
+    # The linear parameters' order differs (channel by channel, ambient last in each):
+    # compare what the position step depends on, the Schur complement and its gradient.
+    def reduced(matrix, vector):
+        p = 3 * L
+        solve = torch.linalg.solve(matrix[:, p:, p:], torch.cat([matrix[:, p:, :p], vector[:, p:, None]], -1))
+        return matrix[:, :p, :p] - matrix[:, :p, p:] @ solve[..., :p], vector[:, :p] - (matrix[:, :p, p:] @ solve[..., p:]).squeeze(-1)
+    expected = reduced(weighted @ dense.transpose(1, 2), (weighted @ residual.flatten(1)[..., None]).squeeze(-1))
+    assert normal.shape == (B, 3 * L + len(columns), 3 * L + len(columns))
+    torch.testing.assert_close(reduced(normal, gradient), expected)
+    torch.testing.assert_close(normal[:, : 3 * L, : 3 * L], (weighted @ dense.transpose(1, 2))[:, : 3 * L, : 3 * L])
 
 
 def test_estimate_files_writes_jsonl_and_skips_bad_files(tmp_path):
