@@ -40,6 +40,7 @@ import logging
 import math
 import multiprocessing
 import os
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -776,11 +777,10 @@ def _device(name: str) -> torch.device:
     return torch.device(name)
 
 
-# A worker takes 3-4 s to start (spawn, imports, the network) and two of them ran a
-# directory 1.4x as fast as one process (0.27 against 0.39 s per scene, batches of 4,
-# 2-core CPU; benchmarks/estimate_files_speed.py): on 18 devset files two workers were
-# slower (6.5 against 5.2 s); from about 30 files a core they win.
-FILES_PER_AUTO_WORKER = 32
+# A spawned worker takes 3-4 s to start (imports, the network): on 18 devset files two
+# spawned workers were slower than one process (6.5 against 5.2 s, 2-core CPU); from
+# about 30 files a core they win. A forked one starts at once (start_method).
+FILES_PER_SPAWNED_WORKER = 32
 
 
 def usable_cores() -> int:
@@ -793,14 +793,16 @@ def usable_cores() -> int:
 
 def worker_count(workers: int | str, files: int, device: torch.device) -> int:
     """Processes ``estimate_files`` spreads ``files`` over: ``workers`` as given (at least
-    1), or for ``"auto"`` one per usable core on the CPU once there are at least
-    :data:`FILES_PER_AUTO_WORKER` files for each (a worker's start, about 3-4 s of
-    imports and the network, must pay for itself), and 1 on an accelerator (one
+    1), or for ``"auto"``: on the CPU one per usable core, but no more than ``files``
+    where one-thread workers are forked (:func:`start_method`; they start at once) and
+    one per :data:`FILES_PER_SPAWNED_WORKER` files where they are spawned (a start of
+    3-4 s of imports and the network must pay for itself); 1 on an accelerator (one
     process fills it)."""
     if workers == "auto":
         if device.type != "cpu":
             return 1
-        return max(1, min(usable_cores(), files // FILES_PER_AUTO_WORKER))
+        per_worker = 1 if start_method(1, device) == "fork" else FILES_PER_SPAWNED_WORKER
+        return max(1, min(usable_cores(), files // per_worker))
     if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
         raise ValueError(f"estimate.workers must be 'auto' or an integer >= 1, got {workers!r}")
     return workers
@@ -832,6 +834,22 @@ def _worker_start(threads: int) -> None:
     torch.set_num_threads(threads)
 
 
+def start_method(threads: int, device: torch.device) -> str:
+    """How ``estimate_files`` starts its workers of ``threads`` torch threads each.
+
+    ``fork`` on Linux for one-thread CPU workers: a worker then starts at once with
+    the modules and the network this process has loaded (a spawned one spends 3-4 s
+    importing them). A forked child that stays on one thread never enters the OpenMP
+    pool it inherited, the pattern of torch's DataLoader workers. ``spawn`` otherwise:
+    a forked child cannot use CUDA, may hang in an inherited multi-thread pool, and
+    macOS frameworks are not fork-safe.
+    """
+    if threads == 1 and device.type == "cpu" and sys.platform.startswith("linux") \
+            and "fork" in multiprocessing.get_all_start_methods():
+        return "fork"
+    return "spawn"
+
+
 def _chunk_results(chunks: list[list[Path]], options: EstimateOptions, device: torch.device, workers: int):
     # (chunk, done, reasons) of every chunk, in the chunks' order. With workers > 1 the
     # chunks run in that many spawned processes; a chunk whose worker died (out of
@@ -841,7 +859,7 @@ def _chunk_results(chunks: list[list[Path]], options: EstimateOptions, device: t
             yield (chunk, *_estimate_chunk(chunk, options, device))
         return
     threads = max(1, usable_cores() // workers)
-    context = multiprocessing.get_context("spawn")  # fork would copy this process's OpenMP threads' state
+    context = multiprocessing.get_context(start_method(threads, device))
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start, initargs=(threads,)) as pool:
         futures = [pool.submit(_estimate_chunk, chunk, options, device) for chunk in chunks]
         try:
@@ -870,8 +888,8 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
     the same fields share a batch), each record's ``seconds`` being its share of the
     batch's time; a failing batch is retried file by file. ``device``: ``cpu``,
     ``cuda`` or ``auto``. ``workers``: processes the batches are spread over
-    (:func:`worker_count`; ``auto``: one per core on the CPU for a directory of at
-    least 32 files per core); a record's ``seconds`` is then the time in its
+    (:func:`worker_count`; ``auto``: one per core on the CPU, started as
+    :func:`start_method` says); a record's ``seconds`` is then the time in its
     worker, and the run's time per scene is ``wall_seconds / done``. Records are
     written in the files' order whatever the workers.
     """

@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import math
+import sys
 
 import numpy as np
 import pytest
@@ -589,7 +590,14 @@ def test_batched_files_match_single_files_and_a_bad_one_costs_no_other(tmp_path)
         estimate_files(tmp_path, tmp_path / "x.jsonl", options, progress=False, batch=0)
 
 
-def test_worker_processes_write_what_one_process_writes_in_the_files_order(tmp_path):
+@pytest.mark.parametrize("method", [
+    "spawn",
+    pytest.param("fork", marks=pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked workers: Linux only")),
+])
+def test_worker_processes_write_what_one_process_writes_in_the_files_order(tmp_path, method, monkeypatch):
+    import selfsup.estimate as estimate_module
+
+    monkeypatch.setattr(estimate_module, "start_method", lambda threads, device: method)
     config = dataclasses.replace(SMALL, height=24, width=32)
     for seed in (6, 7, 8):
         write_scene(tmp_path / f"good_{seed}.npz", _scene(seed, config=config))
@@ -673,16 +681,30 @@ def test_a_run_stopped_early_cancels_the_chunks_still_queued(monkeypatch):
     assert [f.cancelled() for f in pool.futures] == [False, True, True]
 
 
-def test_worker_count_auto_spreads_only_directories_worth_a_start():
-    from selfsup.estimate import FILES_PER_AUTO_WORKER, usable_cores, worker_count
+def test_worker_count_auto_spreads_only_directories_worth_a_start(monkeypatch):
+    import selfsup.estimate as estimate_module
+    from selfsup.estimate import FILES_PER_SPAWNED_WORKER, worker_count
 
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
-    assert worker_count("auto", 1, cpu) == 1 and worker_count("auto", FILES_PER_AUTO_WORKER - 1, cpu) == 1
-    assert worker_count("auto", 1000 * FILES_PER_AUTO_WORKER, cpu) == usable_cores()
+    monkeypatch.setattr(estimate_module, "usable_cores", lambda: 4)
+    monkeypatch.setattr(estimate_module, "start_method", lambda threads, device: "fork")
+    assert [worker_count("auto", files, cpu) for files in (1, 3, 100)] == [1, 3, 4]
+    monkeypatch.setattr(estimate_module, "start_method", lambda threads, device: "spawn")
+    assert worker_count("auto", 1, cpu) == 1 and worker_count("auto", 2 * FILES_PER_SPAWNED_WORKER - 1, cpu) == 1
+    assert worker_count("auto", 1000 * FILES_PER_SPAWNED_WORKER, cpu) == 4
     assert worker_count("auto", 1000, cuda) == 1 and worker_count(3, 1, cpu) == 3
     for bad in (0, -1, "two", 1.5, True):
         with pytest.raises(ValueError, match="estimate.workers must be"):
             worker_count(bad, 10, cpu)
+
+
+def test_workers_are_forked_only_where_that_is_safe():
+    from selfsup.estimate import start_method
+
+    cpu = torch.device("cpu")
+    assert start_method(1, cpu) == ("fork" if sys.platform.startswith("linux") else "spawn")
+    assert start_method(2, cpu) == "spawn"  # a multi-thread child may hang in the inherited OpenMP pool
+    assert start_method(1, torch.device("cuda")) == "spawn"  # a forked child cannot use CUDA
 
 
 def test_segment_gains_recover_each_surfaces_albedo_factor():
