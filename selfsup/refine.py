@@ -60,6 +60,9 @@ class FitProblem:
     shadows: str = "epipolar"
     _median: Tensor | None = field(default=None, init=False, repr=False, compare=False)
     _noise: Tensor | None = field(default=None, init=False, repr=False, compare=False)
+    # Median and noise level of each subsample (by stride) already found: the solvers
+    # subsample selections and tilings of one batch again and again.
+    _coarse: dict[int, tuple[Tensor, Tensor]] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def batch(self) -> int:
@@ -104,13 +107,14 @@ class FitProblem:
         # image's values each time was 7% of a batched estimate's GPU time).
         selected._median = None if self._median is None else self._median[index]
         selected._noise = None if self._noise is None else self._noise[index]
+        selected._coarse = {stride: (median[index], noise[index]) for stride, (median, noise) in self._coarse.items()}
         return selected
 
     def with_shadows(self, shadows: str) -> "FitProblem":
         """The same images under another shadow method (``dataclasses.replace`` would
         drop the kept median)."""
         changed = dataclasses.replace(self, shadows=shadows)
-        changed._median, changed._noise = self._median, self._noise
+        changed._median, changed._noise, changed._coarse = self._median, self._noise, self._coarse
         return changed
 
     @staticmethod
@@ -148,12 +152,18 @@ def subsample(problem: FitProblem, stride: int) -> FitProblem:
         scale = torch.tensor([1 / s, 1 / s, 1.0], dtype=g.intrinsics.dtype, device=g.intrinsics.device)
         K = g.intrinsics * scale[:, None]
     shin = m.shininess[:, ::s, ::s] if m.shininess.dim() == 3 else m.shininess
-    return dataclasses.replace(
+    coarse = dataclasses.replace(
         problem,
         gbuffer=GBuffer(g.points[:, ::s, ::s], g.normals[:, ::s, ::s], g.mask[:, ::s, ::s], K),
         material=Material(kd=m.kd[:, ::s, ::s], ks=None if m.ks is None else m.ks[:, ::s, ::s], shininess=shin),
         image=problem.image[:, :, ::s, ::s],
     )
+    # Its own median and noise level (kept by the problem it came from): a noise level
+    # from every stride-th pixel holds the shading's curvature over stride pixels.
+    if stride not in problem._coarse:
+        problem._coarse[stride] = (coarse.median_observed(), coarse.noise_level())
+    coarse._median, coarse._noise = problem._coarse[stride]
+    return coarse
 
 
 @dataclass
@@ -618,7 +628,7 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
     if unshadowed_first and problem.shadows != "none":
         # Shading alone gives a smoother landscape: also start from where a shadow-free descent went.
         S = starts_at.shape[1]
-        smooth = refine(dataclasses.replace(_tiled(coarse, S), shadows="none"), starts_at.flatten(0, 1), quick)
+        smooth = refine(_tiled(coarse, S).with_shadows("none"), starts_at.flatten(0, 1), quick)
         starts_at = torch.cat([starts_at, smooth.position.reshape(B, S, n_lights, 3)], 1)
     S = starts_at.shape[1]
     tiled = _tiled(coarse, S)

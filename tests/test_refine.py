@@ -364,10 +364,18 @@ def test_a_selection_keeps_each_images_median_and_a_subsample_finds_its_own():
     assert picked._median is not None
     assert torch.equal(picked.median_observed(), problems_of([_scene(3), _scene(1), _scene(3)], "none").median_observed())
     assert torch.equal(problem.with_shadows("epipolar").median_observed(), problem.median_observed())
+    # A subsample's median and noise level are its own, found once for the problem it
+    # came from and for the selections of that problem.
     coarse = subsample(problem, 2)
-    assert coarse._median is None
-    assert torch.equal(coarse.median_observed(), subsample(problems_of([_scene(1), _scene(2), _scene(3)], "none"), 2)
-                       .median_observed())
+    fresh = dataclasses.replace(coarse)  # replace() keeps nothing found: computes anew
+    assert fresh._median is None and fresh._noise is None
+    assert torch.equal(coarse.median_observed(), fresh.median_observed())
+    assert torch.equal(coarse.noise_level(), fresh.noise_level())
+    assert not torch.equal(coarse.noise_level(), problem.noise_level())
+    again = subsample(problem.select(torch.tensor([2, 0, 2])), 2)  # the rows of what coarse found
+    assert torch.equal(again.noise_level(), coarse.noise_level()[[2, 0, 2]])
+    assert torch.equal(again.noise_level(), dataclasses.replace(again).noise_level())
+    assert torch.equal(again.median_observed(), dataclasses.replace(again).median_observed())
 
 
 def test_bad_refine_inputs_are_named():
