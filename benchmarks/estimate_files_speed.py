@@ -4,13 +4,14 @@
 Writes the fixed-seed procedural sets of ``benchmarks.estimate_procedural`` (160x120)
 as scene files into one directory, then times :func:`selfsup.estimate.estimate_files`,
 the command's own code, over it: reading the files, the estimation, the covariances
-and the JSON lines, and the workers' start (imports, network) when there are
-several. ``seconds_per_scene`` is that wall time over the scenes; ``median_latency``
-is the median of the records' own ``seconds`` (one scene's time in its process, its
-share of a batch's). Each row is one run of the whole directory; the rows of one
+and the JSON lines, and the workers' start when there are several (``start``: a
+forked worker starts at once, a spawned one imports torch and loads the network).
+``seconds_per_scene`` is that wall time over the scenes; ``median_latency`` is the
+median of the records' own ``seconds`` (one scene's time in its process, its share
+of a batch's). Each row is one run of the whole directory; the rows of one
 invocation take turns (``--rounds``), so that a machine's drift reaches every row alike.
 
-    python -m benchmarks.estimate_files_speed --scenes 16 --workers 1 2 --batch 1 8
+    python -m benchmarks.estimate_files_speed --scenes 16 --workers 1 2 --batch 1 4
 
 Results: benchmarks/results/estimate_files_speed_<device>_<date>.{md,json}.
 """
@@ -28,11 +29,11 @@ import torch
 
 from benchmarks.common import write_results
 from benchmarks.estimate_procedural import SETS, score, set_scene
-from selfsup.estimate import EstimateOptions, estimate_files, usable_cores
+from selfsup.estimate import EstimateOptions, estimate_files, start_method, usable_cores
 from selfsup.scenes.io import write_scene
 
-COLUMNS = ["workers", "batch", "scenes", "rounds", "seconds_per_scene", "median_latency", "median_position_error",
-           "success_rate", "count_accuracy"]
+COLUMNS = ["workers", "start", "batch", "scenes", "rounds", "seconds_per_scene", "range_seconds_per_scene",
+           "median_latency", "median_position_error", "success_rate", "count_accuracy"]
 
 
 def write_sets(folder: Path, sets: list[str], count: int, seed: int) -> dict[str, object]:
@@ -88,8 +89,13 @@ def run(scenes: int = 16, workers: tuple[int, ...] = (1, 2), batches: tuple[int,
     rows = []
     for (w, batch), measured in runs.items():
         # The answers do not depend on the round: the errors are the first run's.
-        rows.append({**measured[0], "rounds": len(measured),
+        # How the workers started (selfsup.estimate.start_method): a spawned one imports for seconds.
+        start = "-" if measured[0]["workers"] == 1 else start_method(max(1, usable_cores() // measured[0]["workers"]),
+                                                                      torch.device("cpu"))
+        rows.append({**measured[0], "start": start, "rounds": len(measured),
                      "seconds_per_scene": round(statistics.median(r["seconds_per_scene"] for r in measured), 3),
+                     "range_seconds_per_scene": "{:.3f}-{:.3f}".format(min(r["seconds_per_scene"] for r in measured),
+                                                                      max(r["seconds_per_scene"] for r in measured)),
                      "median_latency": round(statistics.median(r["median_latency"] for r in measured), 3)})
     path = None
     if write:
@@ -97,7 +103,7 @@ def run(scenes: int = 16, workers: tuple[int, ...] = (1, 2), batches: tuple[int,
                   f"estimate_procedural), 160x120, written as scene files into one directory; "
                   f"selfsup.estimate.estimate_files (mode=estimate) with estimate.method={options.method} and defaults "
                   f"otherwise, on {usable_cores()} usable cores. seconds_per_scene: the run's wall time (workers' start "
-                  "included) over the scenes, median of `rounds` runs taken in turn with the other rows; median_latency: "
+                  "included) over the scenes, median (and range) of `rounds` runs taken in turn with the other rows; median_latency: "
                   "median of the records' `seconds` (a scene's time in its process). Errors as in estimate_procedural "
                   "(worst light per scene, of the scene size; success: every light < 0.05).")
         path = write_results("estimate_files_speed", torch.device("cpu"), rows, header, COLUMNS)
