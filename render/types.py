@@ -7,7 +7,7 @@ checks that need one. Axis letters: B batch, L lights, H, W image.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 from torch import Tensor
@@ -113,10 +113,9 @@ class GBuffer:
             torch.Size([3, 2, 2, 3])
         """
         selected = object.__new__(GBuffer)
-        K = None if self.intrinsics is None else self.intrinsics[index]
-        for name, value in (("points", self.points[index]), ("normals", self.normals[index]),
-                            ("mask", self.mask[index]), ("intrinsics", K)):
-            object.__setattr__(selected, name, value)
+        for f in fields(self):
+            value = getattr(self, f.name)
+            object.__setattr__(selected, f.name, None if value is None else value[index])
         return selected
 
     def extent(self) -> tuple[Tensor, Tensor, Tensor]:

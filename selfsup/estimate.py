@@ -852,7 +852,7 @@ def start_method(threads: int, device: torch.device) -> str:
 
 def _chunk_results(chunks: list[list[Path]], options: EstimateOptions, device: torch.device, workers: int):
     # (chunk, done, reasons) of every chunk, in the chunks' order. With workers > 1 the
-    # chunks run in that many spawned processes; a chunk whose worker died (out of
+    # chunks run in that many processes (forked or spawned: start_method); a chunk whose worker died (out of
     # memory, killed) is estimated again in this process, so no file is lost with it.
     if workers == 1:
         for chunk in chunks:
