@@ -850,6 +850,11 @@ def start_method(threads: int, device: torch.device) -> str:
     return "spawn"
 
 
+def worker_threads(workers: int) -> int:
+    """Torch threads of each of ``workers`` processes: their share of the usable cores."""
+    return max(1, usable_cores() // workers)
+
+
 def _chunk_results(chunks: list[list[Path]], options: EstimateOptions, device: torch.device, workers: int):
     # (chunk, done, reasons) of every chunk, in the chunks' order. With workers > 1 the
     # chunks run in that many processes (forked or spawned: start_method); a chunk whose worker died (out of
@@ -858,7 +863,7 @@ def _chunk_results(chunks: list[list[Path]], options: EstimateOptions, device: t
         for chunk in chunks:
             yield (chunk, *_estimate_chunk(chunk, options, device))
         return
-    threads = max(1, usable_cores() // workers)
+    threads = worker_threads(workers)
     context = multiprocessing.get_context(start_method(threads, device))
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start, initargs=(threads,)) as pool:
         futures = [pool.submit(_estimate_chunk, chunk, options, device) for chunk in chunks]
@@ -883,7 +888,8 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
 
     A bad file is logged with its name and reason and skipped; the summary returned
     counts ``done``, ``failed`` (with reasons), the median seconds per scene, the wall
-    time of the whole run and the workers used. ``batch`` > 1 estimates up to that
+    time of the whole run, the workers used and how they started (``start``:
+    :func:`start_method`, None for this process alone). ``batch`` > 1 estimates up to that
     many consecutive files together (:func:`estimate_batch`; files of one size and
     the same fields share a batch), each record's ``seconds`` being its share of the
     batch's time; a failing batch is retried file by file. ``device``: ``cpu``,
@@ -930,7 +936,8 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
     wall = time.perf_counter() - started
     summary = {"done": len(seconds), "failed": len(failed), "failures": failed,
                "median_seconds": sorted(seconds)[len(seconds) // 2] if seconds else None,
-               "wall_seconds": round(wall, 3), "workers": workers, "output": str(output)}
+               "wall_seconds": round(wall, 3), "workers": workers,
+               "start": start_method(worker_threads(workers), where) if workers > 1 else None, "output": str(output)}
     log.info("estimated %d scene(s), %d failed, in %.1f s (%d worker(s), %.3f s per file; median %.3f s each); "
              "wrote %s", summary["done"], summary["failed"], wall, workers, wall / max(len(files), 1),
              summary["median_seconds"] or 0.0, output)

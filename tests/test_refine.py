@@ -613,7 +613,7 @@ def test_worker_processes_write_what_one_process_writes_in_the_files_order(tmp_p
     options = EstimateOptions(max_lights=1, refine=RefineOptions(max_iters=(10, 3)))
     alone = estimate_files(tmp_path, tmp_path / "one.jsonl", options, progress=False, workers=1)
     spread = estimate_files(tmp_path, tmp_path / "two.jsonl", options, progress=False, workers=2)
-    assert spread["workers"] == 2 and alone["workers"] == 1
+    assert spread["workers"] == 2 and alone["workers"] == 1 and spread["start"] == method and alone["start"] is None
     assert alone["done"] == spread["done"] == 3 and list(spread["failures"]) == [str(tmp_path / "good_7_missing.npz")]
     one, two = ([json.loads(line) for line in (tmp_path / name).read_text().splitlines()] for name in ("one.jsonl", "two.jsonl"))
     assert [r["id"] for r in two] == [r["id"] for r in one] == ["procedural_6", "procedural_7", "procedural_8"]
