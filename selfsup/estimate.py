@@ -82,9 +82,11 @@ class EstimateOptions:
     rounding, and reached 4-6% on empty procedural rooms. ``block_width``:
     residuals are spatially correlated, so the criterion and the uncertainty count
     one independent sample per square block of ``block_width`` x the image width
-    (:func:`block_px`; 8 pixels at 160x120): the model's errors follow the scene's
+    (:func:`block_px`; 16 pixels at 160x120): the model's errors follow the scene's
     structure, which a finer image samples with more pixels, not more independent
-    ones. ``shadows``: the renderer's shadow method of the final refinement and the
+    ones. Smooth albedo errors (fractal noise) bought a spurious second light with
+    8-pixel blocks in a fifth of the procedural scenes, none with 16; 16 misses a
+    few more weak true second lights (README, "The criterion's block"). ``shadows``: the renderer's shadow method of the final refinement and the
     criterion; ``search_shadows``: that of the global search (``none``: shading
     alone, the smoother landscape).
     ``checkpoint``: the network of the ``cnn`` methods (None: the shipped one).
@@ -112,7 +114,10 @@ class EstimateOptions:
     ``reflectance``: ``auto`` fits a file whose kd is one constant (:func:`reflectance_unknown`)
     by :mod:`selfsup.albedo_free`, any other by the image; ``given`` | ``albedo_free``
     force one. ``albedo_free_scale``: that fit's Cauchy scale, a relative change of
-    the shading between neighbouring pixels (at least the image's relative noise).
+    the shading between neighbouring pixels (at least the image's relative noise);
+    ``albedo_free_block_width``: its ``block_width``. Its residuals are differences
+    between neighbours, which remove what smooth errors share: with the image fit's
+    16-pixel blocks a two-light scene of unknown albedo got one light.
     """
 
     method: str = "cnn+refine"
@@ -120,7 +125,7 @@ class EstimateOptions:
     cnn_grid: tuple[int, int, int] = (7, 6, 7)  # cnn+refine: the grid searched beside the network's slots
     cnn_starts: int = 4  # the grid's best started beside the network's slots (8 gave the same answers, slower)
     max_lights: int = 2
-    block_width: float = 0.05
+    block_width: float = 0.1
     min_light_share: float = 0.1
     weak_light_shadow_gain: float = 0.01
     weak_light_min_share: float = 0.01
@@ -134,6 +139,7 @@ class EstimateOptions:
     reflectance_gains: int = 0
     reflectance: str = "auto"
     albedo_free_scale: float = 0.02
+    albedo_free_block_width: float = 0.05
     refine: RefineOptions = field(default_factory=RefineOptions)
 
     def __post_init__(self):
@@ -148,8 +154,9 @@ class EstimateOptions:
             raise ValueError(f"estimate.weak_light_shadow_gain must be >= 0, got {self.weak_light_shadow_gain}")
         if not self.weak_light_min_share >= 0:
             raise ValueError(f"estimate.weak_light_min_share must be >= 0, got {self.weak_light_min_share}")
-        if not 0 < self.block_width <= 1:
-            raise ValueError(f"estimate.block_width must be in (0, 1] (of the image width), got {self.block_width}")
+        for name in ("block_width", "albedo_free_block_width"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"estimate.{name} must be in (0, 1] (of the image width), got {getattr(self, name)}")
         if not self.final_robust_scale > 0:
             raise ValueError(f"estimate.final_robust_scale must be > 0, got {self.final_robust_scale}")
         if self.reflectance_gains < 0:
@@ -302,12 +309,14 @@ def prepare(scenes: list[Scene], options: EstimateOptions, device=None) -> FitPr
                        mask_saturated=options.mask_saturated, device=device, plane_window=options.plane_window)
 
 
-def block_px(options: EstimateOptions, width: int) -> int:
+def block_px(options: EstimateOptions, width: int, albedo_free: bool = False) -> int:
     """Side in pixels of the criterion's independent-sample block for an image ``width``
-    pixels wide: ``options.block_width x width``, rounded, at least 1 (a procedural
-    sensor-noise scene rendered at 320x240 got a spurious second light with 8-pixel
-    blocks and the right one with 16, as at 160x120 with 8)."""
-    return max(1, round(options.block_width * width))
+    pixels wide: ``options.block_width x width`` (``albedo_free_block_width`` for the
+    albedo-free fit), rounded, at least 1 (a procedural sensor-noise scene rendered at
+    320x240 got a spurious second light with 8-pixel blocks and the right one with 16,
+    as at 160x120 with 8)."""
+    share = options.albedo_free_block_width if albedo_free else options.block_width
+    return max(1, round(share * width))
 
 
 def bic(loss: float, n_values: int, n_params: int, block_px: int) -> float:
@@ -473,7 +482,7 @@ def _estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list
     solved against the image with the file's kd (diffuse only: a constant ks says
     nothing of the highlights either)."""
     B, device = problem.batch, problem.image.device
-    block = block_px(options, problem.image.shape[-1])
+    block = block_px(options, problem.image.shape[-1], albedo_free=True)
     found = albedo_free.search(problem, 1, robust_scale=options.albedo_free_scale)
     pairs = found.pairs.tolist()
     if min(pairs) < 100:

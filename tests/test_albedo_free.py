@@ -98,6 +98,7 @@ def test_two_lights_are_told_from_one_without_the_albedo():
 @pytest.mark.parametrize("options, word", [
     (dict(reflectance="textured"), "estimate.reflectance"),
     (dict(albedo_free_scale=0.0), "albedo_free_scale"),
+    (dict(albedo_free_block_width=0.0), "albedo_free_block_width"),
 ])
 def test_bad_reflectance_settings_are_named(options, word):
     with pytest.raises(ValueError, match=word):

@@ -458,8 +458,10 @@ def test_a_true_light_shows_its_shadows_and_a_stand_in_does_not():
 def test_the_criterion_block_follows_the_image_width():
     from selfsup.estimate import block_px
 
-    options = EstimateOptions()
+    options = EstimateOptions(block_width=0.05)
     assert [block_px(options, w) for w in (160, 80, 320, 8)] == [8, 4, 16, 1]
+    assert block_px(EstimateOptions(), 160) == 16  # the defaults: 0.1 of the width, 0.05 albedo-free
+    assert block_px(EstimateOptions(), 160, albedo_free=True) == 8
     with pytest.raises(ValueError, match="block_width"):
         EstimateOptions(block_width=0)
 
