@@ -60,7 +60,7 @@ from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
 __all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "problems_of", "prepare", "estimate_scene",
            "estimate_batch", "records", "has_specular", "estimate_files", "scene_files", "segment_gains",
-           "plane_window_px", "block_px", "shadow_gain", "reflectance_unknown", "worker_count", "usable_cores"]
+           "plane_window_px", "block_px", "effective_samples", "shadow_gain", "reflectance_unknown", "worker_count", "usable_cores"]
 
 log = logging.getLogger(__name__)
 METHODS = ("cnn+refine", "cnn", "refine")
@@ -76,7 +76,9 @@ class EstimateOptions:
     ``max_lights``: the most lights a scene may get; each must carry at least
     ``min_light_share`` of the rendered direct light, or, weaker, show its own cast
     shadows: modelling them (:func:`shadow_gain`) must lower the robust loss by at
-    least ``weak_light_shadow_gain`` (0: weak lights never kept), and it must carry
+    least ``weak_light_shadow_gain`` (0: never), or pay for itself
+    ``weak_light_penalty`` times: :func:`bic` must fall with its parameters counted
+    that many times (0: never); and it must carry
     at least ``weak_light_min_share``: on a clean image that one light fits to
     float precision, the relative gain of a light with no intensity at all is
     rounding, and reached 4-6% on empty procedural rooms. ``block_width``:
@@ -129,6 +131,7 @@ class EstimateOptions:
     min_light_share: float = 0.1
     weak_light_shadow_gain: float = 0.01
     weak_light_min_share: float = 0.01
+    weak_light_penalty: float = 2.0
     shadows: str = "none"
     search_shadows: str = "none"
     normal_smoothing: str = "auto"
@@ -152,6 +155,8 @@ class EstimateOptions:
             raise ValueError(f"max_lights must be >= 1, got {self.max_lights}")
         if not self.weak_light_shadow_gain >= 0:
             raise ValueError(f"estimate.weak_light_shadow_gain must be >= 0, got {self.weak_light_shadow_gain}")
+        if not (self.weak_light_penalty == 0 or self.weak_light_penalty >= 1):
+            raise ValueError(f"estimate.weak_light_penalty must be 0 (off) or >= 1, got {self.weak_light_penalty}")
         if not self.weak_light_min_share >= 0:
             raise ValueError(f"estimate.weak_light_min_share must be >= 0, got {self.weak_light_min_share}")
         for name in ("block_width", "albedo_free_block_width"):
@@ -324,8 +329,14 @@ def bic(loss: float, n_values: int, n_params: int, block_px: int) -> float:
 
     ``loss`` is the (robust) sum of squared residuals over ``n_values`` values.
     """
-    n_eff = max(n_values / block_px**2, n_params + 2.0)
+    n_eff = effective_samples(n_values, n_params, block_px)
     return n_eff * math.log(max(loss, 1e-30) / n_values) + n_params * math.log(n_eff)
+
+
+def effective_samples(n_values: int, n_params: int, block_px: int) -> float:
+    """The independent samples :func:`bic` counts: one per ``block_px^2`` values, at
+    least ``n_params + 2``."""
+    return max(n_values / block_px**2, n_params + 2.0)
 
 
 def shadow_gain(problem: FitProblem, position: Tensor, light: Tensor, specular: bool, options: RefineOptions
@@ -647,12 +658,19 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
                 at = index(weak)
                 gains = dict(zip(weak, shadow_gain(sub.select(at), fit.position[at], per_light[at].argmin(-1),
                                                    specular, options.refine).tolist()))
+            n_values = (sub.gbuffer.mask.flatten(1).sum(1) * 3).tolist()
+            block = block_px(options, sub.image.shape[-1])
             for j, (i, c, share) in enumerate(zip(group, found, shares)):
                 tried[i].append(c)
                 # A light that does not pay for itself: more would not either. A weak one
-                # pays only with its own cast shadows in the image as evidence.
+                # needs more evidence: its own cast shadows in the image, or paying for its
+                # parameters weak_light_penalty times.
                 shown = gains.get(j, -math.inf) >= options.weak_light_shadow_gain
-                if pays[j] and (share >= options.min_light_share or shown):
+                extra = (options.weak_light_penalty - 1) * 6 * math.log(effective_samples(
+                    int(n_values[j]), 6 * n_lights, block))
+                strong = (options.weak_light_penalty > 0 and share >= options.weak_light_min_share
+                          and c.criterion + extra < best[i].criterion)
+                if pays[j] and (share >= options.min_light_share or shown or strong):
                     best[i] = c
                     still.append(i)
         growing = sorted(still)
