@@ -60,7 +60,8 @@ from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
 __all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "problems_of", "prepare", "estimate_scene",
            "estimate_batch", "records", "has_specular", "estimate_files", "scene_files", "segment_gains",
-           "plane_window_px", "block_px", "effective_samples", "shadow_gain", "reflectance_unknown", "worker_count", "usable_cores"]
+           "plane_window_px", "block_px", "effective_samples", "shadow_gain", "reflectance_unknown", "worker_count",
+           "usable_cores"]
 
 log = logging.getLogger(__name__)
 METHODS = ("cnn+refine", "cnn", "refine")
@@ -86,11 +87,12 @@ class EstimateOptions:
     one independent sample per square block of ``block_width`` x the image width
     (:func:`block_px`; 16 pixels at 160x120): the model's errors follow the scene's
     structure, which a finer image samples with more pixels, not more independent
-    ones. Smooth albedo errors (fractal noise) bought a spurious second light with
-    8-pixel blocks in a fifth of the procedural scenes, none with 16; 16 misses a
-    few more weak true second lights (README, "The criterion's block"). ``shadows``: the renderer's shadow method of the final refinement and the
-    criterion; ``search_shadows``: that of the global search (``none``: shading
-    alone, the smoother landscape).
+    ones. Smooth albedo errors (fractal noise, m = 0.3) bought a spurious second
+    light in a fifth of the procedural scenes with 8-pixel blocks, in none with 16;
+    16 alone missed more weak true second lights, which ``weak_light_penalty``
+    keeps (README, "The criterion's block"). ``shadows``: the renderer's shadow
+    method of the final refinement and the criterion; ``search_shadows``: that of
+    the global search (``none``: shading alone, the smoother landscape).
     ``checkpoint``: the network of the ``cnn`` methods (None: the shipped one).
     ``normal_smoothing``: ``auto`` replaces the normals when their measured noise
     (:func:`render.geometry.normal_noise`) exceeds ``normal_noise_threshold``
@@ -666,8 +668,9 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
                 # needs more evidence: its own cast shadows in the image, or paying for its
                 # parameters weak_light_penalty times.
                 shown = gains.get(j, -math.inf) >= options.weak_light_shadow_gain
-                extra = (options.weak_light_penalty - 1) * 6 * math.log(effective_samples(
-                    int(n_values[j]), 6 * n_lights, block))
+                added = 6  # the light's position and intensity
+                extra = (options.weak_light_penalty - 1) * added * math.log(effective_samples(
+                    int(n_values[j]), added * n_lights, block))
                 strong = (options.weak_light_penalty > 0 and share >= options.weak_light_min_share
                           and c.criterion + extra < best[i].criterion)
                 if pays[j] and (share >= options.min_light_share or shown or strong):
