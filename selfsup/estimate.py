@@ -89,7 +89,7 @@ class EstimateOptions:
     structure, which a finer image samples with more pixels, not more independent
     ones. Smooth albedo errors (fractal noise, m = 0.3) bought a spurious second
     light in a fifth of the procedural scenes with 8-pixel blocks, in none with 16;
-    16 alone missed more weak true second lights, which ``weak_light_penalty``
+    16 alone missed more weak true second lights, most of which ``weak_light_penalty``
     keeps (README, "The criterion's block"). ``shadows``: the renderer's shadow
     method of the final refinement and the criterion; ``search_shadows``: that of
     the global search (``none``: shading alone, the smoother landscape).
@@ -193,6 +193,7 @@ class Candidate:
     criterion: float
     covariance: Tensor | None = None  # (L, 3, 3) when the fit found its own (the albedo-free one's)
     reflectance: str = "given"  # which data the fit explained: "given" (the image) | "albedo_free"
+    samples: float | None = None  # the independent samples the criterion counted (effective_samples)
 
 
 def saturated_pixels(image: Tensor, mask: Tensor, min_share: float = 0.002) -> Tensor:
@@ -421,9 +422,13 @@ def _candidates(problem: FitProblem, fit: Fit, n_lights: int, specular: list[boo
     loss = robust_loss(problem, fit.model, options.refine).tolist()
     n_values = (problem.gbuffer.mask.flatten(1).sum(1) * 3).tolist()
     ambient = 3 if problem.ambient is None else 0
-    return [Candidate(_row(fit, i), n_lights, spec, bic(loss[i], int(n_values[i]), 6 * n_lights + ambient + int(spec),
-                                                        block_px(options, problem.image.shape[-1])))
-            for i, spec in enumerate(specular)]
+    block = block_px(options, problem.image.shape[-1])
+    out = []
+    for i, spec in enumerate(specular):
+        n_params = 6 * n_lights + ambient + int(spec)
+        out.append(Candidate(_row(fit, i), n_lights, spec, bic(loss[i], int(n_values[i]), n_params, block),
+                             samples=effective_samples(int(n_values[i]), n_params, block)))
+    return out
 
 
 def _groups(best: list[Candidate]) -> dict[tuple[int, bool], list[int]]:
@@ -660,17 +665,13 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
                 at = index(weak)
                 gains = dict(zip(weak, shadow_gain(sub.select(at), fit.position[at], per_light[at].argmin(-1),
                                                    specular, options.refine).tolist()))
-            n_values = (sub.gbuffer.mask.flatten(1).sum(1) * 3).tolist()
-            block = block_px(options, sub.image.shape[-1])
             for j, (i, c, share) in enumerate(zip(group, found, shares)):
                 tried[i].append(c)
                 # A light that does not pay for itself: more would not either. A weak one
                 # needs more evidence: its own cast shadows in the image, or paying for its
                 # parameters weak_light_penalty times.
                 shown = gains.get(j, -math.inf) >= options.weak_light_shadow_gain
-                added = 6  # the light's position and intensity
-                extra = (options.weak_light_penalty - 1) * added * math.log(effective_samples(
-                    int(n_values[j]), added * n_lights, block))
+                extra = (options.weak_light_penalty - 1) * 6 * math.log(c.samples)  # 6: its position and intensity
                 strong = (options.weak_light_penalty > 0 and share >= options.weak_light_min_share
                           and c.criterion + extra < best[i].criterion)
                 if pays[j] and (share >= options.min_light_share or shown or strong):
