@@ -55,21 +55,21 @@ def upper_median(values: list[float]) -> float:
     return sorted(values)[len(values) // 2]
 
 
-def run(devset: str | Path, sets: list[str], write: bool = True) -> tuple[list[dict], Path | None]:
+def run(devset: str | Path, sets: list[str], write: bool = True, name: str = "devset_estimate") -> tuple[list[dict], Path | None]:
     """Estimate each set with the defaults and score it; one row per scene, then per set."""
     from selfsup.estimate import EstimateOptions, estimate_files
 
     rows = []
-    for name in sets:
+    for set_name in sets:
         with tempfile.TemporaryDirectory() as folder:
             output = Path(folder) / "lights.jsonl"
-            estimate_files(Path(devset) / name, output, EstimateOptions(), progress=False)
-            scored = score(Path(devset) / name, output)
+            estimate_files(Path(devset) / set_name, output, EstimateOptions(), progress=False)
+            scored = score(Path(devset) / set_name, output)
         for r in scored:
-            rows.append({"set": name, "id": r["id"], "found": r["found"], "true": r["true"],
+            rows.append({"set": set_name, "id": r["id"], "found": r["found"], "true": r["true"],
                          "worst_position_error": max(r["position"]), "angular_error": max(r["angular"]),
                          "success": r["success"], "seconds": r["seconds"]})
-        rows.append({"set": name, "id": "all (median, count)", "found": sum(r["found"] == r["true"] for r in scored),
+        rows.append({"set": set_name, "id": "all (median, count)", "found": sum(r["found"] == r["true"] for r in scored),
                      "true": len(scored), "worst_position_error": upper_median([max(r["position"]) for r in scored]),
                      "success": f"{sum(r['success'] for r in scored)}/{len(scored)}",
                      "seconds": round(statistics.median(r["seconds"] for r in scored), 3)})
@@ -80,8 +80,8 @@ def run(devset: str | Path, sets: list[str], write: bool = True) -> tuple[list[d
                   "default mode=estimate settings (estimate_files); position error: worst light of the scene, of "
                   "the scene size; angular error in degrees; success: every light < 0.05. The 'all' rows: "
                   "found = scenes with the right light count, true = scenes, the median worst error (the upper "
-                  "of the two middle values of six), successes, median seconds.")
-        path = write_results("devset_estimate", torch.device("cpu"), rows, header, COLUMNS)
+                  "of the two middle values), successes, median seconds.")
+        path = write_results(name, torch.device("cpu"), rows, header, COLUMNS)
     return rows, path
 
 
@@ -92,10 +92,11 @@ if __name__ == "__main__":
     parser.add_argument("--run", metavar="DEVSET", help="estimate and score every set under this folder")
     parser.add_argument("--sets", nargs="+", default=["direct", "gi", "noisy"])
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--name", default="devset_estimate", help="the results file's name (with --run)")
     args = parser.parse_args()
     if args.run:
         torch.set_num_threads(args.threads)
-        print(run(args.run, args.sets)[1])
+        print(run(args.run, args.sets, name=args.name)[1])
     else:
         if not (args.scenes and args.estimates):
             parser.error("give --scenes and --estimates, or --run DEVSET")
