@@ -54,6 +54,8 @@ from render import GBuffer, Material, light_transport
 from render.geometry import normal_noise, plane_normals, smooth_normals, surface_segments
 from render.shadows import ShadowMethod
 from selfsup import albedo_free
+from selfsup.indirect import indirect_columns
+from selfsup.linear import basis_images, intensity_design
 from selfsup.refine import (Fit, FitProblem, RefineOptions, position_covariance, refine, reweighted, robust_loss,
                             search, solve_linear)
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
@@ -68,6 +70,7 @@ METHODS = ("cnn+refine", "cnn", "refine")
 SHADOW_METHODS = tuple(m.value for m in ShadowMethod)
 NORMAL_SMOOTHING = ("auto", "always", "never")
 REFLECTANCE = ("auto", "given", "albedo_free")
+INDIRECT = ("auto", "never")
 
 
 @dataclass
@@ -119,6 +122,13 @@ class EstimateOptions:
     by :mod:`selfsup.albedo_free`, any other by the image; ``given`` | ``albedo_free``
     force one. ``albedo_free_scale``: that fit's Cauchy scale, a relative change of
     the shading between neighbouring pixels (at least the image's relative noise);
+    ``indirect``: ``auto`` judges the candidate models of a file that does not give
+    its ambient (light unaccounted for) with each light's indirect light added
+    (:mod:`selfsup.indirect`: the first bounce between the visible surfaces, times
+    the later ones' geometric series), intensities and ambient solved again; the
+    fits themselves stay direct-only. Without it a second light stood in for the
+    interreflections of a quarter of the one-light path-traced Mitsuba scenes
+    (README); ``never``: the direct model alone.
     ``albedo_free_block_width``: its ``block_width``. Its residuals are differences
     between neighbours, which remove what smooth errors share: with the image fit's
     16-pixel blocks a two-light scene of unknown albedo got one light.
@@ -143,6 +153,7 @@ class EstimateOptions:
     final_robust_scale: float = 0.05
     reflectance_gains: int = 0
     reflectance: str = "auto"
+    indirect: str = "auto"
     albedo_free_scale: float = 0.02
     albedo_free_block_width: float = 0.05
     refine: RefineOptions = field(default_factory=RefineOptions)
@@ -178,6 +189,8 @@ class EstimateOptions:
             raise ValueError(f"estimate.normal_noise_threshold must be >= 0 degrees, got {self.normal_noise_threshold}")
         if not 0 < self.plane_window < 1:
             raise ValueError(f"estimate.plane_window must be in (0, 1) (of the focal length), got {self.plane_window}")
+        if self.indirect not in INDIRECT:
+            raise ValueError(f"estimate.indirect must be one of {INDIRECT}, got {self.indirect!r}")
         for name in ("shadows", "search_shadows"):
             if getattr(self, name) not in SHADOW_METHODS:
                 raise ValueError(f"estimate.{name} must be one of {SHADOW_METHODS}, got {getattr(self, name)!r}")
@@ -419,16 +432,36 @@ def _candidates(problem: FitProblem, fit: Fit, n_lights: int, specular: list[boo
                 ) -> list[Candidate]:
     # Each image's fitted model and its criterion: robust loss, 6 parameters per light,
     # the unknown ambient (3) and the specular switch.
-    loss = robust_loss(problem, fit.model, options.refine).tolist()
+    bounce = _judges_indirect(problem, options)
+    model = _with_indirect(problem, fit, any(specular), options) if bounce else fit.model
+    loss = robust_loss(problem, model, options.refine).tolist()
     n_values = (problem.gbuffer.mask.flatten(1).sum(1) * 3).tolist()
     ambient = 3 if problem.ambient is None else 0
     block = block_px(options, problem.image.shape[-1])
     out = []
     for i, spec in enumerate(specular):
-        n_params = 6 * n_lights + ambient + int(spec)
+        n_params = 6 * n_lights + ambient + int(spec)  # 3: a gain per channel
         out.append(Candidate(_row(fit, i), n_lights, spec, bic(loss[i], int(n_values[i]), n_params, block),
                              samples=effective_samples(int(n_values[i]), n_params, block)))
     return out
+
+
+def _judges_indirect(problem: FitProblem, options: EstimateOptions) -> bool:
+    # indirect="auto": a file that does not give its ambient says light is unaccounted for.
+    return options.indirect == "auto" and problem.ambient is None and problem.gbuffer.intrinsics is not None
+
+
+def _with_indirect(problem: FitProblem, fit: Fit, specular: bool, options: EstimateOptions) -> Tensor:
+    """The model image ``(B, 3, H, W)`` of ``fit``'s light positions, each light's
+    indirect light (:func:`selfsup.indirect.indirect_columns`) added to its direct
+    light; intensities and ambient solved again (converged reweighting)."""
+    t = light_transport(problem.gbuffer, problem.material, fit.position, falloff=problem.falloff,
+                        shadows=problem.shadows, specular=specular)
+    columns = (basis_images(problem.material.kd, problem.material.ks, t.diffuse, t.specular)
+               + indirect_columns(problem.gbuffer, problem.material.kd, t.diffuse))
+    design = intensity_design(columns, problem.material.kd, problem.ambient)
+    weights = reweighted(problem, None, None, options.refine, design=design)
+    return solve_linear(problem, None, None, weights, design)[2]
 
 
 def _groups(best: list[Candidate]) -> dict[tuple[int, bool], list[int]]:
