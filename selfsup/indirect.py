@@ -36,6 +36,7 @@ __all__ = ["one_bounce", "bounce_gain", "indirect_columns"]
 
 MIN_COS_VIEW = 0.2  # a patch seen at a grazing angle covers more surface; counted up to 5 pixels' worth
 MAX_MEAN_ALBEDO = 0.8  # bounce_gain at most 5
+PATCHES_ACROSS = 20  # indirect_columns: patches (and targets) along the image width
 
 
 def one_bounce(gbuffer: GBuffer, kd: Tensor, diffuse: Tensor, patch_px: int = 8, target_px: int = 8) -> Tensor:
@@ -112,9 +113,11 @@ def bounce_gain(kd: Tensor, mask: Tensor, max_albedo: float = MAX_MEAN_ALBEDO) -
     return 1 / (1 - mean.clamp(0, max_albedo))
 
 
-def indirect_columns(gbuffer: GBuffer, kd: Tensor, diffuse: Tensor, patch_px: int = 8, target_px: int = 8) -> Tensor:
+def indirect_columns(gbuffer: GBuffer, kd: Tensor, diffuse: Tensor, patches_across: int = PATCHES_ACROSS) -> Tensor:
     """Indirect light ``(B, 3, L, H, W)`` of unit-intensity lights, per channel:
     ``kd * bounce_gain * G_i`` (:func:`one_bounce`, :func:`bounce_gain`), to be added to
-    their direct basis images (:func:`selfsup.linear.basis_images`)."""
+    their direct basis images (:func:`selfsup.linear.basis_images`). Patches and targets
+    are ``patches_across`` to the image width at any resolution (every 8 pixels at 160)."""
+    step = max(1, round(kd.shape[2] / patches_across))
     gain = bounce_gain(kd, gbuffer.mask)[:, :, None, None, None]
-    return gain * kd.permute(0, 3, 1, 2)[:, :, None] * one_bounce(gbuffer, kd, diffuse, patch_px, target_px)
+    return gain * kd.permute(0, 3, 1, 2)[:, :, None] * one_bounce(gbuffer, kd, diffuse, step, step)
