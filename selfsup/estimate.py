@@ -122,6 +122,9 @@ class EstimateOptions:
     by :mod:`selfsup.albedo_free`, any other by the image; ``given`` | ``albedo_free``
     force one. ``albedo_free_scale``: that fit's Cauchy scale, a relative change of
     the shading between neighbouring pixels (at least the image's relative noise);
+    ``albedo_free_block_width``: its ``block_width``. Its residuals are differences
+    between neighbours, which remove what smooth errors share: with the image fit's
+    16-pixel blocks a two-light scene of unknown albedo got one light.
     ``indirect``: ``auto`` judges the candidate models of a file that does not give
     its ambient (light unaccounted for) with each light's indirect light added
     (:mod:`selfsup.indirect`: the first bounce between the visible surfaces, times
@@ -129,9 +132,6 @@ class EstimateOptions:
     fits themselves stay direct-only. Without it a second light stood in for the
     interreflections of a quarter of the one-light path-traced Mitsuba scenes
     (README); ``never``: the direct model alone.
-    ``albedo_free_block_width``: its ``block_width``. Its residuals are differences
-    between neighbours, which remove what smooth errors share: with the image fit's
-    16-pixel blocks a two-light scene of unknown albedo got one light.
     """
 
     method: str = "cnn+refine"
@@ -431,7 +431,8 @@ def _stacked(fits: list[Fit]) -> Fit:
 def _candidates(problem: FitProblem, fit: Fit, n_lights: int, specular: list[bool], options: EstimateOptions
                 ) -> list[Candidate]:
     # Each image's fitted model and its criterion: robust loss, 6 parameters per light,
-    # the unknown ambient (3) and the specular switch.
+    # the unknown ambient (3) and the specular switch; the loss with each light's indirect
+    # light where estimate.indirect judges by it.
     bounce = _judges_indirect(problem, options)
     model = _with_indirect(problem, fit, any(specular), options) if bounce else fit.model
     loss = robust_loss(problem, model, options.refine).tolist()
@@ -440,7 +441,7 @@ def _candidates(problem: FitProblem, fit: Fit, n_lights: int, specular: list[boo
     block = block_px(options, problem.image.shape[-1])
     out = []
     for i, spec in enumerate(specular):
-        n_params = 6 * n_lights + ambient + int(spec)  # 3: a gain per channel
+        n_params = 6 * n_lights + ambient + int(spec)
         out.append(Candidate(_row(fit, i), n_lights, spec, bic(loss[i], int(n_values[i]), n_params, block),
                              samples=effective_samples(int(n_values[i]), n_params, block)))
     return out
