@@ -88,6 +88,25 @@ def _room_rectangles(planes: np.ndarray, room_size: list[float]) -> list:
     return rectangles
 
 
+def _closing_rectangles(planes: np.ndarray, room_size: list[float]) -> list:
+    """A ceiling over the extended floor, a front wall at its near end (behind the
+    camera) and the second side wall where the sampler drew one: Mitsuba
+    ``to_world`` of each, for a closed room."""
+    width, depth, height = room_size
+    floor = planes[0, :3]
+    up, back = planes[0, 3:6], -planes[1, 3:6]
+    across = np.cross(up, back)
+    ceiling = _affine(np.stack([across * width / 2, back * 3 * depth / 4, -up], 1),
+                      floor + up * height + back * depth / 4)
+    front = _affine(np.stack([across * width / 2, up * height / 2, back], 1), floor - back * depth / 2 + up * height / 2)
+    closing = [ceiling, front]
+    if len(planes) == 3:  # one side wall: the other, opposite it
+        point, normal = 2 * floor - planes[2, :3], -planes[2, 3:6]
+        closing.append(_affine(np.stack([back * 3 * depth / 4, up * height / 2, normal], 1),
+                               point + back * depth / 4 + up * height / 2))
+    return closing
+
+
 def _fractal(size: int, rng: np.random.Generator) -> np.ndarray:
     """A tileable value-noise pattern ``(size, size)`` in [0, 1], four octaves."""
     total = np.zeros((size, size))
@@ -134,8 +153,10 @@ def _bsdf(texture: dict, ks: float, shininess: float) -> dict:
                                               "int_ior": 1.49, "nonlinear": False, "diffuse_reflectance": texture}}
 
 
-def scene_dict(spec: SceneSpec, integrator: dict, spp: int, seed: int) -> tuple[dict, np.ndarray, np.ndarray]:
-    """Mitsuba's scene of ``spec``, its world frame the spec's camera frame (OpenCV).
+def scene_dict(spec: SceneSpec, integrator: dict, spp: int, seed: int, closed: bool = False
+               ) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Mitsuba's scene of ``spec``, its world frame the spec's camera frame (OpenCV);
+    ``closed`` closes the room with matte walls (albedo 0.7; :func:`_closing_rectangles`).
 
     Returns the scene dictionary and, per primitive (the materials' global order),
     the Blinn-Phong ``ks`` and ``shininess`` the scene file reports.
@@ -177,6 +198,10 @@ def scene_dict(spec: SceneSpec, integrator: dict, spp: int, seed: int) -> tuple[
             ks_out[index], shin_out[index] = GLOSSY_F0 / (4 * alpha2), 2.0 / alpha2 - 2.0
         for part_index, shape in enumerate(shapes):
             scene[f"shape_{index}_{part_index}"] = {**shape, "bsdf": bsdf}
+    if closed:
+        for index, rectangle in enumerate(_closing_rectangles(p["planes"], spec.meta["room_size_m"])):
+            scene[f"closing_{index}"] = {"type": "rectangle", "to_world": rectangle,
+                                         "bsdf": _bsdf({"type": "rgb", "value": [0.7, 0.7, 0.7]}, 0.0, 1.0)}
     for index, (position, intensity) in enumerate(zip(spec.light_position.double().numpy(),
                                                        spec.light_relative_intensity.double().numpy())):
         scene[f"light_{index}"] = {"type": "point", "position": position.tolist(),
@@ -264,12 +289,13 @@ def _sensor_noise(image: np.ndarray, depth: np.ndarray, normals: np.ndarray, K: 
     return noisy_image, z, _plane_normals(points, keep)
 
 
-def render_variants(spec: SceneSpec, scene_id: str) -> dict[str, Scene]:
-    """The ``direct``, ``gi`` and ``noisy`` scene files of ``spec`` (Mitsuba's variant must be set)."""
+def render_variants(spec: SceneSpec, scene_id: str, closed: bool = False) -> dict[str, Scene]:
+    """The ``direct``, ``gi`` and ``noisy`` scene files of ``spec`` (Mitsuba's variant must
+    be set); ``closed``: see :func:`scene_dict`."""
     import mitsuba as mi
 
     seed = spec.seed % (2**31)
-    scene, ks_prim, shin_prim = scene_dict(spec, {"type": "direct"}, 16, seed)
+    scene, ks_prim, shin_prim = scene_dict(spec, {"type": "direct"}, 16, seed, closed)
     aov = {"type": "aov", "aovs": "pos:position,nn:sh_normal,alb:albedo"}
     centre = {"type": "stratified", "sample_count": 1, "jitter": False}
     geometry = _render({**scene, "integrator": aov}, 1, centre)
@@ -284,8 +310,11 @@ def render_variants(spec: SceneSpec, scene_id: str) -> dict[str, Scene]:
     hit = cast_rays(spec.prims.to(torch.float64), torch.zeros(spec.height * spec.width, 3, dtype=torch.float64),
                     camera_rays(spec.K.double(), spec.height, spec.width))
     primitive = hit.primitive.clamp_min(0).reshape(spec.height, spec.width).numpy()
-    ks = np.where(valid, ks_prim[primitive], 0.0)
-    shininess = np.where(valid, shin_prim[primitive], 1.0)
+    # Where Mitsuba met something else (a closing wall), that surface is matte.
+    ours = (hit.primitive >= 0).reshape(spec.height, spec.width).numpy() & (
+        np.abs(hit.t.reshape(spec.height, spec.width).numpy() - depth) <= 1e-3 * np.maximum(depth, 1e-6))
+    ks = np.where(valid & ours, ks_prim[primitive], 0.0)
+    shininess = np.where(valid & ours, shin_prim[primitive], 1.0)
 
     direct = _per_light(scene, 16)
     gi = _per_light({**scene, "integrator": {"type": "path", "max_depth": 6}}, 256)
@@ -295,7 +324,7 @@ def render_variants(spec: SceneSpec, scene_id: str) -> dict[str, Scene]:
     pts = points[valid]
     scale = float(np.linalg.norm(pts.max(0) - pts.min(0)))
     meta = {"falloff": "inverse_square", "n_lights": int(spec.light_position.shape[0]), "seed": spec.seed,
-            "renderer": f"mitsuba {mi.__version__} {mi.variant()}", **spec.meta,
+            "renderer": f"mitsuba {mi.__version__} {mi.variant()}", **spec.meta, "closed_room": closed,
             "specular": "roughplastic (Beckmann, int_ior 1.49): shininess = 2/alpha^2-2, ks = F0/(4 alpha^2), F0=0.0387",
             "light_intensity": "I = P/pi, P = Mitsuba point-emitter radiant intensity (RGB)"}
 
@@ -330,6 +359,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7000)
     parser.add_argument("--height", type=int, default=120)
     parser.add_argument("--width", type=int, default=160)
+    parser.add_argument("--closed", action="store_true", help="close the room: a ceiling, a wall behind the camera, both side walls")
     args = parser.parse_args()
     try:
         import mitsuba as mi
@@ -342,7 +372,7 @@ def main() -> None:
     for index in range(args.count):
         n_lights = 1 if index < (args.count + 1) // 2 else 2
         spec = sample_scene(args.seed * 1_000_003 + index, config, n_lights=n_lights)
-        for variant, scene in render_variants(spec, f"mitsuba_{args.seed}_{index:03d}").items():
+        for variant, scene in render_variants(spec, f"mitsuba_{args.seed}_{index:03d}", args.closed).items():
             write_scene(Path(args.out) / variant / f"scene_{index:03d}.npz", scene)
         print(json.dumps({"scene": index, "lights": n_lights, "objects": spec.meta["objects"]}), flush=True)
 
