@@ -65,3 +65,17 @@ def test_mitsuba_direct_light_matches_the_exact_renderer():
     a = theirs.image / theirs.light_intensity[0]
     b = ours.image / ours.light_intensity[0]
     assert ((a - b).abs().amax(-1)[valid] / b.amax(-1)[valid].clamp_min(1e-3)).median() < 0.01
+
+
+def test_a_closed_room_leaves_no_pixel_open():
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    from benchmarks.mitsuba_scenes import render_variants
+    from selfsup.scenes.sampler import SamplerConfig, sample_scene
+
+    spec = sample_scene(7000 * 1_000_003, SamplerConfig(height=30, width=40), n_lights=1)  # the set's scene 0
+    open_room = render_variants(spec, "open")["direct"]
+    closed = render_variants(spec, "closed", closed=True)
+    assert (open_room.depth == 0).any()  # this scene looks past a wall's edge
+    assert (closed["direct"].depth > 0).all()
+    assert closed["gi"].image.mean() > closed["direct"].image.mean()  # the closing walls reflect
