@@ -65,45 +65,50 @@ def _affine(linear: np.ndarray, offset: np.ndarray):
     return mi.ScalarTransform4f(m.tolist())
 
 
+def _room_frame(planes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The room's unit axes in the camera frame: up (the floor's normal), back (into the
+    room: the back wall faces out of it) and across."""
+    up, back = planes[0, 3:6], -planes[1, 3:6]
+    return up, back, np.cross(up, back)
+
+
+def _rectangle(centre: np.ndarray, axes: tuple[np.ndarray, np.ndarray], half: tuple[float, float],
+               normal: np.ndarray) -> tuple:
+    """A Mitsuba rectangle's ``to_world`` and its longer side (its texture repeats over it)."""
+    linear = np.stack([axes[0] * half[0], axes[1] * half[1], normal], 1)
+    return _affine(linear, centre), 2 * max(half)
+
+
+def _side_wall(point: np.ndarray, normal: np.ndarray, room_size: list[float], up, back) -> tuple:
+    # Through ``point`` on the floor line, from depth/2 in front of the room to its back wall.
+    _, depth, height = room_size
+    return _rectangle(point + back * depth / 4 + up * height / 2, (back, up), (3 * depth / 4, height / 2), normal)
+
+
 def _room_rectangles(planes: np.ndarray, room_size: list[float]) -> list:
-    """Finite rectangles (Mitsuba ``to_world``) of the sampler's infinite room planes:
+    """Finite rectangles (:func:`_rectangle`) of the sampler's infinite room planes:
     the floor, the back wall and the side walls of a ``room_size = [width, depth, height]``
     room (metres), floor and side walls extended half a depth towards the camera and
-    under it, so that the open side shows no edge; no ceiling, as in the sampler.
-    Each comes with its longer side's length, over which its texture repeats."""
+    under it, so that the open side shows no edge; no ceiling, as in the sampler."""
     width, depth, height = room_size
-    up, back = planes[0, 3:6], -planes[1, 3:6]  # the floor's normal; into the room
-    across = np.cross(up, back)
-    rectangles = []
-    for index, row in enumerate(planes):
-        point, normal = row[:3], row[3:6]
-        if index == 0:  # floor: x across the room, z from -depth/2 to depth
-            centre, axes, half = point + back * depth / 4, (across, back), (width / 2, 3 * depth / 4)
-        elif index == 1:  # back wall
-            centre, axes, half = point + up * height / 2, (across, up), (width / 2, height / 2)
-        else:  # a side wall
-            centre, axes, half = point + back * depth / 4 + up * height / 2, (back, up), (3 * depth / 4, height / 2)
-        linear = np.stack([axes[0] * half[0], axes[1] * half[1], normal], 1)
-        rectangles.append((_affine(linear, centre), 2 * max(half)))
-    return rectangles
+    up, back, across = _room_frame(planes)
+    floor, wall = planes[0], planes[1]
+    rectangles = [_rectangle(floor[:3] + back * depth / 4, (across, back), (width / 2, 3 * depth / 4), floor[3:6]),
+                  _rectangle(wall[:3] + up * height / 2, (across, up), (width / 2, height / 2), wall[3:6])]
+    return rectangles + [_side_wall(row[:3], row[3:6], room_size, up, back) for row in planes[2:]]
 
 
 def _closing_rectangles(planes: np.ndarray, room_size: list[float]) -> list:
     """A ceiling over the extended floor, a front wall at its near end (behind the
-    camera) and the second side wall where the sampler drew one: Mitsuba
-    ``to_world`` of each, for a closed room."""
+    camera) and the second side wall where the sampler drew one (:func:`_rectangle`s),
+    for a closed room."""
     width, depth, height = room_size
+    up, back, across = _room_frame(planes)
     floor = planes[0, :3]
-    up, back = planes[0, 3:6], -planes[1, 3:6]
-    across = np.cross(up, back)
-    ceiling = _affine(np.stack([across * width / 2, back * 3 * depth / 4, -up], 1),
-                      floor + up * height + back * depth / 4)
-    front = _affine(np.stack([across * width / 2, up * height / 2, back], 1), floor - back * depth / 2 + up * height / 2)
-    closing = [ceiling, front]
+    closing = [_rectangle(floor + up * height + back * depth / 4, (across, back), (width / 2, 3 * depth / 4), -up),
+               _rectangle(floor - back * depth / 2 + up * height / 2, (across, up), (width / 2, height / 2), back)]
     if len(planes) == 3:  # one side wall: the other, opposite it
-        point, normal = 2 * floor - planes[2, :3], -planes[2, 3:6]
-        closing.append(_affine(np.stack([back * 3 * depth / 4, up * height / 2, normal], 1),
-                               point + back * depth / 4 + up * height / 2))
+        closing.append(_side_wall(2 * floor - planes[2, :3], -planes[2, 3:6], room_size, up, back))
     return closing
 
 
@@ -199,7 +204,7 @@ def scene_dict(spec: SceneSpec, integrator: dict, spp: int, seed: int, closed: b
         for part_index, shape in enumerate(shapes):
             scene[f"shape_{index}_{part_index}"] = {**shape, "bsdf": bsdf}
     if closed:
-        for index, rectangle in enumerate(_closing_rectangles(p["planes"], spec.meta["room_size_m"])):
+        for index, (rectangle, _) in enumerate(_closing_rectangles(p["planes"], spec.meta["room_size_m"])):
             scene[f"closing_{index}"] = {"type": "rectangle", "to_world": rectangle,
                                          "bsdf": _bsdf({"type": "rgb", "value": [0.7, 0.7, 0.7]}, 0.0, 1.0)}
     for index, (position, intensity) in enumerate(zip(spec.light_position.double().numpy(),
