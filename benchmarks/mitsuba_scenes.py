@@ -158,10 +158,10 @@ def _bsdf(texture: dict, ks: float, shininess: float) -> dict:
                                               "int_ior": 1.49, "nonlinear": False, "diffuse_reflectance": texture}}
 
 
-def scene_dict(spec: SceneSpec, integrator: dict, spp: int, seed: int, closed: bool = False
-               ) -> tuple[dict, np.ndarray, np.ndarray]:
-    """Mitsuba's scene of ``spec``, its world frame the spec's camera frame (OpenCV);
-    ``closed`` closes the room with matte walls (albedo 0.7; :func:`_closing_rectangles`).
+def scene_dict(spec: SceneSpec, seed: int, closed: bool = False) -> tuple[dict, np.ndarray, np.ndarray]:
+    """Mitsuba's scene of ``spec``, its world frame the spec's camera frame (OpenCV), with
+    the ``direct`` integrator (each render sets its samples: :func:`_render`); ``closed``
+    closes the room with matte walls (albedo 0.7; :func:`_closing_rectangles`).
 
     Returns the scene dictionary and, per primitive (the materials' global order),
     the Blinn-Phong ``ks`` and ``shininess`` the scene file reports.
@@ -215,11 +215,11 @@ def scene_dict(spec: SceneSpec, integrator: dict, spp: int, seed: int, closed: b
     scene["sensor"] = {
         "type": "perspective", "fov": fov, "fov_axis": "x",
         "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, 1], up=[0, -1, 0]),
-        "sampler": {"type": "independent", "sample_count": spp, "seed": seed},
+        "sampler": {"type": "independent", "seed": seed},
         "film": {"type": "hdrfilm", "width": spec.width, "height": spec.height, "rfilter": {"type": "box"},
                  "pixel_format": "rgb", "component_format": "float32"},
     }
-    scene["integrator"] = integrator
+    scene["integrator"] = {"type": "direct"}
     return scene, ks_out, shin_out
 
 
@@ -268,12 +268,24 @@ def _plane_normals(points: np.ndarray, valid: np.ndarray, half: int = 2) -> np.n
     return np.where((valid & (count >= 4))[..., None], n, 0.0)
 
 
+def _pixel_rays(K: np.ndarray, H: int, W: int) -> np.ndarray:
+    """Directions ``(H, W, 3)`` through the pixel centres with ``z = 1``
+    (:func:`selfsup.scenes.raycast.camera_rays`): a depth times its ray is the point."""
+    return camera_rays(torch.as_tensor(K, dtype=torch.float64), H, W).numpy().reshape(H, W, 3)
+
+
+def _diagonal(points: np.ndarray) -> float:
+    """The format's ``scene_scale``: the diagonal of the bounding box of ``points (N, 3)``."""
+    return float(np.linalg.norm(points.max(0) - points.min(0)))
+
+
 def _sensor_noise(image: np.ndarray, depth: np.ndarray, normals: np.ndarray, K: np.ndarray,
-                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The devset's sensor model (``../shared/devset`` noisy files' notes): image noise
     ``sqrt(1.44e-4 m I + (0.006 m)^2)`` with ``m`` the mean image; depth ``+ N(0, 0.0012 z^2
     + 0.002)``, 1 mm steps, holes at depth jumps, grazing views and 2% random pixels;
-    normals refitted to the noisy depth."""
+    normals refitted to the noisy depth. Returns the image, depth, normals and the
+    points ``(H, W, 3)`` of that depth."""
     m = image.mean()
     sigma = np.sqrt(1.44e-4 * m * image + (0.006 * m) ** 2)
     noisy_image = np.clip(image + sigma * rng.standard_normal(image.shape), 0, None)
@@ -284,14 +296,13 @@ def _sensor_noise(image: np.ndarray, depth: np.ndarray, normals: np.ndarray, K: 
     pad = np.pad(np.where(valid, depth, np.nan), 1, constant_values=np.nan)
     steps = np.stack([np.abs(pad[i:i + H, j:j + W] - depth) for i in range(3) for j in range(3)])
     jump = np.nan_to_num(steps).max(0) > 0.1 * depth  # a step to a neighbour; a missing one is none
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T
+    rays = _pixel_rays(K, H, W)
     view = -rays / np.linalg.norm(rays, axis=-1, keepdims=True)
     grazing = np.sum(normals * view, -1) < math.cos(math.radians(85))
     keep = valid & ~jump & ~grazing & (rng.random(depth.shape) >= 0.02) & (z > 0)
     z = np.where(keep, z, 0.0)
     points = z[..., None] * rays
-    return noisy_image, z, _plane_normals(points, keep)
+    return noisy_image, z, _plane_normals(points, keep), points
 
 
 def render_variants(spec: SceneSpec, scene_id: str, closed: bool = False) -> dict[str, Scene]:
@@ -300,7 +311,7 @@ def render_variants(spec: SceneSpec, scene_id: str, closed: bool = False) -> dic
     import mitsuba as mi
 
     seed = spec.seed % (2**31)
-    scene, ks_prim, shin_prim = scene_dict(spec, {"type": "direct"}, 16, seed, closed)
+    scene, ks_prim, shin_prim = scene_dict(spec, seed, closed)
     aov = {"type": "aov", "aovs": "pos:position,nn:sh_normal,alb:albedo"}
     centre = {"type": "stratified", "sample_count": 1, "jitter": False}
     geometry = _render({**scene, "integrator": aov}, 1, centre)
@@ -326,8 +337,6 @@ def render_variants(spec: SceneSpec, scene_id: str, closed: bool = False) -> dic
     brightest = direct.max(-1)[valid]
     exposure = spec.exposure / max(float(np.quantile(brightest, 0.99)), 1e-6)
     K = spec.K.double().numpy()
-    pts = points[valid]
-    scale = float(np.linalg.norm(pts.max(0) - pts.min(0)))
     meta = {"falloff": "inverse_square", "n_lights": int(spec.light_position.shape[0]), "seed": spec.seed,
             "renderer": f"mitsuba {mi.__version__} {mi.variant()}", **spec.meta, "closed_room": closed,
             "specular": "roughplastic (Beckmann, int_ior 1.49): shininess = 2/alpha^2-2, ks = F0/(4 alpha^2), F0=0.0387",
@@ -340,20 +349,18 @@ def render_variants(spec: SceneSpec, scene_id: str, closed: bool = False) -> dic
         fields = dict(image=t(image * exposure * valid[..., None]), depth=t(depth), K=t(K), kd=t(albedo * valid[..., None]),
                       ks=t(ks[..., None]), shininess=t(shininess), normals=t(normals), ambient=t(np.zeros(3)),
                       light_pos=spec.light_position.float(), light_intensity=(spec.light_relative_intensity * exposure).float(),
-                      scene_scale=t(scale))
+                      scene_scale=t(_diagonal(points[valid])))
         fields.update({k: (t(v) if v is not None else None) for k, v in extra.items()})
         return Scene(meta={**meta, "id": f"{scene_id}_{variant}", "generator": f"mitsuba3-{variant}"}, **fields)
 
     rng = np.random.default_rng(seed + 1)
-    noisy_image, noisy_depth, noisy_normals = _sensor_noise(direct * exposure * valid[..., None], depth, normals, K, rng)
-    noisy_points = noisy_depth[..., None] * (np.stack([*np.mgrid[0:spec.height, 0:spec.width][::-1],
-                                                       np.ones((spec.height, spec.width))], -1) @ np.linalg.inv(K).T)
-    npts = noisy_points[noisy_depth > 0]
+    noisy_image, noisy_depth, noisy_normals, noisy_points = _sensor_noise(direct * exposure * valid[..., None], depth,
+                                                                          normals, K, rng)
     return {
         "direct": scene_file(direct, "direct"),
         "gi": scene_file(gi, "gi", ambient=None),
         "noisy": scene_file(noisy_image / exposure, "noisy", depth=noisy_depth, normals=noisy_normals,
-                      scene_scale=np.linalg.norm(npts.max(0) - npts.min(0))),
+                      scene_scale=_diagonal(noisy_points[noisy_depth > 0])),
     }
 
 

@@ -32,7 +32,7 @@ def test_plane_normals_of_a_plane_are_its_normal_facing_the_camera():
 def test_sensor_noise_follows_the_devset_model():
     depth, normal, K, _ = _slanted_plane(120, 160, 140.0)
     image = np.full(depth.shape + (3,), 0.4)
-    noisy, z, normals = _sensor_noise(image, depth, normal, K, np.random.default_rng(0))
+    noisy, z, normals, _ = _sensor_noise(image, depth, normal, K, np.random.default_rng(0))
     kept = z > 0
     assert 0.95 < kept.mean() < 0.99  # 2% random holes, no jumps or grazing views on this plane
     sigma = 0.0012 * depth**2 + 0.002
