@@ -54,10 +54,8 @@ from render import GBuffer, Material, light_transport
 from render.geometry import normal_noise, plane_normals, smooth_normals, surface_segments
 from render.shadows import ShadowMethod
 from selfsup import albedo_free
-from selfsup.indirect import indirect_columns
-from selfsup.linear import basis_images, intensity_design
-from selfsup.refine import (Fit, FitProblem, RefineOptions, position_covariance, refine, reweighted, robust_loss,
-                            search, solve_linear)
+from selfsup.refine import (Fit, FitProblem, RefineOptions, evaluate, position_covariance, refine, reweighted,
+                            robust_loss, search, solve_linear)
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
 __all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "problems_of", "prepare", "estimate_scene",
@@ -453,16 +451,10 @@ def _judges_indirect(problem: FitProblem, options: EstimateOptions) -> bool:
 
 
 def _with_indirect(problem: FitProblem, fit: Fit, specular: bool, options: EstimateOptions) -> Tensor:
-    """The model image ``(B, 3, H, W)`` of ``fit``'s light positions, each light's
-    indirect light (:func:`selfsup.indirect.indirect_columns`) added to its direct
-    light; intensities and ambient solved again (converged reweighting)."""
-    t = light_transport(problem.gbuffer, problem.material, fit.position, falloff=problem.falloff,
-                        shadows=problem.shadows, specular=specular)
-    columns = (basis_images(problem.material.kd, problem.material.ks, t.diffuse, t.specular)
-               + indirect_columns(problem.gbuffer, problem.material.kd, t.diffuse))
-    design = intensity_design(columns, problem.material.kd, problem.ambient)
-    weights = reweighted(problem, None, None, options.refine, design=design)
-    return solve_linear(problem, None, None, weights, design)[2]
+    """The model image ``(B, 3, H, W)`` of ``fit``'s light positions with each light's
+    indirect light added to its direct light (:meth:`FitProblem.with_indirect`),
+    intensities and ambient solved again (converged reweighting)."""
+    return evaluate(problem.with_indirect(), fit.position, replace(options.refine, specular=specular))[3]
 
 
 def _groups(best: list[Candidate]) -> dict[tuple[int, bool], list[int]]:

@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from render import GBuffer, Material, light_transport, light_transport_jacobian
+from selfsup.indirect import indirect_columns
 from selfsup.linear import basis_images, intensity_design, solve_design
 
 __all__ = ["FitProblem", "RefineOptions", "Fit", "refine", "search", "solve_linear", "reweighted", "evaluate", "grid_candidates",
@@ -50,6 +51,10 @@ class FitProblem:
         image: observed linear RGB ``(B, 3, H, W)``.
         ambient: known ambient ``(B, 3)``, or None to estimate it.
         falloff, shadows: renderer options (see :func:`render.render`).
+        indirect: each light's basis images include its indirect light
+            (:func:`selfsup.indirect.indirect_columns`). The Jacobians leave its
+            derivative out, so fits with it on are approximate; model selection
+            only evaluates it (``estimate.indirect``).
     """
 
     gbuffer: GBuffer
@@ -58,6 +63,7 @@ class FitProblem:
     ambient: Tensor | None = None
     falloff: str = "inverse_square"
     shadows: str = "epipolar"
+    indirect: bool = False
     _median: Tensor | None = field(default=None, init=False, repr=False, compare=False)
     _noise: Tensor | None = field(default=None, init=False, repr=False, compare=False)
     # Median and noise level of each subsample (by stride) already found: the solvers
@@ -102,6 +108,7 @@ class FitProblem:
             g.select(index),
             Material(kd=m.kd[index], ks=None if m.ks is None else m.ks[index], shininess=shin),
             self.image[index], None if self.ambient is None else self.ambient[index], self.falloff, self.shadows,
+            self.indirect,
         )
         # Each image's median is its own: the selection's are these rows (a sort of every
         # image's values each time was 7% of a batched estimate's GPU time).
@@ -111,9 +118,16 @@ class FitProblem:
         return selected
 
     def with_shadows(self, shadows: str) -> "FitProblem":
-        """The same images under another shadow method (``dataclasses.replace`` would
-        drop the kept median)."""
-        changed = dataclasses.replace(self, shadows=shadows)
+        """The same images under another shadow method."""
+        return self._changed(shadows=shadows)
+
+    def with_indirect(self, indirect: bool = True) -> "FitProblem":
+        """The same images with (or without) each light's indirect light in its basis images."""
+        return self._changed(indirect=indirect)
+
+    def _changed(self, **changes) -> "FitProblem":
+        # dataclasses.replace, keeping the medians and noise levels found (it would drop them).
+        changed = dataclasses.replace(self, **changes)
         changed._median, changed._noise, changed._coarse = self._median, self._noise, self._coarse
         return changed
 
@@ -138,6 +152,7 @@ class FitProblem:
                      shininess=torch.cat([per_pixel(x, x.shininess) for x in m])),
             torch.cat([p.image for p in problems]),
             None if first.ambient is None else torch.cat([p.ambient for p in problems]), first.falloff, first.shadows,
+            first.indirect,
         )
 
 
@@ -236,8 +251,12 @@ def scene_frame(problem: FitProblem) -> tuple[Tensor, Tensor]:
 
 
 def _columns(problem: FitProblem, diffuse: Tensor, specular: Tensor | None) -> Tensor:
-    # Per-channel basis images (B, 3, L, H, W) of unit lights: kd_c D_i + ks_c S_i.
-    return basis_images(problem.material.kd, problem.material.ks, diffuse, specular)
+    # Per-channel basis images (B, 3, L, H, W) of unit lights: kd_c D_i + ks_c S_i, plus
+    # the diffuse light's indirect light where the problem models it.
+    columns = basis_images(problem.material.kd, problem.material.ks, diffuse, specular)
+    if problem.indirect:
+        columns = columns + indirect_columns(problem.gbuffer, problem.material.kd, diffuse)
+    return columns
 
 
 def _cauchy_scale(problem: FitProblem, options: RefineOptions) -> Tensor:

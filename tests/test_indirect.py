@@ -90,3 +90,17 @@ def test_indirect_judges_only_files_without_ambient():
     assert criteria(unknown, "auto") != criteria(unknown, "never")
     with pytest.raises(ValueError, match="indirect"):
         EstimateOptions(indirect="sometimes")
+
+
+def test_a_problem_keeps_its_indirect_switch_and_medians_through_selections():
+    from selfsup.estimate import prepare
+    from selfsup.refine import FitProblem
+
+    config = SamplerConfig(height=24, width=32, specular_prob=0.0, ambient_zero_prob=1.0)
+    scenes = [dataclasses.replace(render_spec(sample_scene(s, config), samples=1).scene, ambient=None) for s in (1, 2)]
+    problem = prepare(scenes, EstimateOptions())
+    median = problem.median_observed()
+    bounced = problem.with_indirect()
+    assert bounced.indirect and not problem.indirect and bounced._median is median
+    assert bounced.select(torch.tensor([1])).indirect
+    assert FitProblem.cat([bounced.select(torch.tensor([0])), bounced.select(torch.tensor([1]))]).indirect
