@@ -55,15 +55,19 @@ def upper_median(values: list[float]) -> float:
     return sorted(values)[len(values) // 2]
 
 
-def run(devset: str | Path, sets: list[str], write: bool = True, name: str = "devset_estimate") -> tuple[list[dict], Path | None]:
-    """Estimate each set with the defaults and score it; one row per scene, then per set."""
+def run(devset: str | Path, sets: list[str], write: bool = True, name: str = "devset_estimate",
+        options=None) -> tuple[list[dict], Path | None]:
+    """Estimate each set (with the default options, or ``options``) and score it; one row
+    per scene, then per set."""
     from selfsup.estimate import EstimateOptions, estimate_files
+
+    options = options or EstimateOptions()
 
     rows = []
     for set_name in sets:
         with tempfile.TemporaryDirectory() as folder:
             output = Path(folder) / "lights.jsonl"
-            estimate_files(Path(devset) / set_name, output, EstimateOptions(), progress=False)
+            estimate_files(Path(devset) / set_name, output, options, progress=False)
             scored = score(Path(devset) / set_name, output)
         for r in scored:
             rows.append({"set": set_name, "id": r["id"], "found": r["found"], "true": r["true"],
@@ -76,8 +80,10 @@ def run(devset: str | Path, sets: list[str], write: bool = True, name: str = "de
         print(rows[-1], flush=True)
     path = None
     if write:
-        header = (f"Scenes of {Path(devset).name}/<set> (an independent renderer), estimated one at a time with the "
-                  "default mode=estimate settings (estimate_files); position error: worst light of the scene, of "
+        changed = {k: v for k, v in vars(options).items() if v != getattr(EstimateOptions(), k)}
+        settings = "the default mode=estimate settings" + (f" but {changed}" if changed else "")
+        header = (f"Scenes of {Path(devset).name}/<set> (an independent renderer), estimated one at a time with "
+                  f"{settings} (estimate_files); position error: worst light of the scene, of "
                   "the scene size; angular error in degrees; success: every light < 0.05. The 'all' rows: "
                   "found = scenes with the right light count, true = scenes, the median worst error (the upper "
                   "of the two middle values), successes, median seconds.")
@@ -93,10 +99,15 @@ if __name__ == "__main__":
     parser.add_argument("--sets", nargs="+", default=["direct", "gi", "noisy"])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--name", default="devset_estimate", help="the results file's name (with --run)")
+    parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                        help="an EstimateOptions field (with --run), e.g. indirect='never' (repeatable)")
     args = parser.parse_args()
     if args.run:
         torch.set_num_threads(args.threads)
-        print(run(args.run, args.sets, name=args.name)[1])
+        from benchmarks.estimate_procedural import parse_options
+        from selfsup.estimate import EstimateOptions
+
+        print(run(args.run, args.sets, name=args.name, options=EstimateOptions(**parse_options(args.option)))[1])
     else:
         if not (args.scenes and args.estimates):
             parser.error("give --scenes and --estimates, or --run DEVSET")
