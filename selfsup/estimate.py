@@ -55,13 +55,13 @@ from render.geometry import normal_noise, plane_normals, smooth_normals, surface
 from render.shadows import ShadowMethod
 from selfsup import albedo_free
 from selfsup.refine import (Fit, FitProblem, RefineOptions, evaluate, position_covariance, refine, reweighted,
-                            robust_loss, search, solve_linear)
+                            robust_loss, search, solve_linear, subsample)
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
 __all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "problems_of", "prepare", "estimate_scene",
            "estimate_batch", "records", "has_specular", "estimate_files", "scene_files", "segment_gains",
            "plane_window_px", "block_px", "effective_samples", "shadow_gain", "reflectance_unknown", "worker_count",
-           "usable_cores"]
+           "usable_cores", "judged_problem"]
 
 log = logging.getLogger(__name__)
 METHODS = ("cnn+refine", "cnn", "refine")
@@ -130,6 +130,17 @@ class EstimateOptions:
     fits themselves stay direct-only. Without it a second light stood in for the
     interreflections of a quarter of the one-light path-traced Mitsuba scenes
     (README); ``never``: the direct model alone.
+    ``criterion_shadows``: the shadow method under which every candidate model is
+    judged, its light positions fixed and its intensities and ambient solved again
+    (:func:`judged_problem`); two lights close together differ from one mostly by
+    their double shadows, which shading alone cannot show. ``criterion_stride``:
+    the criterion looks at every that-many-th pixel of each row and column (its
+    blocks shrink alike: the same independent samples, a quarter of the shadow work
+    at 2). Judged under ``epipolar`` at stride 2 rather than by the shading-only fit
+    (README, "Judged with cast shadows"): two-light procedural scenes (seed 4242)
+    got the right count in 41 of 48 against 39, the Mitsuba sets 199 successes of
+    288 against 192, the devset the same answers; ``none`` at stride 1 judges the
+    fit's own model.
     """
 
     method: str = "cnn+refine"
@@ -152,6 +163,8 @@ class EstimateOptions:
     reflectance_gains: int = 0
     reflectance: str = "auto"
     indirect: str = "auto"
+    criterion_shadows: str = "epipolar"
+    criterion_stride: int = 2
     albedo_free_scale: float = 0.02
     albedo_free_block_width: float = 0.05
     refine: RefineOptions = field(default_factory=RefineOptions)
@@ -189,7 +202,9 @@ class EstimateOptions:
             raise ValueError(f"estimate.plane_window must be in (0, 1) (of the focal length), got {self.plane_window}")
         if self.indirect not in INDIRECT:
             raise ValueError(f"estimate.indirect must be one of {INDIRECT}, got {self.indirect!r}")
-        for name in ("shadows", "search_shadows"):
+        if self.criterion_stride < 1:
+            raise ValueError(f"estimate.criterion_stride must be >= 1 pixel, got {self.criterion_stride}")
+        for name in ("shadows", "search_shadows", "criterion_shadows"):
             if getattr(self, name) not in SHADOW_METHODS:
                 raise ValueError(f"estimate.{name} must be one of {SHADOW_METHODS}, got {getattr(self, name)!r}")
 
@@ -429,14 +444,16 @@ def _stacked(fits: list[Fit]) -> Fit:
 def _candidates(problem: FitProblem, fit: Fit, n_lights: int, specular: list[bool], options: EstimateOptions
                 ) -> list[Candidate]:
     # Each image's fitted model and its criterion: robust loss, 6 parameters per light,
-    # the unknown ambient (3) and the specular switch; the loss with each light's indirect
-    # light where estimate.indirect judges by it.
-    bounce = _judges_indirect(problem, options)
-    model = _with_indirect(problem, fit, any(specular), options) if bounce else fit.model
-    loss = robust_loss(problem, model, options.refine).tolist()
-    n_values = (problem.gbuffer.mask.flatten(1).sum(1) * 3).tolist()
+    # the unknown ambient (3) and the specular switch, on the problem the criterion judges.
+    judged = judged_problem(problem, options)
+    if judged is problem:
+        model = fit.model
+    else:
+        model = evaluate(judged, fit.position, replace(options.refine, specular=any(specular)))[3]
+    loss = robust_loss(judged, model, options.refine).tolist()
+    n_values = (judged.gbuffer.mask.flatten(1).sum(1) * 3).tolist()
     ambient = 3 if problem.ambient is None else 0
-    block = block_px(options, problem.image.shape[-1])
+    block = block_px(options, judged.image.shape[-1])
     out = []
     for i, spec in enumerate(specular):
         n_params = 6 * n_lights + ambient + int(spec)
@@ -445,16 +462,18 @@ def _candidates(problem: FitProblem, fit: Fit, n_lights: int, specular: list[boo
     return out
 
 
-def _judges_indirect(problem: FitProblem, options: EstimateOptions) -> bool:
-    # indirect="auto": a file that does not give its ambient says light is unaccounted for.
-    return options.indirect == "auto" and problem.ambient is None and problem.gbuffer.intrinsics is not None
-
-
-def _with_indirect(problem: FitProblem, fit: Fit, specular: bool, options: EstimateOptions) -> Tensor:
-    """The model image ``(B, 3, H, W)`` of ``fit``'s light positions with each light's
-    indirect light added to its direct light (:meth:`FitProblem.with_indirect`),
-    intensities and ambient solved again (converged reweighting)."""
-    return evaluate(problem.with_indirect(), fit.position, replace(options.refine, specular=specular))[3]
+def judged_problem(problem: FitProblem, options: EstimateOptions) -> FitProblem:
+    """The problem on which model selection judges a fit of ``problem``: every
+    ``options.criterion_stride``-th pixel (:func:`selfsup.refine.subsample`), cast
+    shadows by ``options.criterion_shadows``, and each light's indirect light where
+    ``options.indirect`` says the file leaves light unaccounted for (no ambient
+    given). ``problem`` itself where all three leave it as it is."""
+    judged = subsample(problem, options.criterion_stride)
+    if options.criterion_shadows != problem.shadows:
+        judged = judged.with_shadows(options.criterion_shadows)
+    if options.indirect == "auto" and problem.ambient is None and problem.gbuffer.intrinsics is not None:
+        judged = judged.with_indirect()
+    return judged
 
 
 def _groups(best: list[Candidate]) -> dict[tuple[int, bool], list[int]]:
