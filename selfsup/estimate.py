@@ -729,8 +729,8 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
                              max_iters=options.refine.max_iters[-1:], robust_scale=options.final_robust_scale)
             sub = problem.select(index(group))
             fit = refine(sub, torch.cat([best[i].fit.position for i in group]), finest)
-            for i, c in zip(group, _candidates(sub, fit, n_lights, [specular] * len(group), options)):
-                best[i] = c
+            for j, i in enumerate(group):  # its criterion stays the one it was chosen by
+                best[i] = replace(best[i], fit=_row(fit, j))
     return [(best[i], tried[i]) for i in everyone]
 
 
