@@ -467,8 +467,11 @@ def judged_problem(problem: FitProblem, options: EstimateOptions) -> FitProblem:
     ``options.criterion_stride``-th pixel (:func:`selfsup.refine.subsample`), cast
     shadows by ``options.criterion_shadows``, and each light's indirect light where
     ``options.indirect`` says the file leaves light unaccounted for (no ambient
-    given). ``problem`` itself where all three leave it as it is."""
+    given). ``problem`` itself where all three leave it as it is. Every pixel where the
+    stride would leave an image none of its valid ones (a mask of scattered pixels)."""
     judged = subsample(problem, options.criterion_stride)
+    if not bool(judged.gbuffer.mask.flatten(1).any(1).all()):
+        judged = problem
     if options.criterion_shadows != problem.shadows:
         judged = judged.with_shadows(options.criterion_shadows)
     if options.indirect == "auto" and problem.ambient is None and problem.gbuffer.intrinsics is not None:

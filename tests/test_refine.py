@@ -545,6 +545,12 @@ def test_the_criterion_judges_the_fit_itself_only_where_nothing_differs():
     assert judged.shadows == "epipolar" and tuple(judged.image.shape[-2:]) == (24, 32) and not judged.indirect
     assert judged_problem(dataclasses.replace(problem, ambient=None), EstimateOptions()).indirect
     assert not judged_problem(dataclasses.replace(problem, ambient=None), EstimateOptions(indirect="never")).indirect
+    # Valid pixels on odd rows alone: every second pixel would see none of them, so every pixel is judged.
+    g = problem.gbuffer
+    odd_rows = torch.zeros_like(g.mask)
+    odd_rows[:, 1::2] = g.mask[:, 1::2]
+    sparse = dataclasses.replace(problem, gbuffer=GBuffer(g.points, g.normals, odd_rows, g.intrinsics))
+    assert judged_problem(sparse, EstimateOptions()).image.shape == problem.image.shape
     with pytest.raises(ValueError, match="criterion_stride"):
         EstimateOptions(criterion_stride=0)
     with pytest.raises(ValueError, match="criterion_shadows"):
