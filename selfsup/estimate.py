@@ -649,6 +649,7 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
     if options.refine.robust:
         problem.median_observed()  # the robust scale, found once: every selection below keeps its rows
         problem.noise_level()  # and the scale's floor, likewise
+        judged_problem(problem, options)  # and the criterion's subsample's, likewise
     searched = problem if options.search_shadows == options.shadows else problem.with_shadows(options.search_shadows)
     specular_of = has_specular(problem).tolist()
     if options.method == "refine":
