@@ -44,14 +44,55 @@ def timed(fn, device: torch.device, min_repeats: int = 3, min_seconds: float = 0
     return times[len(times) // 2]
 
 
+def machine_reference(repeats: int = 7) -> dict:
+    """This CPU's speed now, on a fixed workload that no code of the project touches.
+
+    The shared 2-core machine's speed drifts by 20-40% between minutes and days, so
+    CPU results of different dates compare only through it: ``elementwise_ns``, one
+    thread's time per element of ``x * a + b`` over 65,536 float32 (the kind of pass the
+    ray caster and the solvers are made of), and ``matmul_gflops``, a 512 x 512 float32
+    matmul on the current threads. Medians of ``repeats`` timings; about 0.1 s.
+    """
+    threads = torch.get_num_threads()
+    x = torch.rand(65536)
+    out = torch.empty_like(x)
+    a = torch.rand(512, 512)
+    elementwise, matmul = [], []
+    try:
+        torch.set_num_threads(1)
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            for _ in range(50):
+                torch.add(x * 1.0001, 0.5, out=out)
+            elementwise.append((time.perf_counter() - t0) / (50 * 2 * x.numel()))
+    finally:
+        torch.set_num_threads(threads)
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        a @ a
+        matmul.append(time.perf_counter() - t0)
+    elementwise.sort()
+    matmul.sort()
+    return {"elementwise_ns": round(1e9 * elementwise[repeats // 2], 3),
+            "matmul_gflops": round(2 * 512**3 / matmul[repeats // 2] / 1e9, 1), "threads": threads}
+
+
 def write_results(name: str, device: torch.device, rows: list[dict], header: str, columns: list[str]) -> Path:
-    """Write ``rows`` as markdown and JSON to ``benchmarks/results/<name>_<device>_<date>.*``."""
+    """Write ``rows`` as markdown and JSON to ``benchmarks/results/<name>_<device>_<date>.*``;
+    CPU results carry the :func:`machine_reference` timed as they are written."""
     RESULTS.mkdir(parents=True, exist_ok=True)
     date = _dt.date.today().isoformat()
     stem = RESULTS / f"{name}_{device_slug(device)}_{date}"
     meta = {"device": device_name(device), "date": date, "torch": torch.__version__}
+    lines = [f"# {name}", "", f"Device: {meta['device']}; torch {meta['torch']}; date {date}.", ""]
+    if device.type == "cpu":
+        meta["machine_reference"] = reference = machine_reference()
+        lines += [f"Machine reference (a fixed workload timed as this file was written; compare CPU results "
+                  f"of different dates by it): {reference['elementwise_ns']} ns per element of an elementwise "
+                  f"pass (one thread), {reference['matmul_gflops']} GFLOP/s in a 512 x 512 matmul "
+                  f"({reference['threads']} threads).", ""]
     stem.with_suffix(".json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
-    lines = [f"# {name}", "", f"Device: {meta['device']}; torch {meta['torch']}; date {date}.", "", header, ""]
+    lines += [header, ""]
     lines.append("| " + " | ".join(columns) + " |")
     lines.append("|" + "---|" * len(columns))
     for row in rows:
