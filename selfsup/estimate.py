@@ -130,6 +130,12 @@ class EstimateOptions:
     fits themselves stay direct-only. Without it a second light stood in for the
     interreflections of a quarter of the one-light path-traced Mitsuba scenes
     (README); ``never``: the direct model alone.
+    ``albedo_error``: the standard deviation, in albedo units, of the error of the
+    file's kd (0: exact); the position uncertainty then adds what such an error,
+    the same over each of the criterion's blocks and independent between blocks and
+    channels, moves the lights by (:func:`selfsup.refine.position_covariance`; README,
+    "Uncertainty under reflectance errors"). The albedo-free fit uses no kd and
+    ignores it.
     ``criterion_shadows``: the shadow method under which every candidate model is
     judged, its light positions fixed and its intensities and ambient solved again
     (:func:`judged_problem`); two lights close together differ from one mostly by
@@ -167,6 +173,7 @@ class EstimateOptions:
     criterion_stride: int = 2
     albedo_free_scale: float = 0.02
     albedo_free_block_width: float = 0.05
+    albedo_error: float = 0.0
     refine: RefineOptions = field(default_factory=RefineOptions)
 
     def __post_init__(self):
@@ -192,6 +199,9 @@ class EstimateOptions:
             raise ValueError(f"reflectance_gains must be >= 0 rounds, got {self.reflectance_gains}")
         if self.reflectance not in REFLECTANCE:
             raise ValueError(f"estimate.reflectance must be one of {REFLECTANCE}, got {self.reflectance!r}")
+        if not (self.albedo_error >= 0 and math.isfinite(self.albedo_error)):
+            raise ValueError(f"estimate.albedo_error must be a finite standard deviation >= 0 (albedo units), "
+                             f"got {self.albedo_error}")
         if not self.albedo_free_scale > 0:
             raise ValueError(f"estimate.albedo_free_scale must be > 0, got {self.albedo_free_scale}")
         if self.normal_smoothing not in NORMAL_SMOOTHING:
@@ -781,8 +791,10 @@ def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, 
         group = [own[j] for j in indices]
         at = torch.tensor(group, dtype=torch.long, device=problem.image.device)
         fit = _stacked([results[i][0].fit for i in group])
+        block = block_px(options, problem.image.shape[-1])
         cov = position_covariance(problem.select(at), fit, replace(options.refine, specular=specular),
-                                  correlation_px=float(block_px(options, problem.image.shape[-1]) ** 2)).cpu()
+                                  correlation_px=float(block**2), albedo_error=options.albedo_error,
+                                  albedo_block_px=block).cpu()
         for j, i in enumerate(group):
             covariances[i] = cov[j]
     return [_record(scene_id, best, tried, cov) for scene_id, (best, tried), cov in zip(ids, results, covariances)]

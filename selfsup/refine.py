@@ -35,7 +35,8 @@ from selfsup.indirect import indirect_columns
 from selfsup.linear import basis_images, intensity_design, solve_design
 
 __all__ = ["FitProblem", "RefineOptions", "Fit", "refine", "search", "solve_linear", "reweighted", "evaluate", "grid_candidates",
-           "robust_loss", "position_covariance", "subsample", "spread_best", "scene_frame", "position_blocks"]
+           "robust_loss", "position_covariance", "subsample", "spread_best", "scene_frame", "position_blocks",
+           "albedo_scores"]
 
 
 RUNAWAY_SIZES = 10.0  # the LM stops an image whose light is this many scene sizes from the centre
@@ -664,13 +665,21 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
     return Fit(*(getattr(full, f.name)[rows] for f in dataclasses.fields(Fit)))
 
 
-def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, correlation_px: float = 1.0) -> Tensor:
+def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, correlation_px: float = 1.0,
+                        albedo_error: float = 0.0, albedo_block_px: int = 1) -> Tensor:
     """Gauss-Newton covariance ``(B, L, 3, 3)`` of each light's position.
 
     The Jacobian covers every parameter (positions, intensities, unknown ambient),
     so their trade-offs widen the positions' uncertainty; the noise variance is the
     residual's. ``correlation_px`` (pixels per independent residual) inflates it for
     spatially correlated residuals.
+
+    ``albedo_error`` (0: the file's kd is exact) adds what an error of the given kd
+    moves the lights by: an error of standard deviation ``albedo_error`` (albedo units),
+    the same over each square block of ``albedo_block_px`` pixels, independent between
+    blocks and channels (:func:`albedo_scores`). The fit takes up an albedo error
+    partly in its parameters, where its residual cannot show it, so the residual's
+    variance alone misses it (README, "Uncertainty under reflectance errors").
     """
     B, L, _ = fit.position.shape
     _, size = scene_frame(problem)
@@ -679,17 +688,62 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     mask = problem.gbuffer.mask[:, None].expand_as(problem.image).to(j_pos.dtype)
     info, _ = _normal_equations(problem, j_pos, cols, mask)
     sigma2 = fit.rss / (fit.n - info.shape[1]).clamp_min(1) * correlation_px
-    return position_blocks(info, sigma2, L)
+    if albedo_error < 0 or not math.isfinite(albedo_error):
+        raise ValueError(f"albedo_error must be a finite value >= 0, got {albedo_error}")
+    if albedo_error == 0:
+        return position_blocks(info, sigma2, L)
+    scores = albedo_scores(problem, fit, j_pos, cols, mask, albedo_block_px)  # (B, P + 3k, 3 * blocks)
+    return position_blocks(info, sigma2, L, albedo_error**2 * scores @ scores.transpose(1, 2))
 
 
-def position_blocks(info: Tensor, sigma2: Tensor, n_lights: int) -> Tensor:
+def albedo_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tensor, weights: Tensor, block_px: int) -> Tensor:
+    """``J^T W dM/dkd`` summed over each square block of ``block_px`` pixels and channel:
+    ``(B, P + 3k, 3 * blocks)`` (channel-major), the parameters (``P = 3 L`` positions, then
+    ``k = L [+ 1]`` linear ones per channel) ordered as :func:`_normal_equations` orders
+    them, from its ``j_pos``, ``cols`` and ``weights (B, 3, H, W)``. A kd error ``e`` that is
+    constant over blocks moves the fit by ``-info^-1 scores e`` (to first order).
+
+    ``dM_c/dkd_c`` is the ambient plus the lights' diffuse light (the specular term does
+    not scale with kd; the indirect light's own dependence on kd is left out)."""
+    B, P, _ = j_pos.shape
+    H, W = problem.image.shape[-2:]
+    transport = light_transport(problem.gbuffer, problem.material, fit.position, falloff=problem.falloff,
+                                shadows=problem.shadows, specular=False)
+    ambient = problem.ambient if problem.ambient is not None else fit.ambient
+    per_kd = ambient[:, :, None, None] + torch.einsum("blhw,blc->bchw", transport.diffuse, fit.intensity)
+    per_kd = (per_kd * weights).reshape(B, 1, 3, H, W)
+    design = intensity_design(cols, problem.material.kd, problem.ambient)  # (B, 3, k, N)
+    k = design.shape[2]
+    position_part = j_pos.view(B, P, 3, H, W) * per_kd  # (B, P, 3, H, W)
+    linear_part = design.view(B, 3, k, H, W).transpose(1, 2) * per_kd  # (B, k, 3, H, W): channel c's own parameters
+    b = max(1, int(block_px))
+
+    def pooled(x: Tensor) -> Tensor:  # (B, n, 3, H, W) -> (B, n, 3, blocks): sums over each block
+        n = x.shape[1]
+        return (torch.nn.functional.avg_pool2d(x.reshape(B, n * 3, H, W), b, b, ceil_mode=True) * b * b).view(B, n, 3, -1)
+
+    positions, linear = pooled(position_part), pooled(linear_part)  # (B, P, 3, n_b), (B, k, 3, n_b)
+    n_b = positions.shape[-1]
+    # Channel c's kd error touches channel c's linear parameters alone: rows P + c k .. P + c k + k - 1.
+    linear_rows = linear.new_zeros(B, 3, k, 3, n_b)
+    for c in range(3):
+        linear_rows[:, c, :, c] = linear[:, :, c]
+    return torch.cat([positions, linear_rows.view(B, 3 * k, 3, n_b)], 1).reshape(B, P + 3 * k, 3 * n_b)
+
+
+def position_blocks(info: Tensor, sigma2: Tensor, n_lights: int, extra: Tensor | None = None) -> Tensor:
     """Each light's ``(B, L, 3, 3)`` block of the covariance ``sigma2 (B,) x info^-1`` of a
     Gauss-Newton information matrix ``info (B, k, k)`` whose first ``3 L`` parameters
     are the lights' positions (a ridge of 1e-12 of its mean curvature, then the
-    pseudo-inverse: a parameter nothing constrains gets no variance, not a failure)."""
+    pseudo-inverse: a parameter nothing constrains gets no variance, not a failure),
+    plus ``info^-1 extra info^-1`` for a further error source of score covariance
+    ``extra (B, k, k)``."""
     B, k, _ = info.shape
     info = info + 1e-12 * info.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] * torch.eye(k, dtype=info.dtype,
                                                                                               device=info.device)
-    cov = torch.linalg.pinv(info, hermitian=True) * sigma2[:, None, None]
+    inverse = torch.linalg.pinv(info, hermitian=True)
+    cov = inverse * sigma2[:, None, None]
+    if extra is not None:
+        cov = cov + inverse @ extra @ inverse
     pos_cov = cov[:, : 3 * n_lights, : 3 * n_lights].reshape(B, n_lights, 3, n_lights, 3)
     return torch.stack([pos_cov[:, i, :, i, :] for i in range(n_lights)], 1)

@@ -214,6 +214,57 @@ def test_block_normal_equations_equal_those_of_the_dense_jacobian(known_ambient)
     torch.testing.assert_close(normal[:, : 3 * L, : 3 * L], (weighted @ dense.transpose(1, 2))[:, : 3 * L, : 3 * L])
 
 
+@pytest.mark.parametrize("known_ambient", [True, False])
+def test_albedo_scores_predict_how_a_kd_error_moves_the_fit(known_ambient):
+    # To first order an error e of kd over one block and channel moves the least-squares
+    # fit by -info^-1 scores e: refit after such an error (the image the model's own at
+    # the true light, so the fit there is exact) and compare the positions.
+    from selfsup.refine import _jacobians, albedo_scores, scene_frame
+
+    scene = _scene(5)
+    problem = problem_of(scene, "none", dtype=torch.float64)
+    if not known_ambient:
+        problem.ambient = None
+    options = RefineOptions(max_iters=(80,), strides=(1,), robust=False, tol=1e-14, step_tol=1e-12)
+    truth = scene.light_pos[None].double()
+    problem.image = refine(problem, truth, dataclasses.replace(options, max_iters=(0,))).model
+    fit = refine(problem, truth, options)
+    h = (options.fd_step * scene_frame(problem)[1])[:, None, None]
+    cols, j_pos = _jacobians(problem, fit.position, fit.intensity, h, False)
+    mask = problem.gbuffer.mask[:, None].expand_as(problem.image).double()
+    info, _ = _normal_equations(problem, j_pos, cols, mask)
+    block = 16
+    scores = albedo_scores(problem, fit, j_pos, cols, mask, block)
+    n_blocks = scores.shape[-1] // 3
+    column = int(scores[0, :3].norm(dim=0).argmax())  # the block and channel that move the light most
+    channel, index = divmod(column, n_blocks)
+    row, col = divmod(index, -(-problem.image.shape[-1] // block))
+    e = 1e-3
+    kd = problem.material.kd.clone()
+    kd[0, row * block : (row + 1) * block, col * block : (col + 1) * block, channel] += e
+    moved = refine(dataclasses.replace(problem, material=Material(kd=kd, ks=problem.material.ks,
+                                                                  shininess=problem.material.shininess)),
+                   fit.position, options)
+    predicted = -(torch.linalg.pinv(info[0]) @ scores[0, :, column])[:3] * e
+    measured = (moved.position - fit.position)[0, 0]
+    assert float(measured.norm()) > 1e-6 * float(scene.scene_scale)  # the error moved the light
+    torch.testing.assert_close(measured, predicted, rtol=0.02, atol=0.02 * float(predicted.norm()))
+
+
+def test_albedo_error_widens_the_position_std_and_zero_changes_nothing():
+    scene = _scene(5)
+    options = EstimateOptions(method="refine", max_lights=1, refine=RefineOptions(max_iters=(15, 5)))
+    exact = estimate_scene(scene, options)["lights"][0]
+    same = estimate_scene(scene, dataclasses.replace(options, albedo_error=0.0))["lights"][0]
+    wider = estimate_scene(scene, dataclasses.replace(options, albedo_error=0.05))["lights"][0]
+    assert same["position_std"] == exact["position_std"]
+    assert wider["position"] == exact["position"]  # the fit is the same; only its uncertainty grows
+    assert all(w > e for w, e in zip(wider["position_std"], exact["position_std"]))
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="estimate.albedo_error"):
+            EstimateOptions(albedo_error=bad)
+
+
 def test_estimate_files_writes_jsonl_and_skips_bad_files(tmp_path):
     good = _scene(6)
     write_scene(tmp_path / "a_good.npz", good)
