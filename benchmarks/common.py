@@ -49,8 +49,9 @@ def machine_reference(repeats: int = 7) -> dict:
 
     The shared 2-core machine's speed drifts by 20-40% between minutes and days, so
     CPU results of different dates compare only through it: ``elementwise_ns``, one
-    thread's time per element of ``x * a + b`` over 65,536 float32 (the kind of pass the
-    ray caster and the solvers are made of), and ``matmul_gflops``, a 512 x 512 float32
+    thread's time per element and pass of ``x * a + b`` over 65,536 float32 (two passes,
+    the product then the sum into a kept tensor: the kind of pass the ray caster and
+    the solvers are made of), and ``matmul_gflops``, a 512 x 512 float32
     matmul on the current threads. Medians of ``repeats`` timings; about 0.1 s.
     """
     threads = torch.get_num_threads()

@@ -681,6 +681,8 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     partly in its parameters, where its residual cannot show it, so the residual's
     variance alone misses it (README, "Uncertainty under reflectance errors").
     """
+    if albedo_error < 0 or not math.isfinite(albedo_error):
+        raise ValueError(f"albedo_error must be a finite value >= 0, got {albedo_error}")
     B, L, _ = fit.position.shape
     _, size = scene_frame(problem)
     h = (options.fd_step * size)[:, None, None]
@@ -688,8 +690,6 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     mask = problem.gbuffer.mask[:, None].expand_as(problem.image).to(j_pos.dtype)
     info, _ = _normal_equations(problem, j_pos, cols, mask)
     sigma2 = fit.rss / (fit.n - info.shape[1]).clamp_min(1) * correlation_px
-    if albedo_error < 0 or not math.isfinite(albedo_error):
-        raise ValueError(f"albedo_error must be a finite value >= 0, got {albedo_error}")
     if albedo_error == 0:
         return position_blocks(info, sigma2, L)
     scores = albedo_scores(problem, fit, j_pos, cols, mask, albedo_block_px)  # (B, P + 3k, 3 * blocks)
