@@ -346,9 +346,10 @@ def evaluate(problem: FitProblem, position: Tensor, options: RefineOptions, weig
 
 
 def _jacobians(problem: FitProblem, position: Tensor, intensity: Tensor, h: Tensor, specular: bool
-               ) -> tuple[Tensor, Tensor]:
-    """The basis images ``(B, 3, L, H, W)`` at ``position (B, L, 3)`` and the Jacobian
-    ``(B, 3L, 3*H*W)`` of the model image with respect to the positions, at ``intensity``.
+               ) -> tuple[Tensor, Tensor, Tensor]:
+    """The basis images ``(B, 3, L, H, W)`` at ``position (B, L, 3)``, the Jacobian
+    ``(B, 3L, 3*H*W)`` of the model image with respect to the positions, at ``intensity``,
+    and the lights' diffuse transport ``(B, L, H, W)`` the basis images were made of.
 
     Shading is differentiated exactly, cast shadows by forward differences of step
     ``h (B, 1, 1)`` (:func:`render.light_transport_jacobian`).
@@ -365,7 +366,7 @@ def _jacobians(problem: FitProblem, position: Tensor, intensity: Tensor, h: Tens
         ks = problem.material.ks.permute(0, 3, 1, 2)[:, None, None]
         deriv = deriv + ks * jac.specular.permute(0, 1, 4, 2, 3)[:, :, :, None]
     deriv = deriv * intensity[:, :, None, :, None, None]
-    return cols, deriv.reshape(B, 3 * L, -1)
+    return cols, deriv.reshape(B, 3 * L, -1), t.diffuse
 
 
 def _normal_equations(problem: FitProblem, j_pos: Tensor, cols: Tensor, weights: Tensor,
@@ -428,7 +429,7 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         if n != selected:  # the active set only shrinks: select again only when it did
             sub, selected = problem.select(idx), n
         pos, w = position[idx], weights[idx]
-        cols_base, j_pos = _jacobians(sub, pos, intensity[idx], h[idx], options.specular)
+        cols_base, j_pos, _ = _jacobians(sub, pos, intensity[idx], h[idx], options.specular)
         jtj, jtr = _normal_equations(sub, j_pos, cols_base, w, model[idx] - sub.image)
         diag = jtj.diagonal(dim1=-2, dim2=-1)
         # A light that lights nothing has zero columns: a floor of 1e-6 of the largest
@@ -686,31 +687,31 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     B, L, _ = fit.position.shape
     _, size = scene_frame(problem)
     h = (options.fd_step * size)[:, None, None]
-    cols, j_pos = _jacobians(problem, fit.position, fit.intensity, h, options.specular)  # (B, 3, L, H, W), (B, 3L, 3HW)
+    cols, j_pos, diffuse = _jacobians(problem, fit.position, fit.intensity, h, options.specular)
     mask = problem.gbuffer.mask[:, None].expand_as(problem.image).to(j_pos.dtype)
     info, _ = _normal_equations(problem, j_pos, cols, mask)
     sigma2 = fit.rss / (fit.n - info.shape[1]).clamp_min(1) * correlation_px
     if albedo_error == 0:
         return position_blocks(info, sigma2, L)
-    scores = albedo_scores(problem, fit, j_pos, cols, mask, albedo_block_px)  # (B, P + 3k, 3 * blocks)
+    scores = albedo_scores(problem, fit, j_pos, cols, diffuse, mask, albedo_block_px)  # (B, P + 3k, 3 * blocks)
     return position_blocks(info, sigma2, L, albedo_error**2 * scores @ scores.transpose(1, 2))
 
 
-def albedo_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tensor, weights: Tensor, block_px: int) -> Tensor:
+def albedo_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tensor, diffuse: Tensor, weights: Tensor,
+                  block_px: int) -> Tensor:
     """``J^T W dM/dkd`` summed over each square block of ``block_px`` pixels and channel:
     ``(B, P + 3k, 3 * blocks)`` (channel-major), the parameters (``P = 3 L`` positions, then
     ``k = L [+ 1]`` linear ones per channel) ordered as :func:`_normal_equations` orders
-    them, from its ``j_pos``, ``cols`` and ``weights (B, 3, H, W)``. A kd error ``e`` that is
+    them, from its ``j_pos``, ``cols`` and ``weights (B, 3, H, W)`` and the lights' diffuse
+    transport ``diffuse (B, L, H, W)`` (all three as :func:`_jacobians` gives them). A kd error ``e`` that is
     constant over blocks moves the fit by ``-info^-1 scores e`` (to first order).
 
     ``dM_c/dkd_c`` is the ambient plus the lights' diffuse light (the specular term does
     not scale with kd; the indirect light's own dependence on kd is left out)."""
     B, P, _ = j_pos.shape
     H, W = problem.image.shape[-2:]
-    transport = light_transport(problem.gbuffer, problem.material, fit.position, falloff=problem.falloff,
-                                shadows=problem.shadows, specular=False)
     ambient = problem.ambient if problem.ambient is not None else fit.ambient
-    per_kd = ambient[:, :, None, None] + torch.einsum("blhw,blc->bchw", transport.diffuse, fit.intensity)
+    per_kd = ambient[:, :, None, None] + torch.einsum("blhw,blc->bchw", diffuse, fit.intensity)
     per_kd = (per_kd * weights).reshape(B, 1, 3, H, W)
     design = intensity_design(cols, problem.material.kd, problem.ambient)  # (B, 3, k, N)
     k = design.shape[2]

@@ -230,11 +230,11 @@ def test_albedo_scores_predict_how_a_kd_error_moves_the_fit(known_ambient):
     problem.image = refine(problem, truth, dataclasses.replace(options, max_iters=(0,))).model
     fit = refine(problem, truth, options)
     h = (options.fd_step * scene_frame(problem)[1])[:, None, None]
-    cols, j_pos = _jacobians(problem, fit.position, fit.intensity, h, False)
+    cols, j_pos, diffuse = _jacobians(problem, fit.position, fit.intensity, h, False)
     mask = problem.gbuffer.mask[:, None].expand_as(problem.image).double()
     info, _ = _normal_equations(problem, j_pos, cols, mask)
     block = 16
-    scores = albedo_scores(problem, fit, j_pos, cols, mask, block)
+    scores = albedo_scores(problem, fit, j_pos, cols, diffuse, mask, block)
     n_blocks = scores.shape[-1] // 3
     column = int(scores[0, :3].norm(dim=0).argmax())  # the block and channel that move the light most
     channel, index = divmod(column, n_blocks)
