@@ -24,10 +24,10 @@ import torch
 
 from benchmarks.common import write_results
 from render import GBuffer
-from selfsup.metrics import light_errors
+from selfsup.metrics import inside_two_sigma, light_errors
 from selfsup.scenes.io import read_scene
 
-COLUMNS = ["set", "id", "found", "true", "worst_position_error", "angular_error", "success", "seconds"]
+COLUMNS = ["set", "id", "found", "true", "worst_position_error", "angular_error", "success", "two_sigma", "seconds"]
 
 
 def score(scenes: str | Path, estimates: str | Path) -> list[dict]:
@@ -43,7 +43,9 @@ def score(scenes: str | Path, estimates: str | Path) -> list[dict]:
         centroid = g.points[0][g.mask[0]].mean(0)
         pos = torch.tensor([l["position"] for l in record["lights"]]).reshape(-1, 3)
         err = light_errors(pos, None, scene.light_pos, None, float(scene.scene_scale), centroid)
+        cov = torch.tensor([l["position_cov"] for l in record["lights"]], dtype=torch.float64).reshape(-1, 3, 3)
         rows.append({"id": record["id"], "found": len(record["lights"]), "true": scene.light_pos.shape[0],
+                     "inside": inside_two_sigma(pos, cov, scene.light_pos),
                      "position": [round(e, 4) for e in err.position], "angular": [round(a, 1) for a in err.angular],
                      "success": err.success, "seconds": record["seconds"]})
     return rows
@@ -72,10 +74,12 @@ def run(devset: str | Path, sets: list[str], write: bool = True, name: str = "de
         for r in scored:
             rows.append({"set": set_name, "id": r["id"], "found": r["found"], "true": r["true"],
                          "worst_position_error": max(r["position"]), "angular_error": max(r["angular"]),
-                         "success": r["success"], "seconds": r["seconds"]})
+                         "success": r["success"], "two_sigma": f"{r['inside']}/{r['true']}", "seconds": r["seconds"]})
+        right = [r for r in scored if r["found"] == r["true"]]
         rows.append({"set": set_name, "id": "all (median, count)", "found": sum(r["found"] == r["true"] for r in scored),
                      "true": len(scored), "worst_position_error": upper_median([max(r["position"]) for r in scored]),
                      "success": f"{sum(r['success'] for r in scored)}/{len(scored)}",
+                     "two_sigma": f"{sum(r['inside'] for r in right)}/{sum(r['true'] for r in right)}",
                      "seconds": round(statistics.median(r["seconds"] for r in scored), 3)})
         print(rows[-1], flush=True)
     path = None
@@ -86,7 +90,9 @@ def run(devset: str | Path, sets: list[str], write: bool = True, name: str = "de
                   f"{settings} (estimate_files); position error: worst light of the scene, of "
                   "the scene size; angular error in degrees; success: every light < 0.05. The 'all' rows: "
                   "found = scenes with the right light count, true = scenes, the median worst error (the upper "
-                  "of the two middle values), successes, median seconds.")
+                  "of the two middle values), successes, two_sigma: the true lights inside the 2-sigma "
+                  "ellipsoid of their estimate's position_cov (of the lights of the scenes given the right "
+                  "count), median seconds.")
         path = write_results(name, torch.device("cpu"), rows, header, COLUMNS)
     return rows, path
 

@@ -5,7 +5,9 @@
 - success: every light of the scene below 0.05;
 - angular error: degrees between ``L_est - c`` and ``L_true - c``, ``c`` the
   centroid of the valid points;
-- intensity error ``|I_est - I_true| / |I_true|``.
+- intensity error ``|I_est - I_true| / |I_true|``;
+- calibration: the true lights inside the 2-sigma ellipsoid of their paired estimate's
+  position covariance (:func:`inside_two_sigma`).
 """
 
 from __future__ import annotations
@@ -17,9 +19,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["LightErrors", "light_errors", "pair_lights", "SUCCESS_THRESHOLD"]
+__all__ = ["LightErrors", "light_errors", "pair_lights", "inside_two_sigma", "SUCCESS_THRESHOLD",
+           "CHI2_3D_2SIGMA"]
 
 SUCCESS_THRESHOLD = 0.05
+CHI2_3D_2SIGMA = 8.03  # the chi-square quantile of 3 degrees of freedom at 95.45% (2 sigma in 1D)
 
 
 def pair_lights(estimated: Tensor, true: Tensor) -> list[tuple[int, int]]:
@@ -81,3 +85,14 @@ def light_errors(est_pos: Tensor, est_int: Tensor | None, true_pos: Tensor, true
     position.extend([1.0] * unpaired)
     return LightErrors(position, angular, intensity, success=bool(position) and max(position) < SUCCESS_THRESHOLD,
                        count_right=est_pos.shape[0] == true_pos.shape[0])
+
+
+def inside_two_sigma(est_pos: Tensor, est_cov: Tensor, true_pos: Tensor) -> int:
+    """How many true lights ``(T, 3)`` fall inside the 2-sigma ellipsoid of the estimate
+    they are paired with (:func:`pair_lights`); estimates ``(E, 3)``, their position
+    covariances ``(E, 3, 3)``. An unpaired true light is not inside."""
+    inside = 0
+    for e, t in pair_lights(est_pos, true_pos):
+        delta = (true_pos[t] - est_pos[e]).double()
+        inside += float(delta @ torch.linalg.pinv(est_cov[e].double()) @ delta) < CHI2_3D_2SIGMA
+    return inside

@@ -870,3 +870,15 @@ def test_benchmark_options_reach_estimate_and_refine_settings():
     assert (options.block_width, options.weak_light_shadow_gain, options.refine.robust_scale) == (0.1, 0, 0.05)
     with pytest.raises(ValueError, match="KEY=VALUE"):
         parse_options(["block_width"])
+
+
+def test_inside_two_sigma_counts_true_lights_within_their_estimates_ellipsoid():
+    from selfsup.metrics import inside_two_sigma
+
+    estimated = torch.tensor([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
+    cov = torch.stack([torch.eye(3), torch.diag(torch.tensor([9.0, 1.0, 1.0]))])
+    # Mahalanobis^2: 4 (inside), 16 / 9 along the wide axis (inside); then 9 and 25 (outside).
+    assert inside_two_sigma(estimated, cov, torch.tensor([[2.0, 0.0, 0.0], [14.0, 0.0, 0.0]])) == 2
+    assert inside_two_sigma(estimated, cov, torch.tensor([[3.0, 0.0, 0.0], [10.0, 5.0, 0.0]])) == 0
+    # A true light with no estimate to pair with is outside.
+    assert inside_two_sigma(estimated[:1], cov[:1], torch.tensor([[0.5, 0.0, 0.0], [10.0, 0.0, 0.0]])) == 1
