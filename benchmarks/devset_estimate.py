@@ -22,9 +22,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import write_results
-from render import GBuffer
-from selfsup.metrics import inside_two_sigma, light_errors
+from benchmarks.common import score_record, write_results
 from selfsup.scenes.io import read_scene
 
 COLUMNS = ["set", "id", "found", "true", "worst_position_error", "angular_error", "success", "two_sigma", "seconds"]
@@ -39,13 +37,9 @@ def score(scenes: str | Path, estimates: str | Path) -> list[dict]:
     for line in Path(estimates).read_text().splitlines():
         record = json.loads(line)
         scene = by_id[record["id"]]
-        g = GBuffer.from_depth(scene.depth[None], scene.K[None])
-        centroid = g.points[0][g.mask[0]].mean(0)
-        pos = torch.tensor([l["position"] for l in record["lights"]]).reshape(-1, 3)
-        err = light_errors(pos, None, scene.light_pos, None, float(scene.scene_scale), centroid)
-        cov = torch.tensor([l["position_cov"] for l in record["lights"]], dtype=torch.float64).reshape(-1, 3, 3)
+        err, inside = score_record(record, scene)
         rows.append({"id": record["id"], "found": len(record["lights"]), "true": scene.light_pos.shape[0],
-                     "inside": inside_two_sigma(pos, cov, scene.light_pos),
+                     "inside": inside,
                      "position": [round(e, 4) for e in err.position], "angular": [round(a, 1) for a in err.angular],
                      "success": err.success, "seconds": record["seconds"]})
     return rows

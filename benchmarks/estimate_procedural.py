@@ -24,11 +24,10 @@ import time
 
 import torch
 
-from benchmarks.common import write_results
-from render import GBuffer
+from benchmarks.common import score_record, write_results
 from selfsup.estimate import EstimateOptions, estimate_scene
 from selfsup.refine import RefineOptions
-from selfsup.metrics import CHI2_3D_2SIGMA, inside_two_sigma, light_errors
+from selfsup.metrics import CHI2_3D_2SIGMA
 from selfsup.scenes.dataset import render_item
 from selfsup.scenes.degrade import Degradations
 from selfsup.scenes.sampler import SamplerConfig
@@ -50,12 +49,8 @@ COLUMNS = ["set", "method", "scenes", "median_position_error", "success_rate", "
 def score(record: dict, scene) -> tuple[float, bool, bool, int]:
     """One estimate against its scene's truth: worst position error (of the scene size),
     success, right light count, and how many true lights fall inside their 2-sigma ellipsoid."""
-    position = torch.tensor([light["position"] for light in record["lights"]]).reshape(-1, 3)
-    g = GBuffer.from_depth(scene.depth[None], scene.K[None])
-    errors = light_errors(position, None, scene.light_pos, None, float(scene.scene_scale),
-                          g.points[0][g.mask[0]].mean(0))
-    cov = torch.tensor([light["position_cov"] for light in record["lights"]], dtype=torch.float64).reshape(-1, 3, 3)
-    return max(errors.position), errors.success, errors.count_right, inside_two_sigma(position, cov, scene.light_pos)
+    errors, inside = score_record(record, scene)
+    return max(errors.position), errors.success, errors.count_right, inside
 
 
 def set_scene(name: str, index: int, seed: int):
