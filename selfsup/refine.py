@@ -691,10 +691,11 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     mask = problem.gbuffer.mask[:, None].expand_as(problem.image).to(j_pos.dtype)
     info, _ = _normal_equations(problem, j_pos, cols, mask)
     sigma2 = fit.rss / (fit.n - info.shape[1]).clamp_min(1) * correlation_px
-    if albedo_error == 0:
-        return position_blocks(info, sigma2, L)
-    scores = albedo_scores(problem, fit, j_pos, cols, diffuse, mask, albedo_block_px)  # (B, P + 3k, 3 * blocks)
-    return position_blocks(info, sigma2, L, albedo_error**2 * scores @ scores.transpose(1, 2))
+    extra = None
+    if albedo_error > 0:
+        scores = albedo_scores(problem, fit, j_pos, cols, diffuse, mask, albedo_block_px)  # (B, P + 3k, 3 * blocks)
+        extra = albedo_error**2 * scores @ scores.transpose(1, 2)
+    return position_blocks(info, sigma2, L, extra)
 
 
 def albedo_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tensor, diffuse: Tensor, weights: Tensor,
@@ -708,11 +709,19 @@ def albedo_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tensor, di
 
     ``dM_c/dkd_c`` is the ambient plus the lights' diffuse light (the specular term does
     not scale with kd; the indirect light's own dependence on kd is left out)."""
-    B, P, _ = j_pos.shape
-    H, W = problem.image.shape[-2:]
     ambient = problem.ambient if problem.ambient is not None else fit.ambient
     per_kd = ambient[:, :, None, None] + torch.einsum("blhw,blc->bchw", diffuse, fit.intensity)
-    per_kd = (per_kd * weights).reshape(B, 1, 3, H, W)
+    return block_scores(problem, j_pos, cols, per_kd * weights, block_px)
+
+
+def block_scores(problem: FitProblem, j_pos: Tensor, cols: Tensor, derivative: Tensor, block_px: int) -> Tensor:
+    """``J^T derivative`` summed over each square block of ``block_px`` pixels and channel:
+    ``(B, P + 3k, 3 * blocks)`` (channel-major), for an error source that is one value per
+    block and channel and changes model channel ``c`` by ``derivative (B, 3, H, W)`` (weights
+    included) per unit; the parameters ordered as :func:`_normal_equations` orders them."""
+    B, P, _ = j_pos.shape
+    H, W = problem.image.shape[-2:]
+    per_kd = derivative.reshape(B, 1, 3, H, W)
     design = intensity_design(cols, problem.material.kd, problem.ambient)  # (B, 3, k, N)
     k = design.shape[2]
     position_part = j_pos.view(B, P, 3, H, W) * per_kd  # (B, P, 3, H, W)
@@ -721,7 +730,9 @@ def albedo_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tensor, di
 
     def pooled(x: Tensor) -> Tensor:  # (B, n, 3, H, W) -> (B, n, 3, blocks): sums over each block
         n = x.shape[1]
-        return (torch.nn.functional.avg_pool2d(x.reshape(B, n * 3, H, W), b, b, ceil_mode=True) * b * b).view(B, n, 3, -1)
+        # divisor_override: the sum of a partial block at the border too, not its mean times b^2.
+        return torch.nn.functional.avg_pool2d(x.reshape(B, n * 3, H, W), b, b, ceil_mode=True,
+                                              divisor_override=1).view(B, n, 3, -1)
 
     positions, linear = pooled(position_part), pooled(linear_part)  # (B, P, 3, n_b), (B, k, 3, n_b)
     n_b = positions.shape[-1]

@@ -251,6 +251,30 @@ def test_albedo_scores_predict_how_a_kd_error_moves_the_fit(known_ambient):
     torch.testing.assert_close(measured, predicted, rtol=0.02, atol=0.02 * float(predicted.norm()))
 
 
+def test_block_scores_sum_every_block_the_partial_ones_at_the_border_too():
+    from selfsup.refine import _jacobians, block_scores, scene_frame
+
+    problem = problem_of(_scene(5), "none", dtype=torch.float64)
+    problem.ambient = None
+    B, _, H, W = problem.image.shape
+    block = 7
+    assert H % block and W % block  # both borders hold partial blocks
+    position = problem.gbuffer.extent()[0][:, None] + torch.tensor([0.3, -0.5, 0.1], dtype=torch.float64)
+    h = (1e-3 * scene_frame(problem)[1])[:, None, None]
+    cols, j_pos, _ = _jacobians(problem, position, torch.ones(B, 1, 3, dtype=torch.float64), h, False)
+    derivative = torch.rand(B, 3, H, W, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    scores = block_scores(problem, j_pos, cols, derivative, block)
+    across = -(-W // block)
+    n_blocks = -(-H // block) * across
+    assert scores.shape == (B, 3 + 3 * 2, 3 * n_blocks)
+    per_pixel = j_pos.view(B, 3, 3, H, W) * derivative[:, None]
+    for row, col in ((H // block, W // block), (0, W // block), (H // block, 0), (1, 2)):  # border blocks and one inside
+        for channel in range(3):
+            rows, columns = slice(row * block, (row + 1) * block), slice(col * block, (col + 1) * block)
+            expected = per_pixel[0, :, channel, rows, columns].sum((-1, -2))
+            torch.testing.assert_close(scores[0, :3, channel * n_blocks + row * across + col], expected)
+
+
 def test_albedo_error_widens_the_position_std_and_zero_changes_nothing():
     scene = _scene(5)
     options = EstimateOptions(method="refine", max_lights=1, refine=RefineOptions(max_iters=(15, 5)))
