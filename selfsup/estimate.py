@@ -136,6 +136,17 @@ class EstimateOptions:
     channels, moves the lights by (:func:`selfsup.refine.position_covariance`; README,
     "Uncertainty under reflectance errors"). The albedo-free fit uses no kd and
     ignores it.
+    ``indirect_variation``, ``indirect_length``: where the file does not give its
+    ambient (light unaccounted for), the position uncertainty adds what light that
+    varies over the scene moves the lights by: the fitted ambient taken for the mean
+    of ``ambient (1 + e(x))``, ``e`` a smooth Gaussian random field over the 3D points
+    of that standard deviation and correlation length (of the scene size)
+    (:func:`selfsup.refine.position_covariance`; README, "Uncertainty under indirect
+    light"). The defaults are measured on path-traced renders, not fitted to the
+    coverage: the indirect light varies by about 0.45 of its mean between 16-pixel
+    blocks, correlated over about 0.15 of the scene size, and the constant fit takes
+    up about 0.63 of it as ambient (0.45 / 0.63, about 0.7). 0: off. Files that give
+    their ambient are untouched.
     ``criterion_shadows``: the shadow method under which every candidate model is
     judged, its light positions fixed and its intensities and ambient solved again
     (:func:`judged_problem`); two lights close together differ from one mostly by
@@ -174,6 +185,8 @@ class EstimateOptions:
     albedo_free_scale: float = 0.02
     albedo_free_block_width: float = 0.05
     albedo_error: float = 0.0
+    indirect_variation: float = 0.7
+    indirect_length: float = 0.15
     refine: RefineOptions = field(default_factory=RefineOptions)
 
     def __post_init__(self):
@@ -202,6 +215,12 @@ class EstimateOptions:
         if not (self.albedo_error >= 0 and math.isfinite(self.albedo_error)):
             raise ValueError(f"estimate.albedo_error must be a finite standard deviation >= 0 (albedo units), "
                              f"got {self.albedo_error}")
+        if not (self.indirect_variation >= 0 and math.isfinite(self.indirect_variation)):
+            raise ValueError(f"estimate.indirect_variation must be a finite standard deviation >= 0 (of the ambient), "
+                             f"got {self.indirect_variation}")
+        if not (self.indirect_length > 0 and math.isfinite(self.indirect_length)):
+            raise ValueError(f"estimate.indirect_length must be a finite length > 0 (of the scene size), "
+                             f"got {self.indirect_length}")
         if not self.albedo_free_scale > 0:
             raise ValueError(f"estimate.albedo_free_scale must be > 0, got {self.albedo_free_scale}")
         if self.normal_smoothing not in NORMAL_SMOOTHING:
@@ -794,7 +813,8 @@ def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, 
         block = block_px(options, problem.image.shape[-1])
         cov = position_covariance(problem.select(at), fit, replace(options.refine, specular=specular),
                                   correlation_px=float(block**2), albedo_error=options.albedo_error,
-                                  albedo_block_px=block).cpu()
+                                  albedo_block_px=block, indirect_variation=options.indirect_variation,
+                                  indirect_length=options.indirect_length).cpu()
         for j, i in enumerate(group):
             covariances[i] = cov[j]
     return [_record(scene_id, best, tried, cov) for scene_id, (best, tried), cov in zip(ids, results, covariances)]

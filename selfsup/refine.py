@@ -667,7 +667,8 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
 
 
 def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, correlation_px: float = 1.0,
-                        albedo_error: float = 0.0, albedo_block_px: int = 1) -> Tensor:
+                        albedo_error: float = 0.0, albedo_block_px: int = 1, indirect_variation: float = 0.0,
+                        indirect_length: float = 0.15) -> Tensor:
     """Gauss-Newton covariance ``(B, L, 3, 3)`` of each light's position.
 
     The Jacobian covers every parameter (positions, intensities, unknown ambient),
@@ -681,7 +682,18 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     blocks and channels (:func:`albedo_scores`). The fit takes up an albedo error
     partly in its parameters, where its residual cannot show it, so the residual's
     variance alone misses it (README, "Uncertainty under reflectance errors").
+
+    ``indirect_variation`` (0: off; only where the ambient is unknown, ``problem.ambient``
+    None) adds what light the model lacks moves the lights by, taking the fitted constant
+    ambient for the mean of a smooth field: the light a surface point receives besides
+    the point lights is ``ambient (1 + e(x))``, ``e`` a Gaussian random field over the 3D
+    points of standard deviation ``indirect_variation`` and correlation length
+    ``indirect_length`` (of the scene size), one value per block of ``albedo_block_px``
+    pixels (:func:`indirect_field_scores`; README, "Uncertainty under indirect light").
     """
+    if not (indirect_variation >= 0 and math.isfinite(indirect_variation) and indirect_length > 0):
+        raise ValueError(f"indirect_variation must be a finite value >= 0 and indirect_length > 0, got "
+                         f"{indirect_variation} and {indirect_length}")
     if albedo_error < 0 or not math.isfinite(albedo_error):
         raise ValueError(f"albedo_error must be a finite value >= 0, got {albedo_error}")
     B, L, _ = fit.position.shape
@@ -695,7 +707,35 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     if albedo_error > 0:
         scores = albedo_scores(problem, fit, j_pos, cols, diffuse, mask, albedo_block_px)  # (B, P + 3k, 3 * blocks)
         extra = albedo_error**2 * scores @ scores.transpose(1, 2)
+    if indirect_variation > 0 and problem.ambient is None:
+        field = indirect_field_scores(problem, fit, j_pos, cols, mask, albedo_block_px, indirect_variation,
+                                      indirect_length)
+        extra = field if extra is None else extra + field
     return position_blocks(info, sigma2, L, extra)
+
+
+def indirect_field_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tensor, weights: Tensor,
+                          block_px: int, variation: float, length: float) -> Tensor:
+    """Score covariance ``(B, P + 3k, P + 3k)`` of a relative variation ``e`` of the fitted
+    ambient light over the scene: ``S K S^T``, ``S`` the blocks' scores for a change of
+    the ambient by its own value in one block (every channel alike, :func:`block_scores`),
+    ``K`` the field's covariance between the blocks' 3D centres,
+    ``variation^2 exp(-|x - x'|^2 / (2 (length x scene size)^2))``."""
+    B = problem.batch
+    g = problem.gbuffer
+    derivative = problem.material.kd.permute(0, 3, 1, 2) * fit.ambient[:, :, None, None] * weights
+    scores = block_scores(problem, j_pos, cols, derivative, block_px)
+    scores = scores.view(B, scores.shape[1], 3, -1).sum(2)  # (B, n, blocks): one field value for the channels
+    b = max(1, int(block_px))
+    valid = g.mask.to(g.points.dtype)[:, None]  # (B, 1, H, W)
+    points = torch.where(g.mask[..., None], g.points, torch.zeros_like(g.points)).permute(0, 3, 1, 2)
+    sums = torch.nn.functional.avg_pool2d(torch.cat([points, valid], 1), b, b,
+                                          ceil_mode=True, divisor_override=1).flatten(2)  # (B, 4, blocks)
+    centre = (sums[:, :3] / sums[:, 3:].clamp_min(1)).transpose(1, 2)  # (B, blocks, 3); empty blocks score 0
+    _, size = scene_frame(problem)
+    distance2 = torch.cdist(centre, centre).square() / (length * size)[:, None, None].square()
+    kernel = variation**2 * torch.exp(-0.5 * distance2)
+    return scores @ kernel.to(scores.dtype) @ scores.transpose(1, 2)
 
 
 def albedo_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tensor, diffuse: Tensor, weights: Tensor,

@@ -275,6 +275,58 @@ def test_block_scores_sum_every_block_the_partial_ones_at_the_border_too():
             torch.testing.assert_close(scores[0, :3, channel * n_blocks + row * across + col], expected)
 
 
+def test_indirect_field_scores_predict_how_a_change_of_the_ambient_moves_the_fit():
+    # The field's blocks: to first order, more ambient light over one block (e times the
+    # fitted ambient, every channel) moves the fit by -info^-1 s e, s that block's score.
+    from selfsup.refine import _jacobians, block_scores, scene_frame
+
+    scene = _scene(5)
+    problem = problem_of(scene, "none", dtype=torch.float64)
+    problem.ambient = torch.full((1, 3), 0.05, dtype=torch.float64)  # the image: the model's own, with ambient light
+    options = RefineOptions(max_iters=(80,), strides=(1,), robust=False, tol=1e-14, step_tol=1e-12)
+    truth = scene.light_pos[None].double()
+    problem.image = refine(problem, truth, dataclasses.replace(options, max_iters=(0,))).model
+    problem.ambient = None
+    fit = refine(problem, truth, options)
+    torch.testing.assert_close(fit.ambient, torch.full((1, 3), 0.05, dtype=torch.float64))
+    h = (options.fd_step * scene_frame(problem)[1])[:, None, None]
+    cols, j_pos, _ = _jacobians(problem, fit.position, fit.intensity, h, False)
+    mask = problem.gbuffer.mask[:, None].expand_as(problem.image).double()
+    info, _ = _normal_equations(problem, j_pos, cols, mask)
+    ambient_image = problem.material.kd.permute(0, 3, 1, 2) * fit.ambient[:, :, None, None]
+    block = 16
+    scores = block_scores(problem, j_pos, cols, ambient_image * mask, block)
+    scores = scores.view(1, scores.shape[1], 3, -1).sum(2)  # every channel alike, as indirect_field_scores
+    index = int(scores[0, :3].norm(dim=0).argmax())
+    row, col = divmod(index, -(-problem.image.shape[-1] // block))
+    e = 1e-2
+    image = problem.image.clone()
+    rows, columns = slice(row * block, (row + 1) * block), slice(col * block, (col + 1) * block)
+    image[:, :, rows, columns] += e * ambient_image[:, :, rows, columns]
+    moved = refine(dataclasses.replace(problem, image=image), fit.position, options)
+    predicted = (torch.linalg.pinv(info[0]) @ scores[0, :, index])[:3] * e  # more light: the fit follows it
+    measured = (moved.position - fit.position)[0, 0]
+    assert float(measured.norm()) > 1e-6 * float(scene.scene_scale)
+    torch.testing.assert_close(measured, predicted, rtol=0.02, atol=0.02 * float(predicted.norm()))
+
+
+def test_indirect_variation_widens_only_where_the_ambient_is_unknown():
+    scene = _scene(5, config=dataclasses.replace(SMALL, ambient_zero_prob=0.0))
+    assert float(scene.ambient.min()) > 0
+    options = EstimateOptions(method="refine", max_lights=1, refine=RefineOptions(max_iters=(15, 5)))
+    without = dataclasses.replace(options, indirect_variation=0.0)
+    given = [estimate_scene(scene, o)["lights"][0] for o in (options, without)]
+    assert given[0]["position_std"] == given[1]["position_std"]  # the file gives its ambient: nothing unaccounted
+    scene.ambient = None
+    unknown = [estimate_scene(scene, o)["lights"][0] for o in (options, without)]
+    assert unknown[0]["position"] == unknown[1]["position"]  # the same fit; only its uncertainty grows
+    assert all(w > e for w, e in zip(unknown[0]["position_std"], unknown[1]["position_std"]))
+    for bad in (dict(indirect_variation=-0.1), dict(indirect_variation=float("nan")), dict(indirect_length=0.0),
+                dict(indirect_length=float("inf"))):
+        with pytest.raises(ValueError, match="estimate.indirect_"):
+            EstimateOptions(**bad)
+
+
 def test_albedo_error_widens_the_position_std_and_zero_changes_nothing():
     scene = _scene(5)
     options = EstimateOptions(method="refine", max_lights=1, refine=RefineOptions(max_iters=(15, 5)))
