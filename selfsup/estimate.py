@@ -143,10 +143,11 @@ class EstimateOptions:
     of that standard deviation and correlation length (of the scene size)
     (:func:`selfsup.refine.position_covariance`; README, "Uncertainty under indirect
     light"). The defaults are measured on path-traced renders, not fitted to the
-    coverage: the indirect light varies by about 0.45 of its mean between 16-pixel
-    blocks, correlated over about 0.15 of the scene size, and the constant fit takes
-    up about 0.63 of it as ambient (0.45 / 0.63, about 0.7). 0: off. Files that give
-    their ambient are untouched.
+    coverage (``python -m benchmarks.indirect_field``): on our open Mitsuba rooms the
+    indirect light varies by 0.42 of its mean between 16-pixel blocks (median), its
+    covariance halves over about 0.15 of the scene size, and the constant fit takes up
+    0.61 of it as ambient (0.42 / 0.61, about 0.7). 0: off. Files that give their
+    ambient are untouched.
     ``criterion_shadows``: the shadow method under which every candidate model is
     judged, its light positions fixed and its intensities and ambient solved again
     (:func:`judged_problem`); two lights close together differ from one mostly by

@@ -691,7 +691,7 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     ``indirect_length`` (of the scene size), one value per block of ``albedo_block_px``
     pixels (:func:`indirect_field_scores`; README, "Uncertainty under indirect light").
     """
-    if not (indirect_variation >= 0 and math.isfinite(indirect_variation) and indirect_length > 0):
+    if not (indirect_variation >= 0 and math.isfinite(indirect_variation) and 0 < indirect_length < math.inf):
         raise ValueError(f"indirect_variation must be a finite value >= 0 and indirect_length > 0, got "
                          f"{indirect_variation} and {indirect_length}")
     if albedo_error < 0 or not math.isfinite(albedo_error):

@@ -15,3 +15,25 @@ def test_cpu_results_carry_the_machine_reference(tmp_path, monkeypatch):
     assert reference["threads"] == threads
     text = md.read_text()
     assert f"{reference['elementwise_ns']} ns per element" in text and "| 1 |" in text
+
+
+def test_indirect_field_recovers_a_known_indirect_irradiance():
+    # gi = direct + kd * E(x): E constant gives no variation; E a ramp across the image varies
+    # between blocks, by the ramp's own relative spread.
+    import dataclasses
+
+    from benchmarks.indirect_field import block_irradiance
+    from selfsup.scenes.exact import render_spec
+    from selfsup.scenes.sampler import SamplerConfig, sample_scene
+
+    direct = render_spec(sample_scene(3, SamplerConfig(height=48, width=64)), samples=1).scene
+    kd = direct.kd.clamp_min(0.1)  # every pixel usable
+    direct = dataclasses.replace(direct, kd=kd)
+    constant = dataclasses.replace(direct, image=direct.image + 0.2 * kd)
+    irradiance, centre = block_irradiance(direct, constant, 16)
+    assert irradiance.shape[0] == centre.shape[0] > 4
+    torch.testing.assert_close(irradiance, torch.full_like(irradiance, 0.2))
+    ramp = torch.linspace(0.1, 0.3, 64, dtype=kd.dtype).expand(48, 64)[..., None]
+    irradiance, _ = block_irradiance(direct, dataclasses.replace(direct, image=direct.image + ramp * kd), 16)
+    block_means = ramp[0, :, 0].reshape(4, 16).mean(-1).double()
+    torch.testing.assert_close(irradiance.reshape(-1, 4), block_means.expand(3, 4), rtol=1e-5, atol=1e-6)

@@ -277,7 +277,8 @@ def test_block_scores_sum_every_block_the_partial_ones_at_the_border_too():
 
 def test_indirect_field_scores_predict_how_a_change_of_the_ambient_moves_the_fit():
     # The field's blocks: to first order, more ambient light over one block (e times the
-    # fitted ambient, every channel) moves the fit by -info^-1 s e, s that block's score.
+    # fitted ambient, every channel) moves the fit by +info^-1 s e, s that block's score
+    # (the image changes, not the model: the opposite sign of the albedo scores').
     from selfsup.refine import _jacobians, block_scores, scene_frame
 
     scene = _scene(5)
