@@ -145,7 +145,8 @@ class EstimateOptions:
     light"). The defaults are measured on path-traced renders, not fitted to the
     coverage (``python -m benchmarks.indirect_field``): on our open Mitsuba rooms the
     indirect light varies by 0.42 of its mean between 16-pixel blocks (median), its
-    covariance halves over about 0.15 of the scene size, and the constant fit takes up
+    covariance halves at about 0.18 of the scene size (where a Gaussian kernel of
+    length 0.15 halves), and the constant fit takes up
     0.61 of it as ambient (0.42 / 0.61, about 0.7). 0: off. Files that give their
     ambient are untouched.
     ``criterion_shadows``: the shadow method under which every candidate model is

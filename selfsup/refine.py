@@ -726,11 +726,9 @@ def indirect_field_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Te
     derivative = problem.material.kd.permute(0, 3, 1, 2) * fit.ambient[:, :, None, None] * weights
     scores = block_scores(problem, j_pos, cols, derivative, block_px)
     scores = scores.view(B, scores.shape[1], 3, -1).sum(2)  # (B, n, blocks): one field value for the channels
-    b = max(1, int(block_px))
     valid = g.mask.to(g.points.dtype)[:, None]  # (B, 1, H, W)
     points = torch.where(g.mask[..., None], g.points, torch.zeros_like(g.points)).permute(0, 3, 1, 2)
-    sums = torch.nn.functional.avg_pool2d(torch.cat([points, valid], 1), b, b,
-                                          ceil_mode=True, divisor_override=1).flatten(2)  # (B, 4, blocks)
+    sums = block_sums(torch.cat([points, valid], 1), block_px)  # (B, 4, blocks)
     centre = (sums[:, :3] / sums[:, 3:].clamp_min(1)).transpose(1, 2)  # (B, blocks, 3); empty blocks score 0
     _, size = scene_frame(problem)
     distance2 = torch.cdist(centre, centre).square() / (length * size)[:, None, None].square()
@@ -766,13 +764,9 @@ def block_scores(problem: FitProblem, j_pos: Tensor, cols: Tensor, derivative: T
     k = design.shape[2]
     position_part = j_pos.view(B, P, 3, H, W) * per_kd  # (B, P, 3, H, W)
     linear_part = design.view(B, 3, k, H, W).transpose(1, 2) * per_kd  # (B, k, 3, H, W): channel c's own parameters
-    b = max(1, int(block_px))
 
-    def pooled(x: Tensor) -> Tensor:  # (B, n, 3, H, W) -> (B, n, 3, blocks): sums over each block
-        n = x.shape[1]
-        # divisor_override: the sum of a partial block at the border too, not its mean times b^2.
-        return torch.nn.functional.avg_pool2d(x.reshape(B, n * 3, H, W), b, b, ceil_mode=True,
-                                              divisor_override=1).view(B, n, 3, -1)
+    def pooled(x: Tensor) -> Tensor:  # (B, n, 3, H, W) -> (B, n, 3, blocks)
+        return block_sums(x.reshape(B, -1, H, W), block_px).view(B, x.shape[1], 3, -1)
 
     positions, linear = pooled(position_part), pooled(linear_part)  # (B, P, 3, n_b), (B, k, 3, n_b)
     n_b = positions.shape[-1]
@@ -781,6 +775,14 @@ def block_scores(problem: FitProblem, j_pos: Tensor, cols: Tensor, derivative: T
     for c in range(3):
         linear_rows[:, c, :, c] = linear[:, :, c]
     return torch.cat([positions, linear_rows.view(B, 3 * k, 3, n_b)], 1).reshape(B, P + 3 * k, 3 * n_b)
+
+
+def block_sums(x: Tensor, block_px: int) -> Tensor:
+    """Sums ``(B, C, blocks)`` of ``x (B, C, H, W)`` over square blocks of ``block_px`` pixels,
+    row-major; the blocks cut by the image's right and bottom borders hold what is left
+    of them (summed as they are, not their mean times ``block_px^2``)."""
+    b = max(1, int(block_px))
+    return torch.nn.functional.avg_pool2d(x, b, b, ceil_mode=True, divisor_override=1).flatten(2)
 
 
 def position_blocks(info: Tensor, sigma2: Tensor, n_lights: int, extra: Tensor | None = None) -> Tensor:
