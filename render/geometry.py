@@ -6,12 +6,14 @@ z forward; pixel ``(row i, col j)`` has image coordinates ``u = j, v = i``.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 from kornia.geometry.depth import depth_to_3d_v2
 from torch import Tensor
 
-__all__ = ["unproject_depth", "normals_from_points", "plane_normals", "smooth_normals", "normal_noise", "fit_intrinsics", "pixel_grid",
-           "dot3", "norm3", "surface_segments"]
+__all__ = ["unproject_depth", "normals_from_points", "plane_normals", "plane_fit", "PlaneFit", "smooth_normals",
+           "normal_noise", "fit_intrinsics", "pixel_grid", "dot3", "norm3", "surface_segments"]
 
 
 def dot3(a: Tensor, b: Tensor) -> Tensor:
@@ -143,8 +145,28 @@ def _window(padded: list[Tensor], radius: int, height: int, width: int):
             yield [t[:, di : di + height, dj : dj + width] for t in padded]
 
 
+class PlaneFit(NamedTuple):
+    """:func:`plane_fit`'s answer: ``normals (B, H, W, 3)`` (zero where missing),
+    ``has_normal (B, H, W)`` and ``tilt_variance (B, H, W)``, the variance (radians^2,
+    per tilt axis) of each normal's error from the scatter of the window's points
+    off their plane (zero where there is no normal)."""
+
+    normals: Tensor
+    has_normal: Tensor
+    tilt_variance: Tensor
+
+
 def plane_normals(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative_step: float = 0.1, step: int = 1
                   ) -> tuple[Tensor, Tensor]:
+    """Unit normals ``(B, H, W, 3)`` and ``has_normal (B, H, W)`` of least-squares planes
+    fitted to each pixel's window, for noisy depth: :func:`plane_fit` without the tilt
+    variance."""
+    fit = plane_fit(points, mask, radius=radius, max_relative_step=max_relative_step, step=step)
+    return fit.normals, fit.has_normal
+
+
+def plane_fit(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative_step: float = 0.1, step: int = 1
+              ) -> PlaneFit:
     """Unit normals of least-squares planes fitted to each pixel's window, for noisy depth.
 
     Differences of neighbouring pixels turn sensor noise of a few centimetres into
@@ -167,8 +189,13 @@ def plane_normals(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative
         step: pixel spacing of the window's samples (>= 1, at most ``radius``).
 
     Returns:
-        ``normals (B, H, W, 3)`` (zero where missing) and ``has_normal (B, H, W)``: at
-        least 3 neighbours and a well-defined plane.
+        :class:`PlaneFit`: ``normals (B, H, W, 3)`` (zero where missing), ``has_normal
+        (B, H, W)`` (at least 3 neighbours and a well-defined plane) and ``tilt_variance
+        (B, H, W)``. The tilt is a regression slope: with ``N`` samples, ``l0 <= l1 <= l2``
+        the eigenvalues of their covariance, the points scatter off the plane with variance
+        ``s^2 = l0 N / (N - 3)`` and the tilt towards in-plane axis ``k`` has variance
+        ``s^2 / (N l_k)``; ``tilt_variance`` is the mean over the two axes (independent
+        noise between samples assumed; a curved surface's scatter counts as noise).
     """
     if radius < 1 or not 1 <= step <= radius:
         raise ValueError(f"plane_normals needs radius >= 1 and 1 <= step <= radius, got radius {radius}, step {step}")
@@ -202,7 +229,12 @@ def plane_normals(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative
     has_normal = mask & (count >= 3) & spread & torch.isfinite(n).all(-1)
     facing = (n * points).sum(-1) > 0
     n = torch.where(facing[..., None], -n, n)
-    return torch.where(has_normal[..., None], n, torch.zeros_like(n)), has_normal
+    samples = count.clamp_min(4)
+    scatter = eigenvalues[..., 0].clamp_min(0) * samples / (samples - 3)
+    tiny = torch.finfo(points.dtype).tiny
+    tilt = 0.5 * scatter / samples * (1 / eigenvalues[..., 1].clamp_min(tiny) + 1 / eigenvalues[..., 2].clamp_min(tiny))
+    tilt = torch.where(has_normal & torch.isfinite(tilt), tilt, torch.zeros_like(tilt))
+    return PlaneFit(torch.where(has_normal[..., None], n, torch.zeros_like(n)), has_normal, tilt)
 
 
 def smooth_normals(

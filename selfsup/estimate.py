@@ -51,7 +51,7 @@ import torch
 from torch import Tensor
 
 from render import GBuffer, Material, light_transport
-from render.geometry import normal_noise, plane_normals, smooth_normals, surface_segments
+from render.geometry import normal_noise, plane_fit, smooth_normals, surface_segments
 from render.shadows import ShadowMethod
 from selfsup import albedo_free
 from selfsup.refine import (Fit, FitProblem, RefineOptions, evaluate, position_covariance, refine, reweighted,
@@ -149,6 +149,12 @@ class EstimateOptions:
     length 0.15 halves), and the constant fit takes up
     0.61 of it as ambient (0.42 / 0.61, about 0.7). 0: off. Files that give their
     ambient are untouched.
+    ``normal_error``: where the normals were fitted to noisy depth (``normal_smoothing``),
+    the position uncertainty adds what their remaining error moves the lights by: each
+    criterion block's normals tilted as one, by the plane fits' own tilt variance (from
+    the scatter of the depth off each plane, :func:`render.geometry.plane_fit`)
+    (:func:`selfsup.refine.position_covariance`; README, "Uncertainty under noisy
+    depth"). Files whose normals were kept are untouched.
     ``criterion_shadows``: the shadow method under which every candidate model is
     judged, its light positions fixed and its intensities and ambient solved again
     (:func:`judged_problem`); two lights close together differ from one mostly by
@@ -189,6 +195,7 @@ class EstimateOptions:
     albedo_error: float = 0.0
     indirect_variation: float = 0.7
     indirect_length: float = 0.15
+    normal_error: bool = True
     refine: RefineOptions = field(default_factory=RefineOptions)
 
     def __post_init__(self):
@@ -344,6 +351,7 @@ def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.floa
     if any(empty):
         raise SceneFileError(scenes[empty.index(True)].id,
                              "no valid pixel left after estimating normals and leaving out clipped pixels")
+    normal_tilt = None  # (B, H, W) where normals are refitted below
     if normal_smoothing != "never":
         noisy = torch.ones(len(scenes), dtype=torch.bool, device=image.device) if normal_smoothing == "always" else (
             normal_noise(gbuffer.points, gbuffer.normals, gbuffer.mask) > normal_noise_threshold)
@@ -358,12 +366,18 @@ def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.floa
             for radius, step in sorted(set(windows)):
                 rows = at[torch.tensor([w == (radius, step) for w in windows], device=at.device)]
                 points, mask = gbuffer.points[rows], gbuffer.mask[rows]
-                normals, has_normal = plane_normals(points, mask, radius=radius, step=step)
-                mask = mask & has_normal
-                smoothed = smooth_normals(points, normals, mask)
+                planes = plane_fit(points, mask, radius=radius, step=step)
+                mask = mask & planes.has_normal
+                smoothed = smooth_normals(points, planes.normals, mask)
                 gbuffer = replace(gbuffer, normals=gbuffer.normals.index_put((rows,), smoothed),
                                   mask=gbuffer.mask.index_put((rows,), mask))
-    return FitProblem(gbuffer, material, image, _stacked_field(scenes, "ambient", device), scenes[0].falloff, shadows)
+                if normal_tilt is None:
+                    normal_tilt = torch.zeros_like(gbuffer.mask, dtype=image.dtype)
+                # The smoothing's window is within the plane's: it averages errors that are nearly
+                # one already, so the plane's tilt variance is kept as it is.
+                normal_tilt = normal_tilt.index_put((rows,), planes.tilt_variance.to(image.dtype))
+    return FitProblem(gbuffer, material, image, _stacked_field(scenes, "ambient", device), scenes[0].falloff, shadows,
+                      normal_tilt=normal_tilt)
 
 
 def prepare(scenes: list[Scene], options: EstimateOptions, device=None) -> FitProblem:
@@ -816,7 +830,7 @@ def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, 
         cov = position_covariance(problem.select(at), fit, replace(options.refine, specular=specular),
                                   correlation_px=float(block**2), albedo_error=options.albedo_error,
                                   albedo_block_px=block, indirect_variation=options.indirect_variation,
-                                  indirect_length=options.indirect_length).cpu()
+                                  indirect_length=options.indirect_length, normal_error=options.normal_error).cpu()
         for j, i in enumerate(group):
             covariances[i] = cov[j]
     return [_record(scene_id, best, tried, cov) for scene_id, (best, tried), cov in zip(ids, results, covariances)]

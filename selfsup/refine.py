@@ -36,7 +36,7 @@ from selfsup.linear import basis_images, intensity_design, solve_design
 
 __all__ = ["FitProblem", "RefineOptions", "Fit", "refine", "search", "solve_linear", "reweighted", "evaluate", "grid_candidates",
            "robust_loss", "position_covariance", "subsample", "spread_best", "scene_frame", "position_blocks",
-           "albedo_scores"]
+           "albedo_scores", "normal_tilt_scores", "tilt_axes"]
 
 
 RUNAWAY_SIZES = 10.0  # the LM stops an image whose light is this many scene sizes from the centre
@@ -56,6 +56,10 @@ class FitProblem:
             (:func:`selfsup.indirect.indirect_columns`). The Jacobians leave its
             derivative out, so fits with it on are approximate; model selection
             only evaluates it (``estimate.indirect``).
+        normal_tilt: ``(B, H, W)`` variance (radians^2, per tilt axis) of each normal's
+            error where the normals were fitted to noisy depth
+            (:func:`render.geometry.plane_fit`), zero where exact; None: every normal
+            exact. Only :func:`position_covariance` reads it.
     """
 
     gbuffer: GBuffer
@@ -65,6 +69,7 @@ class FitProblem:
     falloff: str = "inverse_square"
     shadows: str = "epipolar"
     indirect: bool = False
+    normal_tilt: Tensor | None = None
     _median: Tensor | None = field(default=None, init=False, repr=False, compare=False)
     _noise: Tensor | None = field(default=None, init=False, repr=False, compare=False)
     # Median and noise level of each subsample (by stride) already found: the solvers
@@ -109,7 +114,7 @@ class FitProblem:
             g.select(index),
             Material(kd=m.kd[index], ks=None if m.ks is None else m.ks[index], shininess=shin),
             self.image[index], None if self.ambient is None else self.ambient[index], self.falloff, self.shadows,
-            self.indirect,
+            self.indirect, None if self.normal_tilt is None else self.normal_tilt[index],
         )
         # Each image's median is its own: the selection's are these rows (a sort of every
         # image's values each time was 7% of a batched estimate's GPU time).
@@ -136,7 +141,8 @@ class FitProblem:
     def cat(problems: list["FitProblem"]) -> "FitProblem":
         """One batch of same-sized problems (the inverse of :meth:`select`); a missing ks
         becomes zero, ks channels and shininess are broadcast per pixel. Falloff, shadows
-        and whether the ambient is known follow the first problem."""
+        and whether the ambient is known follow the first problem; a missing ``normal_tilt``
+        becomes zero (exact normals) beside one that is given."""
         def per_pixel(m: Material, value: Tensor | None, channels: int | None = None) -> Tensor:
             B, H, W = m.kd.shape[:3]
             if channels is not None:
@@ -154,6 +160,9 @@ class FitProblem:
             torch.cat([p.image for p in problems]),
             None if first.ambient is None else torch.cat([p.ambient for p in problems]), first.falloff, first.shadows,
             first.indirect,
+            None if all(p.normal_tilt is None for p in problems) else torch.cat(
+                [p.image.new_zeros(p.image.shape[0], *p.image.shape[2:]) if p.normal_tilt is None else p.normal_tilt
+                 for p in problems]),
         )
 
 
@@ -173,6 +182,7 @@ def subsample(problem: FitProblem, stride: int) -> FitProblem:
         gbuffer=GBuffer(g.points[:, ::s, ::s], g.normals[:, ::s, ::s], g.mask[:, ::s, ::s], K),
         material=Material(kd=m.kd[:, ::s, ::s], ks=None if m.ks is None else m.ks[:, ::s, ::s], shininess=shin),
         image=problem.image[:, :, ::s, ::s],
+        normal_tilt=None if problem.normal_tilt is None else problem.normal_tilt[:, ::s, ::s],
     )
     # Its own median and noise level (kept by the problem it came from): a noise level
     # from every stride-th pixel holds the shading's curvature over stride pixels.
@@ -668,7 +678,7 @@ def search(problem: FitProblem, n_lights: int, options: RefineOptions | None = N
 
 def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, correlation_px: float = 1.0,
                         albedo_error: float = 0.0, albedo_block_px: int = 1, indirect_variation: float = 0.0,
-                        indirect_length: float = 0.15) -> Tensor:
+                        indirect_length: float = 0.15, normal_error: bool = False) -> Tensor:
     """Gauss-Newton covariance ``(B, L, 3, 3)`` of each light's position.
 
     The Jacobian covers every parameter (positions, intensities, unknown ambient),
@@ -690,6 +700,12 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     points of standard deviation ``indirect_variation`` and correlation length
     ``indirect_length`` (of the scene size), one value per block of ``albedo_block_px``
     pixels (:func:`indirect_field_scores`; README, "Uncertainty under indirect light").
+
+    ``normal_error`` adds what the normals' error moves the lights by, where
+    ``problem.normal_tilt`` gives its variance (normals fitted to noisy depth): every
+    block of ``albedo_block_px`` pixels tilted as one, independently between blocks and
+    the two tilt axes (:func:`normal_tilt_scores`; README, "Uncertainty under noisy
+    depth").
     """
     if not (indirect_variation >= 0 and math.isfinite(indirect_variation) and 0 < indirect_length < math.inf):
         raise ValueError(f"indirect_variation must be a finite value >= 0 and indirect_length > 0, got "
@@ -711,7 +727,39 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
         field = indirect_field_scores(problem, fit, j_pos, cols, mask, albedo_block_px, indirect_variation,
                                       indirect_length)
         extra = field if extra is None else extra + field
+    if normal_error and problem.normal_tilt is not None:
+        scores = normal_tilt_scores(problem, fit, j_pos, cols, mask, albedo_block_px, options.specular)
+        tilt = scores @ scores.transpose(1, 2)
+        extra = tilt if extra is None else extra + tilt
     return position_blocks(info, sigma2, L, extra)
+
+
+def normal_tilt_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tensor, weights: Tensor, block_px: int,
+                       specular: bool, step: float = 1e-3) -> Tensor:
+    """Scores ``(B, P + 3k, 2 * blocks)`` (axis-major) of an error of the normals: every
+    normal of a square block of ``block_px`` pixels tilted by one angle about each of the
+    two :func:`tilt_axes`, independent between blocks and axes, of standard deviation
+    ``sqrt(problem.normal_tilt)`` at each pixel (at most 1 radian). Each is the block's
+    :func:`block_scores` (every channel alike) of the model's change under a unit-variance
+    tilt, a forward difference of ``step`` radians through the renderer (diffuse and, with
+    ``specular``, specular; shadows do not move); such a tilt ``e`` of one block moves the
+    fit by ``-info^-1 scores e`` (to first order), and the score covariance is
+    ``scores scores^T``."""
+    B = problem.batch
+    g = problem.gbuffer
+    n = g.normals
+    size = problem.normal_tilt.clamp(0, 1).sqrt()[:, None] * weights  # (B, 3, H, W)
+    intensity = fit.intensity.transpose(1, 2)[..., None, None]  # (B, 3, L, 1, 1)
+    model = (cols * intensity).sum(2)
+    per_axis = []
+    for axis in tilt_axes(n):
+        tilted = dataclasses.replace(g, normals=torch.nn.functional.normalize(n + step * axis, dim=-1))
+        t = light_transport(tilted, problem.material, fit.position, falloff=problem.falloff, shadows=problem.shadows,
+                            specular=specular)
+        changed = (_columns(dataclasses.replace(problem, gbuffer=tilted), t.diffuse, t.specular) * intensity).sum(2)
+        scores = block_scores(problem, j_pos, cols, (changed - model) / step * size, block_px)
+        per_axis.append(scores.view(B, scores.shape[1], 3, -1).sum(2))  # (B, n, blocks): one tilt for the channels
+    return torch.cat(per_axis, 2)
 
 
 def indirect_field_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tensor, weights: Tensor,
@@ -734,6 +782,16 @@ def indirect_field_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Te
     distance2 = torch.cdist(centre, centre).square() / (length * size)[:, None, None].square()
     kernel = variation**2 * torch.exp(-0.5 * distance2)
     return scores @ kernel.to(scores.dtype) @ scores.transpose(1, 2)
+
+
+def tilt_axes(normals: Tensor) -> tuple[Tensor, Tensor]:
+    """Two unit axes ``(B, H, W, 3)`` across each normal ``(B, H, W, 3)``, orthogonal to
+    it and to each other, turning smoothly over a surface: ``n x a`` with ``a`` the x
+    axis (the y axis where ``n`` is within 26 degrees of x), then ``n`` times that."""
+    helper = torch.where(normals[..., :1].abs() < 0.9, normals.new_tensor([1.0, 0.0, 0.0]),
+                         normals.new_tensor([0.0, 1.0, 0.0]))
+    first = torch.nn.functional.normalize(torch.linalg.cross(normals, helper.expand_as(normals)), dim=-1)
+    return first, torch.linalg.cross(normals, first)
 
 
 def albedo_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tensor, diffuse: Tensor, weights: Tensor,

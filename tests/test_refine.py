@@ -251,6 +251,46 @@ def test_albedo_scores_predict_how_a_kd_error_moves_the_fit(known_ambient):
     torch.testing.assert_close(measured, predicted, rtol=0.02, atol=0.02 * float(predicted.norm()))
 
 
+def test_normal_tilt_scores_predict_how_tilted_normals_move_the_fit():
+    # To first order, the normals of one block tilted by e about one of the tilt axes
+    # move the least-squares fit by -info^-1 s e, s that block's score for a unit tilt
+    # variance (the model changes, as under a kd error).
+    from selfsup.refine import _jacobians, normal_tilt_scores, scene_frame, tilt_axes
+
+    scene = _scene(5)
+    problem = problem_of(scene, "none", dtype=torch.float64)
+    options = RefineOptions(max_iters=(80,), strides=(1,), robust=False, tol=1e-14, step_tol=1e-12, specular=False)
+    truth = scene.light_pos[None].double()
+    problem.image = refine(problem, truth, dataclasses.replace(options, max_iters=(0,))).model
+    fit = refine(problem, truth, options)
+    problem.normal_tilt = torch.ones_like(problem.gbuffer.mask, dtype=torch.float64)
+    h = (options.fd_step * scene_frame(problem)[1])[:, None, None]
+    cols, j_pos, _ = _jacobians(problem, fit.position, fit.intensity, h, False)
+    mask = problem.gbuffer.mask[:, None].expand_as(problem.image).double()
+    info, _ = _normal_equations(problem, j_pos, cols, mask)
+    block = 16
+    scores = normal_tilt_scores(problem, fit, j_pos, cols, mask, block, False)
+    n_blocks = scores.shape[-1] // 2
+    column = int(scores[0, :3].norm(dim=0).argmax())  # the block and axis that move the light most
+    axis, index = divmod(column, n_blocks)
+    row, col = divmod(index, -(-problem.image.shape[-1] // block))
+    e = 1e-3
+    g = problem.gbuffer
+    normals = g.normals.clone()
+    rows, columns = slice(row * block, (row + 1) * block), slice(col * block, (col + 1) * block)
+    turned = normals + e * tilt_axes(normals)[axis]
+    normals[:, rows, columns] = torch.nn.functional.normalize(turned[:, rows, columns], dim=-1)
+    moved = refine(dataclasses.replace(problem, gbuffer=dataclasses.replace(g, normals=normals)), fit.position, options)
+    predicted = -(torch.linalg.pinv(info[0]) @ scores[0, :, column])[:3] * e
+    measured = (moved.position - fit.position)[0, 0]
+    assert float(measured.norm()) > 1e-6 * float(scene.scene_scale)  # the tilt moved the light
+    torch.testing.assert_close(measured, predicted, rtol=0.03, atol=0.03 * float(predicted.norm()))
+    first, second = tilt_axes(g.normals)
+    valid = g.mask[0]
+    for a, b in ((first, g.normals), (second, g.normals), (first, second)):
+        assert float((a * b).sum(-1)[0][valid].abs().max()) < 1e-6  # orthogonal axes across the normal (float32 normals)
+
+
 def test_block_scores_sum_every_block_the_partial_ones_at_the_border_too():
     from selfsup.refine import _jacobians, block_scores, scene_frame
 
@@ -326,6 +366,23 @@ def test_indirect_variation_widens_only_where_the_ambient_is_unknown():
                 dict(indirect_length=float("inf"))):
         with pytest.raises(ValueError, match="estimate.indirect_"):
             EstimateOptions(**bad)
+
+
+def test_normal_error_widens_only_where_normals_were_refitted_from_noisy_depth():
+    from selfsup.scenes.degrade import Degradations, degrade
+
+    scene = _scene(2, config=MEDIUM)
+    options = EstimateOptions(method="refine", max_lights=1, refine=RefineOptions(max_iters=(15, 5)))
+    without = dataclasses.replace(options, normal_error=False)
+    assert problem_of(scene, normal_smoothing="auto").normal_tilt is None  # clean normals are kept: exact
+    clean = [estimate_scene(scene, o)["lights"][0] for o in (options, without)]
+    assert clean[0]["position_std"] == clean[1]["position_std"]
+    noisy = degrade(scene, Degradations(depth_noise=0.003, depth_quantisation=0.001), 2)
+    tilt = problem_of(noisy, normal_smoothing="auto").normal_tilt
+    assert tilt is not None and float(tilt.max()) > 0 and bool(torch.isfinite(tilt).all())
+    refitted = [estimate_scene(noisy, o)["lights"][0] for o in (options, without)]
+    assert refitted[0]["position"] == refitted[1]["position"]  # the same fit; only its uncertainty grows
+    assert all(w > e for w, e in zip(refitted[0]["position_std"], refitted[1]["position_std"]))
 
 
 def test_albedo_error_widens_the_position_std_and_zero_changes_nothing():
