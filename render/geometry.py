@@ -13,7 +13,7 @@ from kornia.geometry.depth import depth_to_3d_v2
 from torch import Tensor
 
 __all__ = ["unproject_depth", "normals_from_points", "plane_normals", "plane_fit", "PlaneFit", "smooth_normals",
-           "normal_noise", "fit_intrinsics", "pixel_grid", "dot3", "norm3", "surface_segments"]
+           "normal_noise", "smallest_eigenvector", "fit_intrinsics", "pixel_grid", "dot3", "norm3", "surface_segments"]
 
 
 def dot3(a: Tensor, b: Tensor) -> Tensor:
@@ -221,9 +221,7 @@ def plane_fit(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative_ste
     samples = count.clamp_min(1)[:, None]
     mean = first / samples
     moments = (second / samples - mean[:, rows] * mean[:, cols]).permute(0, 2, 3, 1)  # (B, H, W, 6)
-    covariance = moments[..., [0, 3, 4, 3, 1, 5, 4, 5, 2]].reshape(B, H, W, 3, 3)
-    eigenvalues, eigenvectors = torch.linalg.eigh(covariance)
-    n = eigenvectors[..., 0]  # smallest eigenvalue first
+    eigenvalues, n = smallest_eigenvector(moments)
     # A plane needs spread in two directions: the middle eigenvalue well above zero.
     spread = eigenvalues[..., 1] > 1e-6 * eigenvalues[..., 2].clamp_min(torch.finfo(points.dtype).tiny)
     has_normal = mask & (count >= 3) & spread & torch.isfinite(n).all(-1)
@@ -235,6 +233,38 @@ def plane_fit(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative_ste
     tilt = 0.5 * scatter / samples * (1 / eigenvalues[..., 1].clamp_min(tiny) + 1 / eigenvalues[..., 2].clamp_min(tiny))
     tilt = torch.where(has_normal & torch.isfinite(tilt), tilt, torch.zeros_like(tilt))
     return PlaneFit(torch.where(has_normal[..., None], n, torch.zeros_like(n)), has_normal, tilt)
+
+
+def smallest_eigenvector(moments: Tensor) -> tuple[Tensor, Tensor]:
+    """Eigenvalues ``(..., 3)`` (ascending) of symmetric 3x3 matrices given by their six
+    distinct entries ``moments (..., 6)`` (xx yy zz xy xz yz), and the unit eigenvector
+    ``(..., 3)`` of the smallest, in closed form: the eigenvalues by the trigonometric
+    solution of the characteristic cubic, the eigenvector as the longest cross product
+    of two rows of ``A - l0 I``. Elementwise passes only, where a batched
+    ``torch.linalg.eigh`` of one 160x120 image's matrices took half of
+    :func:`plane_fit` (18 of 37 ms, 2 threads) and is slower still on a GPU. The
+    vector is non-finite where every eigenvalue is equal (no direction is the
+    smallest); its sign is arbitrary."""
+    xx, yy, zz, xy, xz, yz = moments.unbind(-1)
+    q = (xx + yy + zz) / 3
+    off = xy * xy + xz * xz + yz * yz
+    p = torch.sqrt((((xx - q) ** 2 + (yy - q) ** 2 + (zz - q) ** 2 + 2 * off) / 6).clamp_min(0))
+    safe = torch.where(p > 0, p, torch.ones_like(p))
+    bxx, byy, bzz = (xx - q) / safe, (yy - q) / safe, (zz - q) / safe
+    bxy, bxz, byz = xy / safe, xz / safe, yz / safe
+    half_det = 0.5 * (bxx * (byy * bzz - byz * byz) - bxy * (bxy * bzz - byz * bxz) + bxz * (bxy * byz - byy * bxz))
+    angle = torch.acos(half_det.clamp(-1, 1)) / 3
+    largest = q + 2 * p * torch.cos(angle)
+    smallest = q + 2 * p * torch.cos(angle + 2 * torch.pi / 3)
+    eigenvalues = torch.stack([smallest, 3 * q - largest - smallest, largest], -1)
+    rows = torch.stack([torch.stack([xx - smallest, xy, xz], -1), torch.stack([xy, yy - smallest, yz], -1),
+                        torch.stack([xz, yz, zz - smallest], -1)], -2)  # (..., 3, 3)
+    crosses = torch.stack([torch.linalg.cross(rows[..., 0, :], rows[..., 1, :]),
+                           torch.linalg.cross(rows[..., 0, :], rows[..., 2, :]),
+                           torch.linalg.cross(rows[..., 1, :], rows[..., 2, :])], -2)
+    lengths = crosses.norm(dim=-1)
+    best = crosses.gather(-2, lengths.argmax(-1)[..., None, None].expand(*lengths.shape[:-1], 1, 3))[..., 0, :]
+    return eigenvalues, best / lengths.amax(-1, keepdim=True)
 
 
 def smooth_normals(

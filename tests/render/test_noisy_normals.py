@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from render import GBuffer
-from render.geometry import normal_noise, plane_fit, plane_normals, smooth_normals
+from render.geometry import normal_noise, plane_fit, plane_normals, smallest_eigenvector, smooth_normals
 
 K = torch.tensor([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]], dtype=torch.float64)
 TILT = torch.tensor([0.0, 0.5, -1.0], dtype=torch.float64) / math.sqrt(1.25)  # plane z = 2 + 0.5 y, facing the camera
@@ -114,3 +114,27 @@ def test_plane_fit_predicts_the_tilt_error_of_its_normals(radius, step):
     depth = torch.zeros(1, 20, 20, dtype=torch.float64)  # no valid pixel: no normal, no tilt
     g = GBuffer.from_depth(depth, K)
     assert float(plane_fit(g.points, g.mask, radius=radius, step=step).tilt_variance.abs().max()) == 0
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_closed_form_eigenpairs_match_eigh(dtype, tol):
+    # Plane-like scatter matrices (one small eigenvalue, down to exactly zero) in random
+    # orientations: the closed form's eigenvalues and smallest eigenvector against eigh's.
+    g = torch.Generator().manual_seed(0)
+    rotation, _ = torch.linalg.qr(torch.randn(2000, 3, 3, generator=g, dtype=torch.float64))
+    spread = torch.tensor([1e-4, 0.25, 1.0], dtype=torch.float64).repeat(2000, 1)
+    spread[:500, 0] = 0  # points exactly on a plane
+    spread[500:1000, 1] = 0.9  # a nearly round window
+    spread = spread * torch.rand(2000, 1, generator=g, dtype=torch.float64).add(1e-3)
+    matrices = rotation @ torch.diag_embed(spread) @ rotation.transpose(-1, -2)
+    moments = torch.stack([matrices[:, 0, 0], matrices[:, 1, 1], matrices[:, 2, 2], matrices[:, 0, 1],
+                           matrices[:, 0, 2], matrices[:, 1, 2]], -1).to(dtype)
+    eigenvalues, vector = smallest_eigenvector(moments)
+    expected_values, expected_vectors = torch.linalg.eigh(matrices)
+    scale = expected_values[:, 2:]
+    assert float(((eigenvalues.double() - expected_values) / scale).abs().max()) < tol
+    alignment = (vector.double() * expected_vectors[..., 0]).sum(-1).abs()
+    assert float((1 - alignment).max()) < tol
+    # Every eigenvalue equal: no smallest direction, so no finite vector (plane_fit then has no normal).
+    _, round_vector = smallest_eigenvector(torch.tensor([[2.0, 2.0, 2.0, 0.0, 0.0, 0.0]], dtype=dtype))
+    assert not torch.isfinite(round_vector).all()
