@@ -214,66 +214,78 @@ def test_block_normal_equations_equal_those_of_the_dense_jacobian(known_ambient)
     torch.testing.assert_close(normal[:, : 3 * L, : 3 * L], (weighted @ dense.transpose(1, 2))[:, : 3 * L, : 3 * L])
 
 
+def _exact_fit(problem: FitProblem, truth: torch.Tensor, options: RefineOptions):
+    """``problem.image`` replaced by the model's own at the lights ``truth`` and fitted from
+    there (an exact fit), with what the first-order tests compare it by: the fit, its
+    basis images, positions' Jacobian and diffuse transport (:func:`_jacobians`, no
+    specular term), the valid mask ``(B, 3, H, W)`` and the information matrix."""
+    from selfsup.refine import _jacobians, scene_frame
+
+    problem.image = refine(problem, truth, dataclasses.replace(options, max_iters=(0,))).model
+    fit = refine(problem, truth, options)
+    h = (options.fd_step * scene_frame(problem)[1])[:, None, None]
+    cols, j_pos, diffuse = _jacobians(problem, fit.position, fit.intensity, h, False)
+    mask = problem.gbuffer.mask[:, None].expand_as(problem.image).to(problem.image.dtype)
+    info, _ = _normal_equations(problem, j_pos, cols, mask)
+    return fit, cols, j_pos, diffuse, mask, info
+
+
+def _strongest_block(scores: torch.Tensor, parts: int, width: int, block: int) -> tuple[int, int, int, int]:
+    """The column of ``scores (1, n, parts * blocks)`` (part-major: channels or tilt axes)
+    that moves the first light most, as (column, part, block row, block column)."""
+    column = int(scores[0, :3].norm(dim=0).argmax())
+    part, index = divmod(column, scores.shape[-1] // parts)
+    return (column, part, *divmod(index, -(-width // block)))
+
+
+def _assert_first_order(moved, fit, info: torch.Tensor, score: torch.Tensor, scene, rtol: float) -> None:
+    """The first light of ``moved`` went where ``info^-1 score`` says, to ``rtol``
+    (``info (n, n)`` signed as the error's effect needs), and it did move."""
+    predicted = (torch.linalg.pinv(info) @ score)[:3]
+    measured = (moved.position - fit.position)[0, 0]
+    assert float(measured.norm()) > 1e-6 * float(scene.scene_scale)
+    torch.testing.assert_close(measured, predicted, rtol=rtol, atol=rtol * float(predicted.norm()))
+
+
 @pytest.mark.parametrize("known_ambient", [True, False])
 def test_albedo_scores_predict_how_a_kd_error_moves_the_fit(known_ambient):
     # To first order an error e of kd over one block and channel moves the least-squares
     # fit by -info^-1 scores e: refit after such an error (the image the model's own at
     # the true light, so the fit there is exact) and compare the positions.
-    from selfsup.refine import _jacobians, albedo_scores, scene_frame
+    from selfsup.refine import albedo_scores
 
     scene = _scene(5)
     problem = problem_of(scene, "none", dtype=torch.float64)
     if not known_ambient:
         problem.ambient = None
     options = RefineOptions(max_iters=(80,), strides=(1,), robust=False, tol=1e-14, step_tol=1e-12)
-    truth = scene.light_pos[None].double()
-    problem.image = refine(problem, truth, dataclasses.replace(options, max_iters=(0,))).model
-    fit = refine(problem, truth, options)
-    h = (options.fd_step * scene_frame(problem)[1])[:, None, None]
-    cols, j_pos, diffuse = _jacobians(problem, fit.position, fit.intensity, h, False)
-    mask = problem.gbuffer.mask[:, None].expand_as(problem.image).double()
-    info, _ = _normal_equations(problem, j_pos, cols, mask)
+    fit, cols, j_pos, diffuse, mask, info = _exact_fit(problem, scene.light_pos[None].double(), options)
     block = 16
     scores = albedo_scores(problem, fit, j_pos, cols, diffuse, mask, block)
-    n_blocks = scores.shape[-1] // 3
-    column = int(scores[0, :3].norm(dim=0).argmax())  # the block and channel that move the light most
-    channel, index = divmod(column, n_blocks)
-    row, col = divmod(index, -(-problem.image.shape[-1] // block))
+    column, channel, row, col = _strongest_block(scores, 3, problem.image.shape[-1], block)
     e = 1e-3
     kd = problem.material.kd.clone()
     kd[0, row * block : (row + 1) * block, col * block : (col + 1) * block, channel] += e
     moved = refine(dataclasses.replace(problem, material=Material(kd=kd, ks=problem.material.ks,
                                                                   shininess=problem.material.shininess)),
                    fit.position, options)
-    predicted = -(torch.linalg.pinv(info[0]) @ scores[0, :, column])[:3] * e
-    measured = (moved.position - fit.position)[0, 0]
-    assert float(measured.norm()) > 1e-6 * float(scene.scene_scale)  # the error moved the light
-    torch.testing.assert_close(measured, predicted, rtol=0.02, atol=0.02 * float(predicted.norm()))
+    _assert_first_order(moved, fit, -info[0], scores[0, :, column] * e, scene, 0.02)
 
 
 def test_normal_tilt_scores_predict_how_tilted_normals_move_the_fit():
     # To first order, the normals of one block tilted by e about one of the tilt axes
     # move the least-squares fit by -info^-1 s e, s that block's score for a unit tilt
     # variance (the model changes, as under a kd error).
-    from selfsup.refine import _jacobians, normal_tilt_scores, scene_frame, tilt_axes
+    from selfsup.refine import normal_tilt_scores, tilt_axes
 
     scene = _scene(5)
     problem = problem_of(scene, "none", dtype=torch.float64)
     options = RefineOptions(max_iters=(80,), strides=(1,), robust=False, tol=1e-14, step_tol=1e-12, specular=False)
-    truth = scene.light_pos[None].double()
-    problem.image = refine(problem, truth, dataclasses.replace(options, max_iters=(0,))).model
-    fit = refine(problem, truth, options)
+    fit, cols, j_pos, _, mask, info = _exact_fit(problem, scene.light_pos[None].double(), options)
     problem.normal_tilt = torch.ones_like(problem.gbuffer.mask, dtype=torch.float64)
-    h = (options.fd_step * scene_frame(problem)[1])[:, None, None]
-    cols, j_pos, _ = _jacobians(problem, fit.position, fit.intensity, h, False)
-    mask = problem.gbuffer.mask[:, None].expand_as(problem.image).double()
-    info, _ = _normal_equations(problem, j_pos, cols, mask)
     block = 16
     scores = normal_tilt_scores(problem, fit, j_pos, cols, mask, block, False)
-    n_blocks = scores.shape[-1] // 2
-    column = int(scores[0, :3].norm(dim=0).argmax())  # the block and axis that move the light most
-    axis, index = divmod(column, n_blocks)
-    row, col = divmod(index, -(-problem.image.shape[-1] // block))
+    column, axis, row, col = _strongest_block(scores, 2, problem.image.shape[-1], block)
     e = 1e-3
     g = problem.gbuffer
     normals = g.normals.clone()
@@ -281,10 +293,7 @@ def test_normal_tilt_scores_predict_how_tilted_normals_move_the_fit():
     turned = normals + e * tilt_axes(normals)[axis]
     normals[:, rows, columns] = torch.nn.functional.normalize(turned[:, rows, columns], dim=-1)
     moved = refine(dataclasses.replace(problem, gbuffer=dataclasses.replace(g, normals=normals)), fit.position, options)
-    predicted = -(torch.linalg.pinv(info[0]) @ scores[0, :, column])[:3] * e
-    measured = (moved.position - fit.position)[0, 0]
-    assert float(measured.norm()) > 1e-6 * float(scene.scene_scale)  # the tilt moved the light
-    torch.testing.assert_close(measured, predicted, rtol=0.03, atol=0.03 * float(predicted.norm()))
+    _assert_first_order(moved, fit, -info[0], scores[0, :, column] * e, scene, 0.03)
     first, second = tilt_axes(g.normals)
     valid = g.mask[0]
     for a, b in ((first, g.normals), (second, g.normals), (first, second)):
