@@ -787,7 +787,7 @@ def indirect_field_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Te
 def tilt_axes(normals: Tensor) -> tuple[Tensor, Tensor]:
     """Two unit axes ``(B, H, W, 3)`` across each normal ``(B, H, W, 3)``, orthogonal to
     it and to each other, turning smoothly over a surface: ``n x a`` with ``a`` the x
-    axis (the y axis where ``n`` is within 26 degrees of x), then ``n`` times that."""
+    axis (the y axis where ``n`` is within 26 degrees of x), then ``n x`` that one."""
     helper = torch.where(normals[..., :1].abs() < 0.9, normals.new_tensor([1.0, 0.0, 0.0]),
                          normals.new_tensor([0.0, 1.0, 0.0]))
     first = torch.nn.functional.normalize(torch.linalg.cross(normals, helper.expand_as(normals)), dim=-1)
