@@ -719,19 +719,17 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     mask = problem.gbuffer.mask[:, None].expand_as(problem.image).to(j_pos.dtype)
     info, _ = _normal_equations(problem, j_pos, cols, mask)
     sigma2 = fit.rss / (fit.n - info.shape[1]).clamp_min(1) * correlation_px
-    extra = None
+    extras = []  # score covariances of the further error sources
     if albedo_error > 0:
         scores = albedo_scores(problem, fit, j_pos, cols, diffuse, mask, albedo_block_px)  # (B, P + 3k, 3 * blocks)
-        extra = albedo_error**2 * scores @ scores.transpose(1, 2)
+        extras.append(albedo_error**2 * scores @ scores.transpose(1, 2))
     if indirect_variation > 0 and problem.ambient is None:
-        field = indirect_field_scores(problem, fit, j_pos, cols, mask, albedo_block_px, indirect_variation,
-                                      indirect_length)
-        extra = field if extra is None else extra + field
+        extras.append(indirect_field_scores(problem, fit, j_pos, cols, mask, albedo_block_px, indirect_variation,
+                                            indirect_length))
     if normal_error and problem.normal_tilt is not None:
         scores = normal_tilt_scores(problem, fit, j_pos, cols, mask, albedo_block_px, options.specular)
-        tilt = scores @ scores.transpose(1, 2)
-        extra = tilt if extra is None else extra + tilt
-    return position_blocks(info, sigma2, L, extra)
+        extras.append(scores @ scores.transpose(1, 2))
+    return position_blocks(info, sigma2, L, sum(extras) if extras else None)
 
 
 def normal_tilt_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tensor, weights: Tensor, block_px: int,
@@ -745,7 +743,6 @@ def normal_tilt_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tenso
     ``specular``, specular; shadows do not move); such a tilt ``e`` of one block moves the
     fit by ``-info^-1 scores e`` (to first order), and the score covariance is
     ``scores scores^T``."""
-    B = problem.batch
     g = problem.gbuffer
     n = g.normals
     size = problem.normal_tilt.clamp(0, 1).sqrt()[:, None] * weights  # (B, 3, H, W)
@@ -757,8 +754,8 @@ def normal_tilt_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tenso
         t = light_transport(tilted, problem.material, fit.position, falloff=problem.falloff, shadows=problem.shadows,
                             specular=specular)
         changed = (_columns(dataclasses.replace(problem, gbuffer=tilted), t.diffuse, t.specular) * intensity).sum(2)
-        scores = block_scores(problem, j_pos, cols, (changed - model) / step * size, block_px)
-        per_axis.append(scores.view(B, scores.shape[1], 3, -1).sum(2))  # (B, n, blocks): one tilt for the channels
+        per_axis.append(block_scores(problem, j_pos, cols, (changed - model) / step * size, block_px,
+                                     shared_channels=True))  # (B, n, blocks): one tilt for the channels
     return torch.cat(per_axis, 2)
 
 
@@ -769,11 +766,9 @@ def indirect_field_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Te
     the ambient by its own value in one block (every channel alike, :func:`block_scores`),
     ``K`` the field's covariance between the blocks' 3D centres,
     ``variation^2 exp(-|x - x'|^2 / (2 (length x scene size)^2))``."""
-    B = problem.batch
     g = problem.gbuffer
     derivative = problem.material.kd.permute(0, 3, 1, 2) * fit.ambient[:, :, None, None] * weights
-    scores = block_scores(problem, j_pos, cols, derivative, block_px)
-    scores = scores.view(B, scores.shape[1], 3, -1).sum(2)  # (B, n, blocks): one field value for the channels
+    scores = block_scores(problem, j_pos, cols, derivative, block_px, shared_channels=True)  # (B, n, blocks)
     valid = g.mask.to(g.points.dtype)[:, None]  # (B, 1, H, W)
     points = torch.where(g.mask[..., None], g.points, torch.zeros_like(g.points)).permute(0, 3, 1, 2)
     sums = block_sums(torch.cat([points, valid], 1), block_px)  # (B, 4, blocks)
@@ -810,11 +805,13 @@ def albedo_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tensor, di
     return block_scores(problem, j_pos, cols, per_kd * weights, block_px)
 
 
-def block_scores(problem: FitProblem, j_pos: Tensor, cols: Tensor, derivative: Tensor, block_px: int) -> Tensor:
+def block_scores(problem: FitProblem, j_pos: Tensor, cols: Tensor, derivative: Tensor, block_px: int,
+                 shared_channels: bool = False) -> Tensor:
     """``J^T derivative`` summed over each square block of ``block_px`` pixels and channel:
     ``(B, P + 3k, 3 * blocks)`` (channel-major), for an error source that is one value per
     block and channel and changes model channel ``c`` by ``derivative (B, 3, H, W)`` (weights
-    included) per unit; the parameters ordered as :func:`_normal_equations` orders them."""
+    included) per unit; the parameters ordered as :func:`_normal_equations` orders them.
+    ``shared_channels``: one value per block for every channel alike, ``(B, P + 3k, blocks)``."""
     B, P, _ = j_pos.shape
     H, W = problem.image.shape[-2:]
     per_kd = derivative.reshape(B, 1, 3, H, W)
@@ -832,7 +829,8 @@ def block_scores(problem: FitProblem, j_pos: Tensor, cols: Tensor, derivative: T
     linear_rows = linear.new_zeros(B, 3, k, 3, n_b)
     for c in range(3):
         linear_rows[:, c, :, c] = linear[:, :, c]
-    return torch.cat([positions, linear_rows.view(B, 3 * k, 3, n_b)], 1).reshape(B, P + 3 * k, 3 * n_b)
+    scores = torch.cat([positions, linear_rows.view(B, 3 * k, 3, n_b)], 1)  # (B, P + 3k, 3, n_b)
+    return scores.sum(2) if shared_channels else scores.reshape(B, P + 3 * k, 3 * n_b)
 
 
 def block_sums(x: Tensor, block_px: int) -> Tensor:

@@ -316,6 +316,8 @@ def test_block_scores_sum_every_block_the_partial_ones_at_the_border_too():
     across = -(-W // block)
     n_blocks = -(-H // block) * across
     assert scores.shape == (B, 3 + 3 * 2, 3 * n_blocks)
+    shared = block_scores(problem, j_pos, cols, derivative, block, shared_channels=True)
+    torch.testing.assert_close(shared, scores.view(B, -1, 3, n_blocks).sum(2))  # one value for every channel
     per_pixel = j_pos.view(B, 3, 3, H, W) * derivative[:, None]
     for row, col in ((H // block, W // block), (0, W // block), (H // block, 0), (1, 2)):  # border blocks and one inside
         for channel in range(3):
@@ -345,8 +347,7 @@ def test_indirect_field_scores_predict_how_a_change_of_the_ambient_moves_the_fit
     info, _ = _normal_equations(problem, j_pos, cols, mask)
     ambient_image = problem.material.kd.permute(0, 3, 1, 2) * fit.ambient[:, :, None, None]
     block = 16
-    scores = block_scores(problem, j_pos, cols, ambient_image * mask, block)
-    scores = scores.view(1, scores.shape[1], 3, -1).sum(2)  # every channel alike, as indirect_field_scores
+    scores = block_scores(problem, j_pos, cols, ambient_image * mask, block, shared_channels=True)  # as the field's
     index = int(scores[0, :3].norm(dim=0).argmax())
     row, col = divmod(index, -(-problem.image.shape[-1] // block))
     e = 1e-2
