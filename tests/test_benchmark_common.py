@@ -37,3 +37,24 @@ def test_indirect_field_recovers_a_known_indirect_irradiance():
     irradiance, _ = block_irradiance(direct, dataclasses.replace(direct, image=direct.image + ramp * kd), 16)
     block_means = ramp[0, :, 0].reshape(4, 16).mean(-1).double()
     torch.testing.assert_close(irradiance.reshape(-1, 4), block_means.expand(3, 4), rtol=1e-5, atol=1e-6)
+
+
+def test_room_agreement_counts_each_light_against_its_own_exact_shadows():
+    # A method scored against its own shadows misses and adds nothing; the same shadows
+    # with the lights swapped (or the classes flipped) do not: the bookkeeping of light
+    # order, layout and classes is what the rooms' table rests on.
+    from benchmarks.shadow_accuracy import room_agreement
+    from render.shadows import shadow_visibility
+    from render.types import GBuffer
+    from selfsup.scenes.exact import render_spec
+    from selfsup.scenes.sampler import SamplerConfig, sample_scene
+
+    scene = render_spec(sample_scene(5, SamplerConfig(height=48, width=64, n_lights_probs=(0.0, 1.0))), samples=1).scene
+    g = GBuffer.from_depth(scene.depth[None], scene.K[None], scene.normals[None])
+    own = shadow_visibility("epipolar", g.points, g.mask, g.intrinsics, scene.light_pos[None].to(g.points.dtype))[0]
+    counts = room_agreement(scene, own.permute(1, 2, 0), methods=("epipolar",))
+    assert counts["shadowed"] > 0 and counts["epipolar_missed"] == 0 and counts["epipolar_extra"] == 0
+    swapped = room_agreement(scene, own.flip(0).permute(1, 2, 0), methods=("epipolar",))
+    assert swapped["epipolar_missed"] + swapped["epipolar_extra"] > 0
+    flipped = room_agreement(scene, (1 - own).permute(1, 2, 0), methods=("epipolar",))
+    assert flipped["epipolar_missed"] == flipped["shadowed"] > 0
