@@ -24,9 +24,14 @@ import time
 import torch
 
 from benchmarks.common import write_results
+from benchmarks.estimate_procedural import SETS
 from render import GBuffer, Material, PointLights, render
 from render.shadows import shadow_visibility
-from selfsup.scenes.analytic import compare_to_exact, intrinsics_for, objects_on_floor, render_exact_view
+from selfsup.scenes.analytic import (compare_to_exact, intrinsics_for, objects_on_floor, render_exact_view,
+                                     shadow_edge_band)
+from selfsup.scenes.dataset import render_items
+from selfsup.scenes.degrade import Degradations
+from selfsup.scenes.sampler import SamplerConfig
 
 LIGHTS = {
     "camera side, right": [0.6, -1.0, 0.5],
@@ -81,14 +86,13 @@ def room_agreement(scene, exact_visibility: torch.Tensor, methods=("epipolar", "
     and intrinsics) against the generator's exact shadow rays, ``exact_visibility
     (H, W, L)``, summed over its lights. Counted on the pixels that face each light
     (where the shading is not zero anyway, so a shadow changes the image) away from a
-    one-pixel band at exact shadow edges: ``shadowed`` (exactly shadowed pixels), and
-    per method ``missed`` (of those, lit by the method), ``extra`` (exactly lit ones
-    the method shadows) and ``agree`` (pixels of the same class)."""
+    one-pixel band at exact shadow edges: ``pixels`` (those counted), ``shadowed``
+    (of them, exactly shadowed), and per method ``<method>_missed`` (exactly shadowed,
+    lit by the method) and ``<method>_extra`` (exactly lit, shadowed by the method)."""
     g = GBuffer.from_depth(scene.depth[None], scene.K[None], None if scene.normals is None else scene.normals[None])
     light = scene.light_pos[None].to(g.points.dtype)
     exact = exact_visibility.permute(2, 0, 1) > 0.5  # (L, H, W)
-    e = exact[:, None].to(g.points.dtype)
-    band = (torch.nn.functional.max_pool2d(e, 3, 1, 1) != -torch.nn.functional.max_pool2d(-e, 3, 1, 1))[:, 0]
+    band = shadow_edge_band(exact.to(g.points.dtype))
     toward = light[0, :, None, None] - g.points  # (L, H, W, 3)
     facing = (g.normals * toward).sum(-1) > 0
     keep = g.mask & facing & ~band
@@ -103,16 +107,11 @@ def room_agreement(scene, exact_visibility: torch.Tensor, methods=("epipolar", "
 def run_rooms(count: int = 32, seed: int = 9100, methods=("epipolar", "paper"), write: bool = True):
     """:func:`room_agreement` over the first ``count`` scenes of the procedural two-light
     set: one row per scene and a total (shares of the exactly shadowed pixels)."""
-    from benchmarks.estimate_procedural import SETS
-    from selfsup.scenes.dataset import render_items
-    from selfsup.scenes.degrade import Degradations
-    from selfsup.scenes.sampler import SamplerConfig
-
     degradations, lights = SETS["true reflectance, 2 lights"]
     sampler = SamplerConfig(height=120, width=160, n_lights_probs=tuple(lights))
     rendered = render_items([seed * 1_000_003 + i for i in range(count)], sampler, Degradations(**degradations), 2)
     rows, total = [], {}
-    for index, (exact, scene) in enumerate(rendered):
+    for index, (exact, _) in enumerate(rendered):
         counts = room_agreement(exact.scene, exact.visibility, methods)
         for key, value in counts.items():
             total[key] = total.get(key, 0) + value

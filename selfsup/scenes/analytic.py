@@ -15,7 +15,8 @@ from torch import Tensor
 
 from selfsup.scenes.raycast import Primitives, camera_rays, cast_rays, exact_visibility, shade_exact
 
-__all__ = ["ExactView", "ShadowAgreement", "objects_on_floor", "render_exact_view", "intrinsics_for", "compare_to_exact"]
+__all__ = ["ExactView", "ShadowAgreement", "objects_on_floor", "render_exact_view", "intrinsics_for", "compare_to_exact",
+           "shadow_edge_band"]
 
 
 @dataclass(frozen=True)
@@ -109,12 +110,19 @@ class ShadowAgreement:
     lit_within_1e4: float
 
 
+def shadow_edge_band(visibility: Tensor) -> Tensor:
+    """Pixels ``(..., H, W)`` bool whose 3x3 neighbourhood holds both classes of the
+    exact ``visibility (..., H, W)`` (0 or 1): the one-pixel band at shadow edges where
+    a pixel-sized disagreement is a matter of sampling, left out of the comparisons."""
+    e = visibility.reshape(-1, 1, *visibility.shape[-2:])
+    band = F.max_pool2d(e, 3, 1, 1) != -F.max_pool2d(-e, 3, 1, 1)
+    return band.reshape(visibility.shape)
+
+
 def compare_to_exact(view: ExactView, visibility: Tensor, image: Tensor) -> ShadowAgreement:
     """Compare a render's ``visibility (H, W)`` and ``image (H, W, 3)`` with ``view`` (one light)."""
     exact = view.visibility[..., 0]
-    e = exact[None, None]
-    band = (F.max_pool2d(e, 3, 1, 1) != -F.max_pool2d(-e, 3, 1, 1))[0, 0]
-    keep = view.mask & ~band
+    keep = view.mask & ~shadow_edge_band(exact)
     agree = ((visibility > 0.5) == (exact > 0.5))[keep].double().mean().item()
     lit = keep & (exact > 0.5)
     rel = ((image.to(view.image.dtype) - view.image).abs() / view.image).amax(-1)[lit]
