@@ -61,6 +61,16 @@ class EpipolarShadowOptions:
             must lie (avoids a pixel shadowing itself).
         chunk_samples: the sweep is done in chunks of at most this many samples
             (bounds peak memory, no effect on results).
+        thickness: None (default): everything behind the visible surface is solid.
+            A length (the points' units): each pixel's solid ends this far behind
+            its surface along the camera ray, so that rays passing behind an
+            object's silhouette reach what lies beyond it. Objects thinner than this
+            along the view still shadow as if this thick, and rays passing deeper
+            than this behind every visible pixel of an object (its far side hidden
+            from the camera) are not blocked; the slab's far end is a hard edge
+            (which occluders count is a choice without a gradient).
+        scene_thickness: the same, as a fraction of each image's scene size (the
+            diagonal of the bounding box of its valid points). At most one of the two.
     """
 
     width_px: float = 1.0
@@ -68,6 +78,8 @@ class EpipolarShadowOptions:
     spacing_px: float = 1.0
     lookback: float = 1.0
     chunk_samples: int = 1 << 24
+    thickness: float | None = None
+    scene_thickness: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("width_px", "spacing_px"):
@@ -77,6 +89,12 @@ class EpipolarShadowOptions:
             raise ValueError(f"bias_px must be >= 0, got {self.bias_px}")
         if not self.lookback >= 0:
             raise ValueError(f"lookback must be >= 0, got {self.lookback}")
+        for name in ("thickness", "scene_thickness"):
+            value = getattr(self, name)
+            if value is not None and not 0 < value < math.inf:
+                raise ValueError(f"{name} must be None or finite and > 0, got {value}")
+        if self.thickness is not None and self.scene_thickness is not None:
+            raise ValueError("give thickness or scene_thickness, not both")
 
 
 @dataclass(frozen=True)
@@ -176,15 +194,16 @@ def _angle_from_camera_ray(points: Tensor, light_position: Tensor) -> Tensor:
 
 
 def _masked_angle(angle_image: Tensor, grid: Tensor) -> tuple[Tensor, Tensor]:
-    """Mask-normalised bilinear ``gamma`` at ``grid (N, 1, M, 2)`` (grid_sample's
-    coordinates, corners aligned); ``angle_image (N, 2, H, W)`` holds ``[gamma * mask,
-    mask]``. Returns ``gamma (N, M)`` and validity ``(N, M)``."""
+    """Mask-normalised bilinear angles at ``grid (N, 1, M, 2)`` (grid_sample's
+    coordinates, corners aligned); ``angle_image (N, 1 + C, H, W)`` holds ``[mask,
+    gamma * mask, ...]`` (C angle images, each times the mask). Returns the angles
+    ``(N, C, M)`` and validity ``(N, M)``."""
     sampled = F.grid_sample(angle_image, grid, mode="bilinear", padding_mode="zeros", align_corners=True).squeeze(2)
-    weight = sampled[:, 1]
+    weight = sampled[:, 0]
     # A sample is surface when most of its bilinear weight falls on valid pixels;
     # the division is guarded for the rest (holes, outside the image).
     valid = weight > 0.5
-    angle = sampled[:, 0] / torch.where(valid, weight, 1.0)
+    angle = sampled[:, 1:] / torch.where(valid, weight, 1.0)[:, None]
     return angle, valid
 
 
@@ -230,22 +249,39 @@ def epipolar_shadow_visibility(
     # Lights that project inside the image need lines all around their epipole,
     # about 2.5x the samples of the others: sweep the two kinds separately so that
     # one such light does not size the pattern of every other (image, light).
+    thickness = _thickness(points.detach(), mask, options)
+    thickness = None if thickness is None else thickness[image_index]
     lines = _make_lines(light, K, H, W, options.spacing_px)
     groups = [torch.nonzero(lines.periodic == kind).squeeze(1) for kind in (False, True)]
     groups = [g for g in groups if g.numel()]
     if len(groups) == 1:
-        visibility = _sweep(pts, valid, K, light, H, W, options, lines)
+        visibility = _sweep(pts, valid, K, light, H, W, options, thickness, lines)
     else:
         visibility = torch.empty(N, H * W, dtype=points.dtype, device=points.device)
         for g in groups:
-            visibility = visibility.index_copy(0, g, _sweep(pts[g], valid[g], K[g], light[g], H, W, options))
+            part = _sweep(pts[g], valid[g], K[g], light[g], H, W, options, None if thickness is None else thickness[g])
+            visibility = visibility.index_copy(0, g, part)
     return visibility.reshape(B, L, H, W)
 
 
+def _thickness(points: Tensor, mask: Tensor, options: EpipolarShadowOptions) -> Tensor | None:
+    """``(B,)`` occluder thickness of each image in the points' units, or None (unbounded)."""
+    if options.thickness is not None:
+        return points.new_full(points.shape[:1], options.thickness)
+    if options.scene_thickness is None:
+        return None
+    inside = mask[..., None]
+    lo = torch.where(inside, points, math.inf).flatten(1, 2).amin(1)
+    hi = torch.where(inside, points, -math.inf).flatten(1, 2).amax(1)
+    size = torch.where(mask.flatten(1).any(1), (hi - lo).norm(dim=-1), 0.0)  # no valid point: nothing to shadow
+    return options.scene_thickness * size
+
+
 def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
-           options: EpipolarShadowOptions, lines: _Lines | None = None) -> Tensor:
+           options: EpipolarShadowOptions, thickness: Tensor | None = None, lines: _Lines | None = None) -> Tensor:
     """Visibility ``(N, H*W)`` of ``pts (N, H*W, 3)`` from ``light (N, 3)``, see above;
-    ``lines`` is their pattern when already built (else sized for these N alone)."""
+    ``thickness (N,)`` bounds the solid behind the surface (None: unbounded); ``lines``
+    is their pattern when already built (else sized for these N alone)."""
     N = light.shape[0]
     dtype, device = pts.dtype, pts.device
     if lines is None:
@@ -256,16 +292,26 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     u = torch.arange(W, dtype=dtype, device=device).repeat(H)
     v = torch.arange(H, dtype=dtype, device=device).repeat_interleave(W)
 
+    thick = thickness is not None
     with torch.no_grad():
         gamma = _angle_from_camera_ray(pts, light[:, None])  # (N, H*W)
         # 1) The sweep, on the padded table of _node_index (rows: lines, then the two
         #    that the last pixels' interpolation reaches; columns: a sample before the
         #    first, which sees nothing, then the samples): for each node, the smallest
-        #    gamma at or before it (running) and which column holds it (argmin).
-        angle_image = torch.stack([gamma * weight, weight], dim=1).reshape(N, 2, H, W)
+        #    gamma at or before it (running) and which column holds it (argmin). With a
+        #    thickness, each node's gamma (front) and that of the point a thickness behind
+        #    it along its camera ray (back) are kept too: a ray of angle g passes through
+        #    that slab when front <= g <= back (gamma grows with depth along a camera ray).
+        channels = [weight, gamma * weight]
+        if thick:
+            behind = pts * (1 + thickness[:, None] / norm3(pts).clamp_min(torch.finfo(dtype).tiny))[..., None]
+            channels.append(_slab_ends(gamma, _angle_from_camera_ray(behind, light[:, None]), valid, H, W) * weight)
+        angle_image = torch.stack(channels, dim=1).reshape(N, len(channels), H, W)
         line_of_row = _line_of_row(lines, nl)  # (N, nl + 2)
         running = torch.empty(N, nl + 2, ns + 1, dtype=dtype, device=device)
         argmin = torch.empty(N, nl + 2, ns + 1, dtype=torch.long, device=device)
+        if thick:
+            front_table, back_table = torch.empty_like(running), torch.empty_like(running)
         rows_per_chunk = max(1, options.chunk_samples // ((nl + 2) * (ns + 1)))
         sample_index = torch.arange(-1, ns, dtype=dtype, device=device)
         to_grid = pts.new_tensor([2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)])  # pixels -> grid_sample's [-1, 1]
@@ -279,10 +325,13 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
             direction = torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)[:, :, None]
             radius = sub.radius(sample_index[None].expand(n, ns + 1))[:, None, :, None]
             grid = torch.addcmul((sub.epipole * to_grid - 1)[:, None, None], radius, direction * to_grid)
-            angle, ok = _masked_angle(angle_image[part], grid.reshape(n, 1, (nl + 2) * (ns + 1), 2))
-            angle = torch.where(ok, angle, _NO_OCCLUDER).reshape(n, nl + 2, ns + 1)
+            angles, ok = _masked_angle(angle_image[part], grid.reshape(n, 1, (nl + 2) * (ns + 1), 2))
+            angle = torch.where(ok, angles[:, 0], _NO_OCCLUDER).reshape(n, nl + 2, ns + 1)
             angle[:, :, 0] = _NO_OCCLUDER
             torch.cummin(angle, dim=-1, out=(running[part], argmin[part]))
+            if thick:
+                front_table[part] = angle
+                back_table[part] = angles[:, 1].reshape(n, nl + 2, ns + 1)
         running_flat, argmin_flat = running.reshape(N, -1), argmin.reshape(N, -1)
 
         # 2) Every pixel, from the running minima of the pattern nodes around it.
@@ -294,6 +343,18 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
                                     align_corners=True).reshape(N, H * W)
         distance = norm3(light[:, None] - pts)
         visibility, t = _smooth_visibility(running_min, gamma, pts[..., 2], distance, focal[:, None], options)
+        if thick:
+            # Only pixels (partly) shadowed by the unbounded solid can change: the
+            # occluders that count for a pixel are a subset of that solid's.
+            rows, cols = (valid & (t < 1)).nonzero(as_tuple=True)
+            per_chunk = max(1, options.chunk_samples // (2 * (ns + 1)))
+            for start in range(0, rows.numel(), per_chunk):
+                r, c = rows[start:start + per_chunk], cols[start:start + per_chunk]
+                node, fa, fs = _node_index(*_pixel_coords(lines.select(r), u[c], v[c], options.lookback), ns)
+                node_min, _ = _slab_minima(front_table, back_table, r, node, gamma[r, c])
+                slab_min = _lerp_nodes(node_min, fa, fs)
+                visibility[r, c], t[r, c] = _smooth_visibility(slab_min, gamma[r, c], pts[r, c, 2], distance[r, c],
+                                                               focal[r], options)
         visibility = torch.where(valid, visibility, 1.0)
         band = valid & (t > 0) & (t < 1)
 
@@ -312,8 +373,12 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     band_lines = lines.select(rows)
     node, fa, fs = _node_index(*_pixel_coords(band_lines, u[cols], v[cols], options.lookback), ns)  # (M, 4), (M,), (M,)
     at = rows[:, None]
-    seen = running_flat[at, node] < _NO_OCCLUDER
-    occluder_k = (argmin_flat[at, node] - 1).to(dtype)  # column -> sample index
+    if thick:
+        node_min, occluder_column = _slab_minima(front_table, back_table, rows, node, gamma[rows, cols])
+    else:
+        node_min, occluder_column = running_flat[at, node], argmin_flat[at, node]
+    seen = node_min < _NO_OCCLUDER
+    occluder_k = (occluder_column - 1).to(dtype)  # column -> sample index
     line = line_of_row[at, torch.div(node, ns + 1, rounding_mode="floor")]
     theta = band_lines.theta0[:, None] + line * band_lines.dtheta[:, None]
     direction = torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)
@@ -381,6 +446,41 @@ def _node_index(a: Tensor, s: Tensor, ns: int) -> tuple[Tensor, Tensor, Tensor]:
     col = col.clamp(0, ns), (col + 1).clamp(0, ns)  # column 0: nothing before the first sample
     node = torch.stack([row + col[0], row + col[1], row + (width + col[0]), row + (width + col[1])], dim=-1)
     return node, a - a0, s - s0
+
+
+def _slab_ends(front: Tensor, back: Tensor, valid: Tensor, H: int, W: int) -> Tensor:
+    """Each pixel's slab end ``back (N, H*W)`` (``front``: its surface's angle), except
+    beyond a depth step: where a valid 3x3 neighbour's slab ends before this pixel's
+    surface begins, the end becomes that neighbour's. The bilinear samples between the
+    near surface and the far one then hold the near slab, empty past its end, where
+    interpolating the two ends would hang a curtain of slabs on the skin between them;
+    on continuous surfaces (neighbours' slabs overlapping) nothing changes."""
+    spread = torch.where(valid, back, _NO_OCCLUDER).reshape(-1, 1, H, W)
+    lowest = (-F.max_pool2d(-spread, 3, stride=1, padding=1)).reshape(back.shape)
+    return torch.where(valid & (lowest < front), lowest, back)
+
+
+def _slab_minima(front: Tensor, back: Tensor, rows: Tensor, node: Tensor, gamma: Tensor) -> tuple[Tensor, Tensor]:
+    """The running minimum at ``node (M, 4)`` (flat indices of _node_index into tables
+    ``(N, nl + 2, ns + 1)`` of images ``rows (M,)``) over only the samples whose slab
+    ``front <= gamma <= back`` reaches behind a pixel's ray of angle ``gamma (M,)``:
+    ``(M, 4)`` minima (_NO_OCCLUDER where none) and the columns holding them."""
+    width = front.shape[-1]
+    line_rows = torch.div(node[:, ::2], width, rounding_mode="floor")  # (M, 2): the two lines' table rows
+    at = rows[:, None]
+    reaching = back[at, line_rows] >= gamma[:, None, None]  # (M, 2, ns + 1)
+    angle = torch.where(reaching, front[at, line_rows], _NO_OCCLUDER)
+    first_col, last_col = node[:, :2].remainder(width).unbind(-1)  # the nodes' columns (M,), the same on both lines
+    column = torch.arange(width, device=node.device)
+    before, before_col = torch.where(column <= first_col[:, None, None], angle, _NO_OCCLUDER).min(-1)  # (M, 2)
+    at_last = angle.gather(-1, last_col[:, None, None].expand(-1, 2, 1)).squeeze(-1)
+    last_wins = at_last < before
+    upto_last = torch.where(last_wins, at_last, before)
+    upto_last_col = torch.where(last_wins, last_col[:, None], before_col)
+    # Order of _node_index: (line 0, first), (line 0, last), (line 1, first), (line 1, last).
+    minima = torch.stack([before[:, 0], upto_last[:, 0], before[:, 1], upto_last[:, 1]], dim=-1)
+    columns = torch.stack([before_col[:, 0], upto_last_col[:, 0], before_col[:, 1], upto_last_col[:, 1]], dim=-1)
+    return minima, columns
 
 
 def _lerp_nodes(value: Tensor, fa: Tensor, fs: Tensor) -> Tensor:

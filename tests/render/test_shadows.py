@@ -58,12 +58,14 @@ def test_paper_jacobian_matches_central_differences_of_image():
     assert shadow_part < 0.05, (p.grad, numeric)
 
 
-def test_epipolar_gradient_is_exact_for_the_smoothed_model():
-    # float64 finite differences of the whole visibility map against autograd.
+@pytest.mark.parametrize("thickness", [None, 0.3])
+def test_epipolar_gradient_is_exact_for_the_smoothed_model(thickness):
+    # float64 finite differences of the whole visibility map against autograd; with a
+    # thickness, the slab choice is held fixed like the occluder choice.
     light = [0.2, -1.5, 2.0]
     view = exact_view(tuple(light), 30, 40)
     g = gbuffer_of(view)
-    opts = EpipolarShadowOptions(width_px=3.0)
+    opts = EpipolarShadowOptions(width_px=3.0, thickness=thickness)
     weight = torch.rand(1, 1, 30, 40, dtype=torch.float64)
 
     def f(p):
@@ -98,3 +100,62 @@ def test_gradcheck_smooth_parts_float64():
         torch.tensor(12.0, dtype=torch.float64, requires_grad=True),
     )
     assert torch.autograd.gradcheck(f, inputs)
+
+
+def _plate_before_wall(light, thickness, plate_half=0.6, plate_z=3.0, wall_z=5.0, H=30, W=40):
+    # A square plate at plate_z in front of a wall at wall_z, seen by the camera; behind
+    # each of its pixels a solid of ``thickness`` along the camera ray. Exact visibility of
+    # the wall's pixels from the light by 4000 points along each shadow ray.
+    K = torch.tensor([[30.0, 0, 19.5], [0, 30.0, 14.5], [0, 0, 1]], dtype=torch.float64)
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    ray = torch.stack([(u - 19.5) / 30.0, (v - 14.5) / 30.0], -1)
+    on_plate = (ray * plate_z).abs().amax(-1) <= plate_half
+    depth = torch.where(on_plate, plate_z, wall_z).to(torch.float64)
+    g = GBuffer.from_depth(depth[None], K[None])
+    light = torch.tensor(light, dtype=torch.float64)
+    t = torch.linspace(0, 1, 4002, dtype=torch.float64)[1:-1, None]
+    on_ray = g.points[0][..., None, :] + t * (light - g.points[0][..., None, :])  # (H, W, 4000, 3)
+    at_plate = on_ray * (plate_z / on_ray[..., 2:])  # where each point's camera ray meets the plate's plane
+    behind = on_ray.norm(dim=-1) / at_plate.norm(dim=-1)  # 1 on the plate, growing with depth
+    inside = ((at_plate[..., :2].abs().amax(-1) <= plate_half) & (behind >= 1)
+              & (behind <= 1 + thickness / at_plate.norm(dim=-1)))
+    return g, light, ~on_plate, ~inside.any(-1)
+
+
+@pytest.mark.parametrize("light", [[0.2, -0.1, 4.0], [1.0, 0.0, 3.8], [-1.2, 0.4, 2.0], [0.9, -0.5, 1.0]])
+def test_epipolar_thickness_lets_rays_pass_behind_an_object(light):
+    # Unbounded, the plate is a solid reaching to infinity: a light behind it is inside
+    # it (every wall pixel shadowed), and rays passing behind its silhouette are blocked.
+    # With a thickness the shadows are those of the plate with that slab behind it.
+    g, lp, wall, lit = _plate_before_wall(light, thickness=0.5)
+    run = lambda opts: epipolar_shadow_visibility(g.points, g.mask, g.intrinsics, lp[None, None], opts)[0, 0] > 0.5
+    unbounded, slab = run(EpipolarShadowOptions()), run(EpipolarShadowOptions(thickness=0.5))
+    # Three pixels either side of the exact edge (also where it lies just outside the
+    # image) left out: the sweep's edge sits up to 1.5 pixel-sized angles off at the
+    # plate (bias and width), and the wall, farther from the light, magnifies that.
+    shadowed = (~lit).double()[None]
+    band = torch.nn.functional.max_pool2d(shadowed, 7, 1, 3)[0] != -torch.nn.functional.max_pool2d(-shadowed, 7, 1, 3)[0]
+    band[:3], band[-3:], band[:, :3], band[:, -3:] = True, True, True, True
+    keep = wall & ~band
+    assert (slab == lit)[keep].all()
+    if light[2] > 3.0:  # behind the plate's surface: the unbounded solid is wrong
+        assert (unbounded != lit)[keep].sum() > 100
+    if light[2] > 3.5:  # behind the slab too: nothing shadows the wall
+        assert lit[wall].all() and slab[wall].all()
+
+
+def test_epipolar_thickness_of_the_scene_is_a_share_of_its_diagonal():
+    g, lp, _, _ = _plate_before_wall([0.9, -0.5, 1.0], thickness=0.5)
+    points = g.points[0][g.mask[0]]
+    diagonal = (points.amax(0) - points.amin(0)).norm().item()
+    run = lambda opts: epipolar_shadow_visibility(g.points, g.mask, g.intrinsics, lp[None, None], opts)
+    assert torch.equal(run(EpipolarShadowOptions(scene_thickness=0.1)), run(EpipolarShadowOptions(thickness=0.1 * diagonal)))
+    # Larger than any ray's depth behind the surface: the unbounded solid's answer.
+    assert torch.allclose(run(EpipolarShadowOptions(thickness=1e6)), run(EpipolarShadowOptions()), atol=1e-9)
+
+
+@pytest.mark.parametrize("fields", [{"thickness": 0.0}, {"thickness": float("inf")}, {"scene_thickness": -0.1},
+                                    {"scene_thickness": float("nan")}, {"thickness": 0.1, "scene_thickness": 0.1}])
+def test_epipolar_thickness_rejects_absurd_values(fields):
+    with pytest.raises(ValueError, match="thickness"):
+        EpipolarShadowOptions(**fields)
