@@ -13,7 +13,9 @@ benchmarks/results/shadow_accuracy_<device>_<date>.{md,json}.
 With ``--rooms N``: the first N scenes of the procedural two-light test set
 (``benchmarks.estimate_procedural``, seed ``--seed``), every light, each method's
 shadows of the scene's exact depth map against the generator's exact shadow rays
-(:func:`room_agreement`); results to ``shadow_accuracy_rooms_<device>_<date>``.
+(:func:`room_agreement`), the epipolar sweep also with each occluder thickness of
+``--thickness`` (shares of the scene size); results to
+``shadow_accuracy_rooms_<device>_<date>``.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import torch
 from benchmarks.common import write_results
 from benchmarks.estimate_procedural import SETS
 from render import GBuffer, Material, PointLights, render
-from render.shadows import shadow_visibility
+from render.shadows import EpipolarShadowOptions, shadow_visibility
 from selfsup.scenes.analytic import (compare_to_exact, intrinsics_for, objects_on_floor, render_exact_view,
                                      shadow_edge_band)
 from selfsup.scenes.dataset import render_items
@@ -81,14 +83,17 @@ def run(height: int = 120, width: int = 160, methods=("epipolar", "paper"), writ
     return rows, path
 
 
-def room_agreement(scene, exact_visibility: torch.Tensor, methods=("epipolar", "paper")) -> dict:
+def room_agreement(scene, exact_visibility: torch.Tensor, methods=("epipolar", "paper"),
+                   thicknesses: tuple[float, ...] = ()) -> dict:
     """Each method's cast shadows of one procedural ``scene`` (its exact depth, normals
     and intrinsics) against the generator's exact shadow rays, ``exact_visibility
     (H, W, L)``, summed over its lights. Counted on the pixels that face each light
     (where the shading is not zero anyway, so a shadow changes the image) away from a
     one-pixel band at exact shadow edges: ``pixels`` (those counted), ``shadowed``
     (of them, exactly shadowed), and per method ``<method>_missed`` (exactly shadowed,
-    lit by the method) and ``<method>_extra`` (exactly lit, shadowed by the method)."""
+    lit by the method) and ``<method>_extra`` (exactly lit, shadowed by the method).
+    Each of ``thicknesses`` adds the epipolar sweep with that ``scene_thickness``,
+    named ``epipolar_T<thickness>``."""
     g = GBuffer.from_depth(scene.depth[None], scene.K[None], None if scene.normals is None else scene.normals[None])
     light = scene.light_pos[None].to(g.points.dtype)
     exact = exact_visibility.permute(2, 0, 1) > 0.5  # (L, H, W)
@@ -97,34 +102,40 @@ def room_agreement(scene, exact_visibility: torch.Tensor, methods=("epipolar", "
     facing = (g.normals * toward).sum(-1) > 0
     keep = g.mask & facing & ~band
     counts = {"pixels": int(keep.sum()), "shadowed": int((keep & ~exact).sum())}
-    for method in methods:
-        lit = shadow_visibility(method, g.points, g.mask, g.intrinsics, light)[0] > 0.5
-        counts[f"{method}_missed"] = int((keep & ~exact & lit).sum())
-        counts[f"{method}_extra"] = int((keep & exact & ~lit).sum())
+    runs = [(method, method, None) for method in methods]
+    runs += [(f"epipolar_T{t}", "epipolar", EpipolarShadowOptions(scene_thickness=t)) for t in thicknesses]
+    for name, method, options in runs:
+        lit = shadow_visibility(method, g.points, g.mask, g.intrinsics, light, options)[0] > 0.5
+        counts[f"{name}_missed"] = int((keep & ~exact & lit).sum())
+        counts[f"{name}_extra"] = int((keep & exact & ~lit).sum())
     return counts
 
 
-def run_rooms(count: int = 32, seed: int = 9100, methods=("epipolar", "paper"), write: bool = True):
+def run_rooms(count: int = 32, seed: int = 9100, methods=("epipolar", "paper"), write: bool = True,
+              thicknesses: tuple[float, ...] = ()):
     """:func:`room_agreement` over the first ``count`` scenes of the procedural two-light
     set: one row per scene and a total (shares of the exactly shadowed pixels)."""
     degradations, lights = SETS["true reflectance, 2 lights"]
     sampler = SamplerConfig(height=120, width=160, n_lights_probs=tuple(lights))
     rendered = render_items([seed * 1_000_003 + i for i in range(count)], sampler, Degradations(**degradations), 2)
+    names = list(methods) + [f"epipolar_T{t}" for t in thicknesses]
     rows, total = [], {}
     for index, (exact, _) in enumerate(rendered):
-        counts = room_agreement(exact.scene, exact.visibility, methods)
+        counts = room_agreement(exact.scene, exact.visibility, methods, thicknesses)
         for key, value in counts.items():
             total[key] = total.get(key, 0) + value
-        rows.append({"scene": index, **_shares(counts, methods)})
-    rows.append({"scene": "**all**", **_shares(total, methods)})
+        rows.append({"scene": index, **_shares(counts, names)})
+    rows.append({"scene": "**all**", **_shares(total, names)})
     path = None
     if write:
-        columns = ["scene", "shadowed_share"] + [f"{m}_{k}" for m in methods for k in ("agree", "missed", "extra")]
+        columns = ["scene", "shadowed_share"] + [f"{m}_{k}" for m in names for k in ("agree", "missed", "extra")]
         header = (f"{count} procedural two-light rooms (seed {seed}, 160x120, the estimate_procedural test set), every "
                   f"light; each method's shadows of the exact depth map against the generator's exact shadow rays, on "
                   f"the pixels facing the light away from a 1-pixel band at exact shadow edges. agree: share of those "
                   f"pixels of the same lit/shadowed class; missed: exactly shadowed pixels the method lights, and "
-                  f"extra: exactly lit pixels it shadows, both as shares of the exactly shadowed pixels.")
+                  f"extra: exactly lit pixels it shadows, both as shares of the exactly shadowed pixels. "
+                  f"epipolar_T<t>: the sweep with a solid of t x the scene size behind each pixel "
+                  f"(EpipolarShadowOptions.scene_thickness).")
         path = write_results("shadow_accuracy_rooms", torch.device("cpu"), rows, header, columns)
     return rows, path
 
@@ -146,8 +157,11 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=160)
     parser.add_argument("--rooms", type=int, default=0, help="measure on this many procedural rooms instead")
     parser.add_argument("--seed", type=int, default=9100, help="seed of the procedural rooms")
+    parser.add_argument("--thickness", type=float, nargs="*", default=[0.05, 0.03],
+                        help="with --rooms: also the sweep with these scene thicknesses")
     args = parser.parse_args()
-    rows, path = run_rooms(args.rooms, args.seed) if args.rooms else run(args.height, args.width)
+    rows, path = (run_rooms(args.rooms, args.seed, thicknesses=tuple(args.thickness)) if args.rooms
+                  else run(args.height, args.width))
     for row in rows:
         print(row)
     print(f"wrote {path}")
