@@ -24,7 +24,7 @@ from dataclasses import replace
 import torch
 
 from benchmarks.common import device_name, write_results
-from benchmarks.estimate_procedural import SETS, score, set_scene
+from benchmarks.estimate_procedural import SETS, parse_options, score, set_scene
 from selfsup.estimate import EstimateOptions, estimate_batch, prepare, records
 
 COLUMNS = ["set", "method", "batch", "scenes", "scenes_per_s", "inputs_share", "estimate_share", "records_share",
@@ -149,12 +149,15 @@ def main() -> None:
                         help="estimate.min_light_share (what an added light must carry)")
     parser.add_argument("--threads", type=int, default=0, help=">0: torch.set_num_threads (CPU)")
     parser.add_argument("--no-write", action="store_true", help="print only")
+    parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                        help="another EstimateOptions field (refine.* for RefineOptions); printed, not written")
     args = parser.parse_args()
     if args.threads > 0:
         torch.set_num_threads(args.threads)
-    options = replace(EstimateOptions(), method=args.method, min_light_share=args.min_light_share)
+    options = replace(EstimateOptions(), method=args.method, min_light_share=args.min_light_share,
+                      **parse_options(args.option))
     print(run(args.scenes, tuple(args.batch), args.device, args.seed, tuple(args.sets), args.workers,
-              not args.no_write, options)[1])
+              not (args.no_write or args.option), options)[1])
 
 
 if __name__ == "__main__":

@@ -52,7 +52,7 @@ from torch import Tensor
 
 from render import GBuffer, Material, light_transport
 from render.geometry import normal_noise, plane_fit, smooth_normals, surface_segments
-from render.shadows import ShadowMethod
+from render.shadows import EpipolarShadowOptions, ShadowMethod
 from selfsup import albedo_free
 from selfsup.refine import (Fit, FitProblem, RefineOptions, evaluate, position_covariance, refine, reweighted,
                             robust_loss, search, solve_linear, subsample)
@@ -166,6 +166,13 @@ class EstimateOptions:
     got the right count in 41 of 48 against 39, the Mitsuba sets 199 successes of
     288 against 192, the devset the same answers; ``none`` at stride 1 judges the
     fit's own model.
+    ``criterion_thickness``: with ``criterion_shadows=epipolar``, the solid behind
+    each pixel ends this share of the scene size behind its surface
+    (:class:`render.shadows.EpipolarShadowOptions` ``scene_thickness``) instead of
+    reaching to infinity; None: unbounded. Rays passing behind an object's
+    silhouette, or to a light hidden behind it, then get through: on 1,024
+    two-light procedural scenes (seed 4242) the right count went from 88.3% to
+    92.0% (README, "Judged with cast shadows").
     """
 
     method: str = "cnn+refine"
@@ -190,6 +197,7 @@ class EstimateOptions:
     indirect: str = "auto"
     criterion_shadows: str = "epipolar"
     criterion_stride: int = 2
+    criterion_thickness: float | None = 0.03
     albedo_free_scale: float = 0.02
     albedo_free_block_width: float = 0.05
     albedo_error: float = 0.0
@@ -240,6 +248,9 @@ class EstimateOptions:
             raise ValueError(f"estimate.plane_window must be in (0, 1) (of the focal length), got {self.plane_window}")
         if self.indirect not in INDIRECT:
             raise ValueError(f"estimate.indirect must be one of {INDIRECT}, got {self.indirect!r}")
+        if self.criterion_thickness is not None and not 0 < self.criterion_thickness < math.inf:
+            raise ValueError(f"estimate.criterion_thickness must be null or a share of the scene size > 0, "
+                             f"got {self.criterion_thickness}")
         if self.criterion_stride < 1:
             raise ValueError(f"estimate.criterion_stride must be >= 1 pixel, got {self.criterion_stride}")
         for name in ("shadows", "search_shadows", "criterion_shadows"):
@@ -443,7 +454,8 @@ def shadow_gain(problem: FitProblem, position: Tensor, light: Tensor, specular: 
 def light_shares(problem: FitProblem, fit: Fit, specular: bool) -> Tensor:
     """Each light's share ``(B, L)`` of the direct light the fit renders (summed over pixels)."""
     t = light_transport(problem.gbuffer, problem.material, fit.position, falloff=problem.falloff,
-                        shadows=problem.shadows, specular=specular)
+                        shadows=problem.shadows,
+                        shadow_options=problem.shadow_options, specular=specular)
     kd = problem.material.kd.permute(0, 3, 1, 2)[:, :, None]  # (B, 3, 1, H, W)
     per_light = kd * t.diffuse[:, None]
     if t.specular is not None:
@@ -517,7 +529,9 @@ def judged_problem(problem: FitProblem, options: EstimateOptions) -> FitProblem:
     judged = subsample(problem, options.criterion_stride)
     if not bool(judged.gbuffer.mask.flatten(1).any(1).all()):
         judged = problem
-    if options.criterion_shadows != problem.shadows:
+    if options.criterion_thickness is not None and options.criterion_shadows == "epipolar":
+        judged = judged.with_shadows("epipolar", EpipolarShadowOptions(scene_thickness=options.criterion_thickness))
+    elif options.criterion_shadows != problem.shadows:
         judged = judged.with_shadows(options.criterion_shadows)
     if options.indirect == "auto" and problem.ambient is None and problem.gbuffer.intrinsics is not None:
         judged = judged.with_indirect()

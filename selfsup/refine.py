@@ -60,6 +60,8 @@ class FitProblem:
             error where the normals were fitted to noisy depth
             (:func:`render.geometry.plane_fit`), zero where exact; None: every normal
             exact. Only :func:`position_covariance` reads it.
+        shadow_options: the shadow method's options (:mod:`render.shadows`), None
+            for its defaults.
     """
 
     gbuffer: GBuffer
@@ -70,6 +72,7 @@ class FitProblem:
     shadows: str = "epipolar"
     indirect: bool = False
     normal_tilt: Tensor | None = None
+    shadow_options: object | None = None
     _median: Tensor | None = field(default=None, init=False, repr=False, compare=False)
     _noise: Tensor | None = field(default=None, init=False, repr=False, compare=False)
     # Median and noise level of each subsample (by stride) already found: the solvers
@@ -114,7 +117,7 @@ class FitProblem:
             g.select(index),
             Material(kd=m.kd[index], ks=None if m.ks is None else m.ks[index], shininess=shin),
             self.image[index], None if self.ambient is None else self.ambient[index], self.falloff, self.shadows,
-            self.indirect, None if self.normal_tilt is None else self.normal_tilt[index],
+            self.indirect, None if self.normal_tilt is None else self.normal_tilt[index], self.shadow_options,
         )
         # Each image's median is its own: the selection's are these rows (a sort of every
         # image's values each time was 7% of a batched estimate's GPU time).
@@ -123,9 +126,9 @@ class FitProblem:
         selected._coarse = {stride: (median[index], noise[index]) for stride, (median, noise) in self._coarse.items()}
         return selected
 
-    def with_shadows(self, shadows: str) -> "FitProblem":
-        """The same images under another shadow method."""
-        return self._changed(shadows=shadows)
+    def with_shadows(self, shadows: str, options=None) -> "FitProblem":
+        """The same images under another shadow method, with its ``options`` (None: defaults)."""
+        return self._changed(shadows=shadows, shadow_options=options)
 
     def with_indirect(self, indirect: bool = True) -> "FitProblem":
         """The same images with (or without) each light's indirect light in its basis images."""
@@ -141,7 +144,7 @@ class FitProblem:
     def cat(problems: list["FitProblem"]) -> "FitProblem":
         """One batch of same-sized problems (the inverse of :meth:`select`); a missing ks
         becomes zero, ks channels and shininess are broadcast per pixel. Falloff, shadows
-        and whether the ambient is known follow the first problem; a missing ``normal_tilt``
+        (and their options) and whether the ambient is known follow the first problem; a missing ``normal_tilt``
         becomes zero (exact normals) beside one that is given."""
         def per_pixel(m: Material, value: Tensor | None, channels: int | None = None) -> Tensor:
             B, H, W = m.kd.shape[:3]
@@ -163,6 +166,7 @@ class FitProblem:
             None if all(p.normal_tilt is None for p in problems) else torch.cat(
                 [p.image.new_zeros(p.image.shape[0], *p.image.shape[2:]) if p.normal_tilt is None else p.normal_tilt
                  for p in problems]),
+            first.shadow_options,
         )
 
 
@@ -317,7 +321,8 @@ def _design(problem: FitProblem, diffuse: Tensor, specular: Tensor | None) -> Te
 
 def _transport(problem: FitProblem, position: Tensor, specular: bool):
     t = light_transport(problem.gbuffer, problem.material, position, falloff=problem.falloff,
-                        shadows=problem.shadows, specular=specular)
+                        shadows=problem.shadows,
+                        shadow_options=problem.shadow_options, specular=specular)
     return t.diffuse, t.specular
 
 
@@ -366,7 +371,8 @@ def _jacobians(problem: FitProblem, position: Tensor, intensity: Tensor, h: Tens
     """
     B, L, _ = position.shape
     jac = light_transport_jacobian(problem.gbuffer, problem.material, position, h.reshape(B), falloff=problem.falloff,
-                                   shadows=problem.shadows, specular=specular)
+                                   shadows=problem.shadows, shadow_options=problem.shadow_options,
+                                   specular=specular)
     t = jac.transport
     cols = _columns(problem, t.diffuse, t.specular)
     # d model_c / d p_ij = I_ic (kd_c dD_i/dp_j + ks_c dS_i/dp_j): (B, L, 3 coords, 3 channels, H, W)
@@ -752,7 +758,7 @@ def normal_tilt_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tenso
     for axis in tilt_axes(n):
         tilted = dataclasses.replace(g, normals=torch.nn.functional.normalize(n + step * axis, dim=-1))
         t = light_transport(tilted, problem.material, fit.position, falloff=problem.falloff, shadows=problem.shadows,
-                            specular=specular)
+                            shadow_options=problem.shadow_options, specular=specular)
         changed = (_columns(dataclasses.replace(problem, gbuffer=tilted), t.diffuse, t.specular) * intensity).sum(2)
         per_axis.append(block_scores(problem, j_pos, cols, (changed - model) / step * size, block_px,
                                      shared_channels=True))  # (B, n, blocks): one tilt for the channels
