@@ -115,13 +115,15 @@ def run_rooms(count: int = 32, seed: int = 9100, methods=("epipolar", "paper"), 
               thicknesses: tuple[float, ...] = ()):
     """:func:`room_agreement` over the first ``count`` scenes of the procedural two-light
     set: one row per scene and a total (shares of the exactly shadowed pixels)."""
+    if count < 1:
+        raise ValueError(f"--rooms needs at least 1 room, got {count}")
     degradations, lights = SETS["true reflectance, 2 lights"]
     sampler = SamplerConfig(height=120, width=160, n_lights_probs=tuple(lights))
     rendered = render_items([seed * 1_000_003 + i for i in range(count)], sampler, Degradations(**degradations), 2)
-    names = list(methods) + [f"epipolar_T{t}" for t in thicknesses]
     rows, total = [], {}
     for index, (exact, _) in enumerate(rendered):
         counts = room_agreement(exact.scene, exact.visibility, methods, thicknesses)
+        names = [key.removesuffix("_missed") for key in counts if key.endswith("_missed")]  # as room_agreement names them
         for key, value in counts.items():
             total[key] = total.get(key, 0) + value
         rows.append({"scene": index, **_shares(counts, names)})

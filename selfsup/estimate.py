@@ -172,7 +172,7 @@ class EstimateOptions:
     reaching to infinity; None: unbounded. Rays passing behind an object's
     silhouette, or to a light hidden behind it, then get through: on 1,024
     two-light procedural scenes (seed 4242) the right count went from 88.3% to
-    92.0% (README, "Judged with cast shadows").
+    92.0% (README, "The criterion's shadows with a finite solid").
     """
 
     method: str = "cnn+refine"

@@ -144,8 +144,8 @@ class FitProblem:
     def cat(problems: list["FitProblem"]) -> "FitProblem":
         """One batch of same-sized problems (the inverse of :meth:`select`); a missing ks
         becomes zero, ks channels and shininess are broadcast per pixel. Falloff, shadows
-        (and their options) and whether the ambient is known follow the first problem; a missing ``normal_tilt``
-        becomes zero (exact normals) beside one that is given."""
+        (and their options) and whether the ambient is known follow the first problem; a
+        missing ``normal_tilt`` becomes zero (exact normals) beside one that is given."""
         def per_pixel(m: Material, value: Tensor | None, channels: int | None = None) -> Tensor:
             B, H, W = m.kd.shape[:3]
             if channels is not None:
@@ -321,8 +321,7 @@ def _design(problem: FitProblem, diffuse: Tensor, specular: Tensor | None) -> Te
 
 def _transport(problem: FitProblem, position: Tensor, specular: bool):
     t = light_transport(problem.gbuffer, problem.material, position, falloff=problem.falloff,
-                        shadows=problem.shadows,
-                        shadow_options=problem.shadow_options, specular=specular)
+                        shadows=problem.shadows, shadow_options=problem.shadow_options, specular=specular)
     return t.diffuse, t.specular
 
 

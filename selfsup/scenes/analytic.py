@@ -110,12 +110,14 @@ class ShadowAgreement:
     lit_within_1e4: float
 
 
-def shadow_edge_band(visibility: Tensor) -> Tensor:
-    """Pixels ``(..., H, W)`` bool whose 3x3 neighbourhood holds both classes of the
-    exact ``visibility (..., H, W)`` (0 or 1): the one-pixel band at shadow edges where
-    a pixel-sized disagreement is a matter of sampling, left out of the comparisons."""
+def shadow_edge_band(visibility: Tensor, pixels: int = 1) -> Tensor:
+    """Pixels ``(..., H, W)`` bool whose neighbourhood of ``pixels`` either side holds both
+    classes of the exact ``visibility (..., H, W)`` (0 or 1): the band at shadow edges
+    (one pixel by default) where a pixel-sized disagreement is a matter of sampling,
+    left out of the comparisons."""
     e = visibility.reshape(-1, 1, *visibility.shape[-2:])
-    band = F.max_pool2d(e, 3, 1, 1) != -F.max_pool2d(-e, 3, 1, 1)
+    size = 2 * pixels + 1
+    band = F.max_pool2d(e, size, 1, pixels) != -F.max_pool2d(-e, size, 1, pixels)
     return band.reshape(visibility.shape)
 
 
