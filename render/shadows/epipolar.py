@@ -346,15 +346,22 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
         if thick:
             # Only pixels (partly) shadowed by the unbounded solid can change: the
             # occluders that count for a pixel are a subset of that solid's.
+            # The band's node minima and occluder columns are kept for the gradient pass:
+            # its pixels are these, filtered, in the same (row-major) order.
             rows, cols = (valid & (t < 1)).nonzero(as_tuple=True)
             per_chunk = max(1, options.chunk_samples // (2 * (ns + 1)))
+            band_minima, band_columns = [], []
             for start in range(0, rows.numel(), per_chunk):
                 r, c = rows[start:start + per_chunk], cols[start:start + per_chunk]
                 node, fa, fs = _node_index(*_pixel_coords(lines.select(r), u[c], v[c], options.lookback), ns)
-                node_min, _ = _slab_minima(front_table, back_table, r, node, gamma[r, c])
+                node_min, columns = _slab_minima(front_table, back_table, r, node, gamma[r, c])
                 slab_min = _lerp_nodes(node_min, fa, fs)
-                visibility[r, c], t[r, c] = _smooth_visibility(slab_min, gamma[r, c], pts[r, c, 2], distance[r, c],
-                                                               focal[r], options)
+                visibility[r, c], t_rc = _smooth_visibility(slab_min, gamma[r, c], pts[r, c, 2], distance[r, c],
+                                                            focal[r], options)
+                t[r, c] = t_rc
+                in_band = (t_rc > 0) & (t_rc < 1)
+                band_minima.append(node_min[in_band])
+                band_columns.append(columns[in_band])
         visibility = torch.where(valid, visibility, 1.0)
         band = valid & (t > 0) & (t < 1)
 
@@ -374,7 +381,7 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     node, fa, fs = _node_index(*_pixel_coords(band_lines, u[cols], v[cols], options.lookback), ns)  # (M, 4), (M,), (M,)
     at = rows[:, None]
     if thick:
-        node_min, occluder_column = _slab_minima(front_table, back_table, rows, node, gamma[rows, cols])
+        node_min, occluder_column = torch.cat(band_minima), torch.cat(band_columns)
     else:
         node_min, occluder_column = running_flat[at, node], argmin_flat[at, node]
     seen = node_min < _NO_OCCLUDER
