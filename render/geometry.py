@@ -6,6 +6,7 @@ z forward; pixel ``(row i, col j)`` has image coordinates ``u = j, v = i``.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -165,8 +166,8 @@ def plane_normals(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative
     return fit.normals, fit.has_normal
 
 
-def plane_fit(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative_step: float = 0.1, step: int = 1
-              ) -> PlaneFit:
+def plane_fit(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative_step: float = 0.1, step: int = 1,
+              shifts: tuple[float, ...] = ()) -> PlaneFit:
     """Unit normals of least-squares planes fitted to each pixel's window, for noisy depth.
 
     Differences of neighbouring pixels turn sensor noise of a few centimetres into
@@ -179,6 +180,19 @@ def plane_fit(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative_ste
     pixels: a wide window's leverage (the tilt error falls with the window's
     extent) at the cost of a narrow one, ``((2 radius) / step + 1)^2`` offsets.
     Memory ``O(B H W)``.
+
+    ``shifts`` (fractions of ``radius``; none by default) lets each pixel take the plane
+    of a nearby window instead of its own: among its own and the windows centred
+    ``round(f radius)`` pixels away in the eight directions, for each ``f``, the one
+    with the least ``s^2 + d^2``, ``s^2`` the window's scatter off its plane (below) and
+    ``d`` the pixel's distance from that plane. A window centred beside a crease (a
+    floor meeting a wall, an object standing on the floor) fits neither plane and
+    rounds the crease off over its whole width; a window further in, on the pixel's
+    own side, fits the pixel's plane. On the Mitsuba sensor-noise files (160x120,
+    ``radius`` 8, ``step`` 2) the share of normals more than 10 degrees off fell from
+    17% to 6% with ``(1, 0.5, 0.25)`` (README, "Normals of noisy depth beside
+    creases"). What it cannot tell apart: a pixel on the crease line itself lies on
+    both planes and may take either.
 
     Args:
         points: ``(B, H, W, 3)`` camera-frame points.
@@ -199,6 +213,8 @@ def plane_fit(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative_ste
     """
     if radius < 1 or not 1 <= step <= radius:
         raise ValueError(f"plane_fit needs radius >= 1 and 1 <= step <= radius, got radius {radius}, step {step}")
+    if not all(0 < f < math.inf for f in shifts):
+        raise ValueError(f"plane_fit's shifts must be fractions of the radius > 0, got {shifts}")
     B, H, W, _ = points.shape
     # Channel-first, with the 6 distinct second moments: a (..., 3) last axis and a 3x3
     # outer product per offset cost a third more time (ad hoc, 160x120).
@@ -232,7 +248,38 @@ def plane_fit(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative_ste
     tiny = torch.finfo(points.dtype).tiny
     tilt = 0.5 * scatter / used * (1 / eigenvalues[..., 1].clamp_min(tiny) + 1 / eigenvalues[..., 2].clamp_min(tiny))
     tilt = torch.where(has_normal & torch.isfinite(tilt), tilt, torch.zeros_like(tilt))
-    return PlaneFit(torch.where(has_normal[..., None], n, torch.zeros_like(n)), has_normal, tilt)
+    n = torch.where(has_normal[..., None], n, torch.zeros_like(n))
+    if shifts:
+        n, tilt = _nearby_planes(points, n, has_normal, tilt, points + mean.permute(0, 2, 3, 1), scatter,
+                                 sorted({max(1, round(f * radius)) for f in shifts}))
+    return PlaneFit(n, has_normal, tilt)
+
+
+def _nearby_planes(points: Tensor, normals: Tensor, has_normal: Tensor, tilt: Tensor, centres: Tensor,
+                   scatter: Tensor, distances: list[int]) -> tuple[Tensor, Tensor]:
+    # plane_fit's shifts: each pixel's normal and tilt variance taken from the window (its
+    # own, or one ``distances`` pixels away in the eight directions) whose plane has the
+    # least scatter plus squared distance to the pixel. ``centres (B, H, W, 3)``: each
+    # window's centroid; ``scatter (B, H, W)``: its points' variance off its plane.
+    B, H, W, _ = points.shape
+    reach = max(distances)
+    # One channel-first stack, padded once: normal (3), centroid (3), scatter, tilt, has_normal.
+    fields = torch.cat([normals, centres, scatter[..., None], tilt[..., None],
+                        has_normal[..., None].to(points.dtype)], -1).permute(0, 3, 1, 2)
+    padded = torch.nn.functional.pad(fields, (reach,) * 4)
+    best = torch.where(has_normal, scatter + ((points - centres) * normals).sum(-1) ** 2,
+                       torch.full_like(scatter, math.inf))
+    chosen_normals, chosen_tilt = normals, tilt
+    for d in distances:
+        for di, dj in ((-d, -d), (-d, 0), (-d, d), (0, -d), (0, d), (d, -d), (d, 0), (d, d)):
+            there = padded[:, :, reach + di : reach + di + H, reach + dj : reach + dj + W].permute(0, 2, 3, 1)
+            normal, centre = there[..., 0:3], there[..., 3:6]
+            score = there[..., 6] + ((points - centre) * normal).sum(-1) ** 2
+            better = has_normal & (there[..., 8] > 0) & (score < best)
+            best = torch.where(better, score, best)
+            chosen_normals = torch.where(better[..., None], normal, chosen_normals)
+            chosen_tilt = torch.where(better, there[..., 7], chosen_tilt)
+    return chosen_normals, chosen_tilt
 
 
 def smallest_eigenvector(moments: Tensor) -> tuple[Tensor, Tensor]:

@@ -617,6 +617,9 @@ def test_the_plane_window_follows_the_focal_length():
     assert plane_window_px(1e6, 0.06, 120) == (15, 4)  # capped at an eighth of the shorter side
     with pytest.raises(ValueError, match="plane_window"):
         EstimateOptions(plane_window=0)
+    with pytest.raises(ValueError, match="plane_shifts"):
+        EstimateOptions(plane_shifts=[0.5, 2.0])
+    assert EstimateOptions(plane_shifts=[]).plane_shifts == ()  # a config's list, empty: each pixel's own window
 
 
 def test_noisy_normals_of_a_batch_are_each_scenes_own():

@@ -97,6 +97,41 @@ def test_absurd_window_settings_are_named():
         smooth_normals(g.points, g.normals, g.mask, normal_sigma=0)
 
 
+def _floor_and_wall(noise: float, seed: int = 0) -> tuple[GBuffer, torch.Tensor, torch.Tensor]:
+    # A floor (y = 1, the camera 1 above it) meeting a back wall (z = 4) along image row
+    # 38.5; returns the G-buffer of the noisy depth, the true normals and each pixel's
+    # distance in rows from the crease.
+    H, W = 64, 64
+    v = torch.arange(H, dtype=torch.float64)[:, None].expand(H, W)
+    down = (v - K[1, 2]) / K[1, 1]  # y / z along each pixel's ray
+    floor = torch.where(down > 0, 1 / down.clamp_min(1e-9), torch.full_like(down, math.inf))
+    on_floor = floor < 4
+    depth = torch.where(on_floor, floor, torch.full_like(floor, 4.0))
+    depth = depth + noise * torch.randn(H, W, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    truth = torch.where(on_floor[..., None], torch.tensor([0.0, -1, 0], dtype=torch.float64),
+                        torch.tensor([0.0, 0, -1], dtype=torch.float64))
+    crease_row = K[1, 2] + K[1, 1] / 4
+    return GBuffer.from_depth(depth[None], K), truth, (v - crease_row).abs()
+
+
+def test_shifted_windows_keep_a_crease_that_centred_windows_round_off():
+    g, truth, rows_away = _floor_and_wall(noise=0.005)
+    band = g.mask[0] & (rows_away > 1) & (rows_away < 4)  # within the window's reach, off the crease line
+    band[:, :4] = band[:, -4:] = False  # the image's sides: windows cut short there
+    centred = plane_fit(g.points, g.mask, radius=4)
+    shifted = plane_fit(g.points, g.mask, radius=4, shifts=(1.0, 0.5, 0.25))
+    assert float(_angle(centred.normals[0], truth, band).mean()) > 10  # rounded off (measured 14.7 degrees)
+    assert float(_angle(shifted.normals[0], truth, band).mean()) < 1  # (0.18)
+    inside = g.mask[0] & (rows_away > 6)  # away from the crease: about as good as the own window (0.31 against 0.27)
+    assert float(_angle(shifted.normals[0], truth, inside).mean()) < 1.5 * float(_angle(centred.normals[0], truth, inside).mean())
+    assert torch.equal(shifted.has_normal, centred.has_normal)
+    clean = _tilted_plane()
+    torch.testing.assert_close(plane_fit(clean.points, clean.mask, radius=4, shifts=(1.0, 0.5)).normals[0],
+                               TILT.expand(48, 64, 3), atol=1e-9, rtol=0)
+    with pytest.raises(ValueError, match="shifts"):
+        plane_fit(g.points, g.mask, radius=4, shifts=(0.0,))
+
+
 @pytest.mark.parametrize("radius, step", [(4, 1), (8, 2)])
 def test_plane_fit_predicts_the_tilt_error_of_its_normals(radius, step):
     # The tilt variance from the scatter off each plane against the normals' actual
