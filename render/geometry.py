@@ -261,7 +261,7 @@ def _nearby_planes(points: Tensor, normals: Tensor, has_normal: Tensor, tilt: Te
     # own, or one ``distances`` pixels away in the eight directions) whose plane has the
     # least scatter plus squared distance to the pixel. ``centres (B, H, W, 3)``: each
     # window's centroid; ``scatter (B, H, W)``: its points' variance off its plane.
-    B, H, W, _ = points.shape
+    H, W = points.shape[1:3]
     reach = max(distances)
     # One channel-first stack, padded once: normal (3), centroid (3), scatter, tilt, has_normal.
     fields = torch.cat([normals, centres, scatter[..., None], tilt[..., None],

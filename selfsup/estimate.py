@@ -106,7 +106,7 @@ class EstimateOptions:
     ``plane_shifts``: each refitted pixel may take the plane of a window beside its own,
     these fractions of the window's half-size away (``plane_fit``'s ``shifts``; empty:
     its own window alone), so that creases keep their sides: on the Mitsuba
-    sensor-noise files the two-light successes went from 13 to 15 of 24 (README,
+    sensor-noise files the two-light successes went from 11 to 15 of 24 (README,
     "Normals of noisy depth beside creases").
     ``mask_saturated``: leave clipped pixels out (:func:`saturated_pixels`); the
     model cannot explain a highlight cut flat, and fitted it with a second light.
