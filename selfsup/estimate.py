@@ -301,7 +301,8 @@ def saturated_pixels(image: Tensor, mask: Tensor, min_share: float = 0.002) -> T
 
 def problem_of(scene: Scene, shadows: str = "epipolar", dtype=torch.float32, normal_smoothing: str = "never",
                normal_noise_threshold: float = 0.5, mask_saturated: bool = False, *,
-               plane_window: float = 0.06, plane_shifts: tuple[float, ...] = ()) -> FitProblem:
+               plane_window: float = EstimateOptions.plane_window,
+               plane_shifts: tuple[float, ...] = EstimateOptions.plane_shifts) -> FitProblem:
     """A batch-of-one :class:`FitProblem` from a scene file's contents (see :func:`problems_of`)."""
     return problems_of([scene], shadows, dtype, normal_smoothing, normal_noise_threshold, mask_saturated,
                        plane_window=plane_window, plane_shifts=plane_shifts)
@@ -340,7 +341,8 @@ def plane_window_px(focal_px: float, plane_window: float, image_px: int) -> tupl
 
 def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.float32, normal_smoothing: str = "never",
                 normal_noise_threshold: float = 0.5, mask_saturated: bool = False, device=None, *,
-                plane_window: float = 0.06, plane_shifts: tuple[float, ...] = ()) -> FitProblem:
+                plane_window: float = EstimateOptions.plane_window,
+                plane_shifts: tuple[float, ...] = EstimateOptions.plane_shifts) -> FitProblem:
     """One :class:`FitProblem` of ``B`` same-sized scenes, on ``device`` (None: the
     scenes' own; the scenes are stacked first, so each field moves in one copy);
     the normals smoothed as ``normal_smoothing`` says (see :class:`EstimateOptions`, as
