@@ -15,7 +15,7 @@ import dataclasses
 
 import torch
 from torch import Tensor
-from torch.utils.data import Dataset
+from torch.utils.data import Dataset, default_collate
 
 from selfsup.scenes.degrade import Degradations, degrade
 from selfsup.scenes.exact import RenderedScene, render_specs
@@ -90,8 +90,13 @@ def scene_to_item(scene: Scene, max_lights: int) -> dict[str, Tensor]:
 
 
 def collate(items: list[dict[str, Tensor]]) -> dict[str, Tensor]:
-    """Stack items (all of one resolution) along a new batch axis."""
-    return {key: torch.stack([item[key] for item in items]) for key in items[0]}
+    """Stack items (all of one resolution) along a new batch axis: ``{key: (N, ...)}``.
+
+    torch's ``default_collate`` does the stacking: inside a DataLoader worker it
+    stacks straight into shared memory, so handing the batch (25 MB at 32 scenes
+    of 128x128) to the main process copies nothing more in the worker.
+    """
+    return default_collate(items)
 
 
 def render_item(seed: int, sampler: SamplerConfig, degradations: Degradations, samples: int) -> tuple[RenderedScene, Scene]:

@@ -1,6 +1,8 @@
 """Procedural scenes: sampler, exact rendering, degradations, datasets, files."""
 
 import dataclasses
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -209,6 +211,18 @@ def test_dataset_is_reproducible_and_worker_safe():
     assert direct["light_mask"].shape == (4, 2)
     with pytest.raises(IndexError):
         data[4]
+
+
+def test_rendering_a_scene_imports_no_sympy():
+    # Each DataLoader worker would pay the import (half a second) before its first
+    # batch; torch.broadcast_shapes, for one, imports it on its first call.
+    code = ("import sys; from selfsup.scenes.dataset import render_items; "
+            "from selfsup.scenes.sampler import SamplerConfig; from selfsup.scenes.degrade import Degradations; "
+            "render_items([0, 1], SamplerConfig(height=24, width=32), Degradations(), 2); "
+            "print('sympy' in sys.modules)")
+    ran = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert ran.returncode == 0, ran.stderr
+    assert ran.stdout.strip() == "False"
 
 
 def test_protocol_set_is_9_scenes_by_6_lights():
