@@ -19,3 +19,16 @@ def test_readme_starts_with_the_two_setup_commands_and_ci_runs_the_test_one():
 def test_readme_example_runs():
     code = re.search(r"```python\n(.*?)```", README, re.S).group(1)
     exec(compile(code, "README.md", "exec"), {})
+
+
+def test_readme_links_reach_their_sections_and_files():
+    # GitHub's heading anchors: lower case, punctuation dropped, spaces as hyphens.
+    anchors = {re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+               for heading in re.findall(r"^#+ (.*)$", README, re.M)}
+    targets = re.findall(r"\]\(([^)\s]+)\)", README)
+    assert targets
+    for target in targets:
+        if target.startswith("#"):
+            assert target[1:] in anchors, f"README links to a missing section {target}"
+        elif "://" not in target:
+            assert (ROOT / target.split("#")[0]).exists(), f"README links to a missing file {target}"
