@@ -849,16 +849,31 @@ def block_sums(x: Tensor, block_px: int) -> Tensor:
 def position_blocks(info: Tensor, sigma2: Tensor, n_lights: int, extra: Tensor | None = None) -> Tensor:
     """Each light's ``(B, L, 3, 3)`` block of the covariance ``sigma2 (B,) x info^-1`` of a
     Gauss-Newton information matrix ``info (B, k, k)`` whose first ``3 L`` parameters
-    are the lights' positions (a ridge of 1e-12 of its mean curvature, then the
-    pseudo-inverse: a parameter nothing constrains gets no variance, not a failure),
-    plus ``info^-1 extra info^-1`` for a further error source of score covariance
-    ``extra (B, k, k)``."""
+    are the lights' positions, plus ``info^-1 extra info^-1`` for a further error source
+    of score covariance ``extra (B, k, k)``; in ``info``'s dtype.
+
+    The parameters' curvatures differ by many orders of magnitude (positions in the
+    file's units, intensities that grow with the distance squared, the ambient), so
+    ``info`` is inverted in float64 after scaling it to a unit diagonal, which makes
+    the answer independent of the units. A pseudo-inverse of the raw matrix cut off
+    every direction below float32's relative precision of the largest curvature: a
+    distant light's position got almost no variance, and the same scene given in
+    millimetres a position_std a hundred times too small. A direction the data do not
+    constrain (a scaled eigenvalue under 1e-12) gets the variance of one that small,
+    enormous rather than zero: unknown is not certain.
+    """
     B, k, _ = info.shape
-    info = info + 1e-12 * info.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] * torch.eye(k, dtype=info.dtype,
-                                                                                              device=info.device)
-    inverse = torch.linalg.pinv(info, hermitian=True)
-    cov = inverse * sigma2[:, None, None]
+    matrix = info.double()
+    diagonal = matrix.diagonal(dim1=-2, dim2=-1)
+    # A parameter with no curvature at all is scaled by 1: its row is zero either way.
+    scale = torch.where(diagonal > 0, diagonal, torch.ones_like(diagonal)).rsqrt()  # (B, k)
+    eigenvalues, vectors = torch.linalg.eigh(matrix * scale[:, :, None] * scale[:, None, :])
+    floor = 1e-12 * eigenvalues.amax(-1, keepdim=True).clamp_min(1e-300)
+    scaled_inverse = (vectors / eigenvalues.clamp_min(floor)[:, None, :]) @ vectors.transpose(-1, -2)
+    inverse = scaled_inverse * scale[:, :, None] * scale[:, None, :]
+    cov = inverse * sigma2.double()[:, None, None]
     if extra is not None:
-        cov = cov + inverse @ extra @ inverse
+        cov = cov + inverse @ extra.double() @ inverse
+    cov = cov.to(info.dtype)
     pos_cov = cov[:, : 3 * n_lights, : 3 * n_lights].reshape(B, n_lights, 3, n_lights, 3)
     return torch.stack([pos_cov[:, i, :, i, :] for i in range(n_lights)], 1)

@@ -13,7 +13,8 @@ from selfsup.estimate import (EstimateOptions, estimate_batch, estimate_files, e
                               problems_of, records)
 from selfsup.metrics import light_errors
 from render import EpipolarShadowOptions, GBuffer, Material
-from selfsup.refine import FitProblem, RefineOptions, _normal_equations, evaluate, refine, robust_loss, search
+from selfsup.refine import (FitProblem, RefineOptions, _normal_equations, evaluate, position_blocks, refine,
+                            robust_loss, search)
 from selfsup.scenes.exact import render_spec
 from selfsup.scenes.io import write_scene
 from selfsup.scenes.sampler import SamplerConfig, sample_scene
@@ -176,6 +177,35 @@ def test_uncertainty_is_present_finite_and_small_on_an_exact_scene():
     std = torch.tensor(record["lights"][0]["position_std"])
     assert std.shape == (3,) and torch.isfinite(std).all() and (std > 0).all()
     assert float(std.max()) < 0.05 * float(scene.scene_scale)
+
+
+def test_position_covariance_does_not_depend_on_the_units():
+    # Curvatures of 1e-3 next to 1e4, as a distant light's position beside intensities:
+    # the float32 matrix's covariance must be its exact inverse, whatever the units.
+    generator = torch.Generator().manual_seed(0)
+    a = torch.randn(12, 9, generator=generator, dtype=torch.float64)
+    units = torch.tensor([1e-2, 3e-2, 1e-2, 1.0, 1.0, 1.0, 1e2, 1e2, 1e2], dtype=torch.float64)
+    info = (a * units).T @ (a * units)  # (9, 9): two lights' positions, then three more parameters
+    exact = torch.linalg.inv(info)
+    blocks = position_blocks(info.float()[None], torch.ones(1), 2)
+    assert blocks.dtype == torch.float32
+    for light in range(2):
+        rows = slice(3 * light, 3 * light + 3)
+        torch.testing.assert_close(blocks[0, light].double(), exact[rows, rows], rtol=1e-4, atol=0)
+    # Nothing constrains a parameter: an enormous variance, not none.
+    info[0, :] = info[:, 0] = 0
+    assert float(position_blocks(info.float()[None], torch.ones(1), 2)[0, 0, 0, 0]) > 1e9
+
+
+def test_position_std_follows_the_scene_into_millimetres():
+    scene = _scene(5)
+    options = EstimateOptions(method="refine", max_lights=1, refine=RefineOptions(max_iters=(15, 5)))
+    metres = estimate_scene(scene, options)["lights"][0]
+    millimetres = estimate_scene(dataclasses.replace(scene, depth=scene.depth * 1000), options)["lights"][0]
+    torch.testing.assert_close(torch.tensor(millimetres["position"]), 1000 * torch.tensor(metres["position"]),
+                               rtol=1e-3, atol=0)
+    torch.testing.assert_close(torch.tensor(millimetres["position_std"]), 1000 * torch.tensor(metres["position_std"]),
+                               rtol=0.05, atol=0)
 
 
 @pytest.mark.parametrize("known_ambient", [False, True])
