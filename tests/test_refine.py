@@ -180,7 +180,7 @@ def test_uncertainty_is_present_finite_and_small_on_an_exact_scene():
 
 
 def test_position_covariance_does_not_depend_on_the_units():
-    # Curvatures of 1e-3 next to 1e4, as a distant light's position beside intensities:
+    # Curvatures of 1e-4 next to 1e4, as a distant light's position beside intensities:
     # the float32 matrix's covariance must be its exact inverse, whatever the units.
     generator = torch.Generator().manual_seed(0)
     a = torch.randn(12, 9, generator=generator, dtype=torch.float64)
