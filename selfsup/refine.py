@@ -436,6 +436,11 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
     # One reweighting pass only: weights converged at a wrong start would silence the
     # very residuals that say where the light should move.
     cost, intensity, ambient, model, weights, _, _ = evaluate(problem, position, options, passes=1)
+    # Each parameter's kind in the normal equations' order: positions (0), then channel by
+    # channel each light's intensity (1) and the unknown ambient (2).
+    k = L + (problem.ambient is None)
+    linear_kind = torch.tensor([1] * L + [2] * (k - L), device=position.device).repeat(3)
+    kinds = torch.cat([torch.zeros(3 * L, dtype=torch.long, device=position.device), linear_kind])
     for _ in range(max_iters):
         idx = active.nonzero(as_tuple=True)[0]
         if idx.numel() == 0:
@@ -448,8 +453,11 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         jtj, jtr = _normal_equations(sub, j_pos, cols_base, w, model[idx] - sub.image)
         diag = jtj.diagonal(dim1=-2, dim2=-1)
         # A light that lights nothing has zero columns: a floor of 1e-6 of the largest
-        # curvature keeps the damped system positive definite (it then stays put).
-        peak = diag.amax(-1, keepdim=True)
+        # curvature of its kind keeps the damped system positive definite (it then stays
+        # put). Of its kind: positions, intensities and the ambient have curvatures in
+        # units of their own (an intensity's grows as distance^-4), and one floor for all
+        # lifted the intensities' in a file in millimetres, which moved its answer.
+        peak = torch.stack([(diag * (kinds == kind)).amax(-1) for kind in range(3)], -1)[:, kinds]
         diag = torch.where(peak > 0, diag.clamp_min(1e-6 * peak), torch.ones_like(diag))
         damped = torch.zeros_like(diag)
         damped[:, : 3 * L] = diag[:, : 3 * L]  # damp the position block only: the linear block is exact

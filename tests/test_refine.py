@@ -13,7 +13,7 @@ from selfsup.estimate import (EstimateOptions, estimate_batch, estimate_files, e
                               problems_of, records)
 from selfsup.metrics import light_errors
 from render import EpipolarShadowOptions, GBuffer, Material
-from selfsup.refine import (FitProblem, RefineOptions, _normal_equations, evaluate, position_blocks, refine,
+from selfsup.refine import (FitProblem, RefineOptions, _lm, _normal_equations, evaluate, position_blocks, refine,
                             robust_loss, search)
 from selfsup.scenes.exact import render_spec
 from selfsup.scenes.io import write_scene
@@ -206,6 +206,23 @@ def test_position_std_follows_the_scene_into_millimetres():
                                rtol=1e-3, atol=0)
     torch.testing.assert_close(torch.tensor(millimetres["position_std"]), 1000 * torch.tensor(metres["position_std"]),
                                rtol=0.05, atol=0)
+
+
+@pytest.mark.parametrize("known_ambient", [False, True])
+def test_lm_steps_do_not_depend_on_the_units(known_ambient):
+    # The same file in millimetres: every LM step is the metre step x 1000. Positions,
+    # intensities (x 1e6 under inverse-square falloff) and the ambient curvatures differ by
+    # many orders there; a floor on them relative to the largest of all moved the steps.
+    scene = _scene(5)
+    options = EstimateOptions()
+    start = scene.light_pos[None] + torch.tensor([0.3, -0.2, 0.25])
+    steps = []
+    for k in (1.0, 1000.0):
+        problem = prepare([dataclasses.replace(scene, depth=scene.depth * k)], options)
+        if not known_ambient:
+            problem = dataclasses.replace(problem, ambient=None)
+        steps.append(_lm(problem, start.clone() * k, RefineOptions(), 3)[0] / k)
+    torch.testing.assert_close(steps[1], steps[0], rtol=0, atol=1e-5 * float(scene.scene_scale))
 
 
 @pytest.mark.parametrize("known_ambient", [False, True])
