@@ -455,7 +455,7 @@ def _lm(problem: FitProblem, position: Tensor, options: RefineOptions, max_iters
         # A light that lights nothing has zero columns: a floor of 1e-6 of the largest
         # curvature of its kind keeps the damped system positive definite (it then stays
         # put). Of its kind: positions, intensities and the ambient have curvatures in
-        # units of their own (an intensity's grows as distance^-4), and one floor for all
+        # units of their own (an intensity's goes as distance^-4), and one floor for all
         # lifted the intensities' in a file in millimetres, which moved its answer.
         peak = torch.stack([(diag * (kinds == kind)).amax(-1) for kind in range(3)], -1)[:, kinds]
         diag = torch.where(peak > 0, diag.clamp_min(1e-6 * peak), torch.ones_like(diag))

@@ -210,9 +210,9 @@ def test_position_std_follows_the_scene_into_millimetres():
 
 @pytest.mark.parametrize("known_ambient", [False, True])
 def test_lm_steps_do_not_depend_on_the_units(known_ambient):
-    # The same file in millimetres: every LM step is the metre step x 1000. Positions,
-    # intensities (x 1e6 under inverse-square falloff) and the ambient curvatures differ by
-    # many orders there; a floor on them relative to the largest of all moved the steps.
+    # The same file in millimetres: every LM step is the metre step x 1000. There the
+    # curvatures of the positions, the intensities (x 1e6 under inverse-square falloff) and
+    # the ambient differ by many orders; a floor relative to the largest of all moved the steps.
     scene = _scene(5)
     options = EstimateOptions()
     start = scene.light_pos[None] + torch.tensor([0.3, -0.2, 0.25])
