@@ -213,6 +213,7 @@ def test_lm_steps_do_not_depend_on_the_units(known_ambient):
     # The same file in millimetres: every LM step is the metre step x 1000. There the
     # curvatures of the positions, the intensities (x 1e6 under inverse-square falloff) and
     # the ambient differ by many orders; a floor relative to the largest of all moved the steps.
+    # (With the ambient known the old floor left these steps alone: that case is a guard.)
     scene = _scene(5)
     options = EstimateOptions()
     start = scene.light_pos[None] + torch.tensor([0.3, -0.2, 0.25])
