@@ -3,6 +3,9 @@
 Image model (``../shared/scene-format.md``), per pixel point ``X`` and light ``i``::
 
     I = kd * L_a + sum_i S_i * I_i * f(d_i) * (kd * max(0, n.l_i) + ks * max(0, n.h_i)^alpha)
+
+where a material with a clear coat (``Material.coat``) has its diffuse term
+multiplied by the coat's Fresnel transmission in and out.
 """
 
 from __future__ import annotations
@@ -12,8 +15,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from render.geometry import dot3, fit_intrinsics
-from render.shading import (Falloff, blinn_phong_lobe, falloff_factor, light_geometry, light_offset,
+from render.geometry import dot3, fit_intrinsics, norm3
+from render.shading import (Falloff, blinn_phong_lobe, coat_transmission, falloff_factor, light_geometry, light_offset,
                             shading_and_position_gradients)
 from render.shadows import ShadowMethod, shadow_visibility
 from render.types import GBuffer, Material, PointLights, check_ambient
@@ -61,7 +64,8 @@ class LightTransport:
         image = kd * (L_a + sum_i I_i * diffuse_i) + ks * sum_i I_i * specular_i
 
     Attributes:
-        diffuse: ``(B, L, H, W)``, ``S_i f(d_i) max(0, n.l_i)``.
+        diffuse: ``(B, L, H, W)``, ``S_i f(d_i) max(0, n.l_i)``, times the coat's
+            transmission in and out where ``material.coat`` is set.
         specular: ``(B, L, H, W)`` ``S_i f(d_i) max(0, n.h_i)^alpha``, or None when skipped.
         visibility: ``(B, L, H, W)`` shadow term (attached shadow included), or None
             when shadows are off.
@@ -90,6 +94,16 @@ def _geometry(gbuffer: GBuffer, light_position: Tensor):
     return light_geometry(gbuffer.points[:, None], light_position[:, :, None, None, :])
 
 
+def _coat(gbuffer: GBuffer, material: Material) -> tuple[Tensor, Tensor] | None:
+    # The coat's weight (B, 1, H, W) and its transmission towards the camera (B, 1, H, W), or None.
+    if material.coat is None:
+        return None
+    coat = material.coat[..., 0][:, None].to(gbuffer.points.dtype)
+    points = gbuffer.points[:, None]
+    n_dot_v = -dot3(gbuffer.normals[:, None], points) / norm3(points).clamp_min(torch.finfo(points.dtype).tiny)
+    return coat, coat_transmission(n_dot_v, coat, material.coat_f0)[0]
+
+
 def _transport(gbuffer, material, light_position, falloff, shadows, shadow_options, with_specular,
                geometry=None) -> LightTransport:
     # geometry: _geometry(gbuffer, light_position) when the caller already has it.
@@ -116,7 +130,11 @@ def _transport(gbuffer, material, light_position, falloff, shadows, shadow_optio
     specular = None
     if with_specular:
         specular = weight * blinn_phong_lobe(normals, to_light, to_viewer, _shininess(material))
-    return LightTransport(diffuse=weight * n_dot_l.clamp_min(0), specular=specular, visibility=visibility)
+    diffuse = weight * n_dot_l.clamp_min(0)
+    coat = _coat(gbuffer, material)
+    if coat is not None:
+        diffuse = diffuse * coat_transmission(n_dot_l, coat[0], material.coat_f0)[0] * coat[1]
+    return LightTransport(diffuse=diffuse, specular=specular, visibility=visibility)
 
 
 def light_transport(
@@ -192,6 +210,14 @@ def light_transport_jacobian(
     normals = gbuffer.normals[:, None]
     diffuse, spec, d_diffuse, d_specular = shading_and_position_gradients(normals, geometry, _shininess(material),
                                                                           falloff, with_specular)
+    coat = _coat(gbuffer, material)
+    if coat is not None:
+        # d(f c T(c) T_o)/dp = T(c) T_o d(f c)/dp + f c T_o T'(c) dc/dp, dc/dp = (n - c l) / d.
+        n_dot_l = dot3(normals, geometry.to_light)
+        inward, slope = coat_transmission(n_dot_l, coat[0], material.coat_f0)
+        d_cos = (normals - n_dot_l[..., None] * geometry.to_light) / geometry.distance[..., None]
+        d_diffuse = (inward * coat[1])[..., None] * d_diffuse + (diffuse * coat[1] * slope)[..., None] * d_cos
+        diffuse = diffuse * inward * coat[1]
     if shadows is ShadowMethod.NONE:
         return TransportJacobian(LightTransport(diffuse, spec, None), d_diffuse, d_specular)
 

@@ -208,6 +208,15 @@ class Material:
             none (the specular term is then skipped entirely).
         shininess: Blinn-Phong exponent alpha > 0: a float, or a tensor of shape
             ``()``, ``(B,)`` or ``(B, H, W)``.
+        coat: ``(B, H, W, 1)`` in [0, 1], or None for none: a clear dielectric coat over
+            the diffuse layer (glossy plastic, varnish, where the specular highlight
+            is the coat's reflection). Light reaches the diffuse layer and leaves it
+            through the coat, so the diffuse term is multiplied by
+            ``(1 - coat F(n.l)) (1 - coat F(n.v))``, with Schlick's Fresnel
+            reflectance ``F(c) = coat_f0 + (1 - coat_f0) (1 - c)^5``. The specular
+            and ambient terms are unchanged.
+        coat_f0: the coat's Fresnel reflectance at normal incidence (0.04: a
+            refractive index of 1.5, plastics and varnishes).
 
     Example:
         >>> m = Material(kd=torch.full((2, 4, 5, 3), 0.5))
@@ -218,6 +227,8 @@ class Material:
     kd: Tensor
     ks: Tensor | None = None
     shininess: Tensor | float = 1.0
+    coat: Tensor | None = None
+    coat_f0: float = 0.04
 
     def __post_init__(self) -> None:
         kd = _require_tensor("kd", self.kd)
@@ -229,6 +240,12 @@ class Material:
                 raise ValueError(
                     f"ks must have shape (B, {kd.shape[1]}, {kd.shape[2]}, 1 or 3), got {_shape(ks)}"
                 )
+        if self.coat is not None:
+            coat = _require_tensor("coat", self.coat)
+            if coat.dim() != 4 or coat.shape[-1] != 1 or coat.shape[1:3] != kd.shape[1:3]:
+                raise ValueError(f"coat must have shape (B, {kd.shape[1]}, {kd.shape[2]}, 1), got {_shape(coat)}")
+        if not 0.0 <= float(self.coat_f0) < 1.0:
+            raise ValueError(f"coat_f0 must be in [0, 1), got {self.coat_f0}")
         shininess = self.shininess
         if not isinstance(shininess, Tensor):
             shininess = torch.tensor(float(shininess), dtype=kd.dtype, device=kd.device)
@@ -262,6 +279,10 @@ class Material:
         _require_finite("shininess", self.shininess)
         if bool((self.shininess <= 0).any()):
             raise ValueError("shininess must be > 0")
+        if self.coat is not None:
+            _require_finite("coat", self.coat)
+            if bool(((self.coat < 0) | (self.coat > 1)).any()):
+                raise ValueError("coat must be in [0, 1]")
 
 
 @dataclass(frozen=True)

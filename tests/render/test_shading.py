@@ -26,6 +26,41 @@ def test_diffuse_exact_angles():
         assert value == pytest.approx(expected, abs=1e-12), name
 
 
+def test_coat_lets_through_the_fresnel_transmission_in_and_out():
+    # Schlick with f0 = 0.04: F(c) = 0.04 + 0.96 (1 - c)^5. A light at 45 degrees on a
+    # wall pixel seen at angle c_o: the diffuse value times (1 - F(1/sqrt 2)) (1 - F(c_o)).
+    g = flat_wall()
+    kd = torch.ones(1, 16, 16, 3, dtype=torch.float64)
+    X = g.points[0, 5, 9]
+    lights = PointLights(position=(X + torch.tensor([0.0, -1.0, -1.0], dtype=torch.float64)).view(1, 1, 3),
+                         intensity=torch.ones(1, 1, 3, dtype=torch.float64))
+    c_in, c_out = 1 / math.sqrt(2), float(-(g.normals[0, 5, 9] @ X) / X.norm())
+
+    def through(c):
+        return 1 - (0.04 + 0.96 * (1 - c) ** 5)
+
+    for weight, expected in ((1.0, c_in * through(c_in) * through(c_out)), (0.0, c_in)):
+        coat = torch.full_like(kd[..., :1], weight)
+        out = render(g, Material(kd=kd, coat=coat), lights, falloff="none", shadows="none")
+        assert out.image[0, 0, 5, 9].item() == pytest.approx(expected, abs=1e-12), weight
+    # Half a coat lets through half the reflected share; the specular term is untouched.
+    ks = torch.full_like(kd[..., :1], 0.5)
+    half = render(g, Material(kd=kd, ks=ks, shininess=10.0, coat=torch.full_like(ks, 0.5)), lights, falloff="none",
+                  shadows="none")
+    bare = render(g, Material(kd=kd, ks=ks, shininess=10.0), lights, falloff="none", shadows="none")
+    assert half.diffuse[0, 0, 5, 9].item() == pytest.approx(
+        c_in * (1 - 0.5 * (1 - through(c_in))) * (1 - 0.5 * (1 - through(c_out))), abs=1e-12)
+    torch.testing.assert_close(half.specular, bare.specular, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("coat,match", [(torch.full((1, 4, 4, 3), 0.5), "coat must have shape"),
+                                        (torch.full((1, 4, 4, 1), 1.5), "coat must be in"),
+                                        (torch.full((1, 4, 4, 1), math.nan), "coat holds")])
+def test_bad_coat_is_named(coat, match):
+    with pytest.raises(ValueError, match=match):
+        Material(kd=torch.ones(1, 4, 4, 3), coat=coat).check_finite()
+
+
 def test_specular_peak_and_falloff():
     n = torch.tensor([0.0, 0.0, -1.0])
     assert blinn_phong_lobe(n, n, n, torch.tensor(500.0)).item() == pytest.approx(1.0)

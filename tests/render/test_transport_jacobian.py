@@ -10,11 +10,14 @@ from tests.conftest import CAMERA_SIDE_LIGHTS, exact_view, gbuffer_of
 pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")
 
 
-def _scene(dtype=torch.float64, shininess=20.0):
+def _scene(dtype=torch.float64, shininess=20.0, coat=False):
     view = exact_view(tuple(CAMERA_SIDE_LIGHTS[0]), 30, 40)
     g = gbuffer_of(view, dtype)
     kd = torch.rand(1, 30, 40, 3, dtype=dtype) * 0.8 + 0.1
-    material = Material(kd=kd, ks=torch.full_like(kd[..., :1], 0.4), shininess=torch.tensor(shininess, dtype=dtype))
+    # A coat on part of the image, weights from 0 to 1.
+    weight = (torch.rand_like(kd[..., :1]) - 0.3).clamp(0, 1) if coat else None
+    material = Material(kd=kd, ks=torch.full_like(kd[..., :1], 0.4), shininess=torch.tensor(shininess, dtype=dtype),
+                        coat=weight)
     lights = torch.tensor([[[0.6, -1.0, 0.5], [-0.5, -0.8, 1.6]]], dtype=dtype)
     return g, material, lights
 
@@ -30,9 +33,9 @@ def _autograd_jacobian(g, material, lights, falloff, term):
 
 
 @pytest.mark.parametrize("falloff", ["inverse_square", "none"])
-@pytest.mark.parametrize("shininess", [1.0, 20.0, 500.0])
-def test_shading_derivatives_equal_autograd(falloff, shininess):
-    g, material, lights = _scene(shininess=shininess)
+@pytest.mark.parametrize("shininess,coat", [(1.0, False), (20.0, False), (500.0, False), (20.0, True)])
+def test_shading_derivatives_equal_autograd(falloff, shininess, coat):
+    g, material, lights = _scene(shininess=shininess, coat=coat)
     jac = light_transport_jacobian(g, material, lights, 1e-4, falloff=falloff, shadows="none")
     plain = light_transport(g, material, lights, falloff=falloff, shadows="none")
     assert torch.equal(jac.transport.diffuse, plain.diffuse) and torch.equal(jac.transport.specular, plain.specular)
