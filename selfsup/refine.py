@@ -115,7 +115,8 @@ class FitProblem:
         shin = m.shininess if m.shininess.dim() == 0 else m.shininess[index]
         selected = FitProblem(
             g.select(index),
-            Material(kd=m.kd[index], ks=None if m.ks is None else m.ks[index], shininess=shin),
+            Material(kd=m.kd[index], ks=None if m.ks is None else m.ks[index], shininess=shin,
+                     coat=None if m.coat is None else m.coat[index], coat_f0=m.coat_f0),
             self.image[index], None if self.ambient is None else self.ambient[index], self.falloff, self.shadows,
             self.indirect, None if self.normal_tilt is None else self.normal_tilt[index], self.shadow_options,
         )
@@ -129,6 +130,10 @@ class FitProblem:
     def with_shadows(self, shadows: str, options=None) -> "FitProblem":
         """The same images under another shadow method, with its ``options`` (None: defaults)."""
         return self._changed(shadows=shadows, shadow_options=options)
+
+    def with_material(self, material: Material) -> "FitProblem":
+        """The same images with another reflectance (the same observations: medians and noise levels kept)."""
+        return self._changed(material=material)
 
     def with_indirect(self, indirect: bool = True) -> "FitProblem":
         """The same images with (or without) each light's indirect light in its basis images."""
@@ -159,7 +164,9 @@ class FitProblem:
             GBuffer(torch.cat([x.points for x in g]), torch.cat([x.normals for x in g]), torch.cat([x.mask for x in g]),
                     None if g[0].intrinsics is None else torch.cat([x.intrinsics for x in g])),
             Material(kd=torch.cat([x.kd for x in m]), ks=torch.cat([per_pixel(x, x.ks, 3) for x in m]),
-                     shininess=torch.cat([per_pixel(x, x.shininess) for x in m])),
+                     shininess=torch.cat([per_pixel(x, x.shininess) for x in m]),
+                     coat=None if all(x.coat is None for x in m) else torch.cat([per_pixel(x, x.coat, 1) for x in m]),
+                     coat_f0=m[0].coat_f0),
             torch.cat([p.image for p in problems]),
             None if first.ambient is None else torch.cat([p.ambient for p in problems]), first.falloff, first.shadows,
             first.indirect,
@@ -184,7 +191,8 @@ def subsample(problem: FitProblem, stride: int) -> FitProblem:
     coarse = dataclasses.replace(
         problem,
         gbuffer=GBuffer(g.points[:, ::s, ::s], g.normals[:, ::s, ::s], g.mask[:, ::s, ::s], K),
-        material=Material(kd=m.kd[:, ::s, ::s], ks=None if m.ks is None else m.ks[:, ::s, ::s], shininess=shin),
+        material=Material(kd=m.kd[:, ::s, ::s], ks=None if m.ks is None else m.ks[:, ::s, ::s], shininess=shin,
+                          coat=None if m.coat is None else m.coat[:, ::s, ::s], coat_f0=m.coat_f0),
         image=problem.image[:, :, ::s, ::s],
         normal_tilt=None if problem.normal_tilt is None else problem.normal_tilt[:, ::s, ::s],
     )

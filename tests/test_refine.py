@@ -1097,3 +1097,36 @@ def test_inside_two_sigma_counts_true_lights_within_their_estimates_ellipsoid():
     assert inside_two_sigma(estimated, cov, torch.tensor([[3.0, 0.0, 0.0], [10.0, 5.0, 0.0]])) == 0
     # A true light with no estimate to pair with is outside.
     assert inside_two_sigma(estimated[:1], cov[:1], torch.tensor([[0.5, 0.0, 0.0], [10.0, 0.0, 0.0]])) == 1
+
+
+def _coated_copy(rendered):
+    # The scene's image with its specular pixels' diffuse light through a clear coat
+    # (render.Material.coat), from the exact geometry, visibility and lights.
+    from render import light_transport
+    scene = rendered.scene
+    g = GBuffer.from_depth(scene.depth[None], scene.K[None], normals=scene.normals[None])
+    coat = (scene.ks > 0).to(scene.kd.dtype)[None]
+    lights = scene.light_pos[None]
+    bare = light_transport(g, Material(kd=scene.kd[None]), lights, shadows="none").diffuse
+    through = light_transport(g, Material(kd=scene.kd[None], coat=coat), lights, shadows="none").diffuse
+    visible = rendered.visibility.permute(2, 0, 1)[None]  # (1, L, H, W)
+    change = torch.einsum("blhw,lc->hwc", (through - bare) * visible, scene.light_intensity)
+    return dataclasses.replace(scene, image=(scene.image + scene.kd * change).clamp_min(0))
+
+
+def test_a_coated_scene_chooses_the_coat_and_a_bare_one_does_not():
+    config = dataclasses.replace(MEDIUM, specular_prob=1.0)
+    rendered = render_spec(sample_scene(3, config, n_lights=1), samples=1)
+    coated = _coated_copy(rendered)
+    assert float((coated.image - rendered.scene.image).abs().max()) > 0.02  # the coat shows
+    options = EstimateOptions(method="refine", max_lights=1, coat="auto")
+    on_coated = estimate_scene(coated, options)
+    on_bare = estimate_scene(rendered.scene, options)
+    assert on_coated["coat"] and not on_bare["coat"]
+    assert [c["coat"] for c in on_bare["candidates"]].count(True) >= 1  # it was tried there too
+    for record, scene in ((on_coated, coated), (on_bare, rendered.scene)):
+        assert _rel_error(torch.tensor([l["position"] for l in record["lights"]]), scene) < 0.005
+    never = estimate_scene(coated, dataclasses.replace(options, coat="never"))
+    assert not never["coat"] and all(not c["coat"] for c in never["candidates"])
+    with pytest.raises(ValueError, match="estimate.coat"):
+        EstimateOptions(coat="sometimes")
