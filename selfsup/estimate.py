@@ -761,7 +761,9 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
     else:
         slots, presence = network_slots(problem, options.checkpoint)
         if options.method == "cnn":
-            return _network_candidates(problem, slots, presence, specular_of, options)
+            coat = [options.coat == "always" and spec for spec in specular_of]
+            return [(replace(best, coat=coat[i]), [replace(c, coat=coat[i]) for c in tried])
+                    for i, (best, tried) in enumerate(_network_candidates(problem, slots, presence, specular_of, options))]
 
     def index(images: list[int]) -> Tensor:
         return torch.tensor(images, dtype=torch.long, device=device)
@@ -805,7 +807,6 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
         # The one-light model again with a coat on the specular pixels, from the bare fit's
         # light; every later model of the images where it wins keeps the coat.
         trial = problem.with_material(coated(problem.material, index(shiny)))
-        won = []
         for specular in (False, True):
             group = [i for i in shiny if best[i].specular == specular]
             if not group:
@@ -817,10 +818,9 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
                 tried[i].append(c)
                 if c.criterion < best[i].criterion:
                     best[i] = c
-                    won.append(i)
                     coat_of[i] = True
-        if won:
-            problem.material = coated(problem.material, index(sorted(won)))
+        if any(coat_of):
+            problem.material = coated(problem.material, index([i for i in everyone if coat_of[i]]))
             searched = searched_problem()
     growing = everyone
     for n_lights in range(2, options.max_lights + 1):
