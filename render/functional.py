@@ -5,7 +5,7 @@ Image model (``../shared/scene-format.md``), per pixel point ``X`` and light ``i
     I = kd * L_a + sum_i S_i * I_i * f(d_i) * (kd * max(0, n.l_i) + ks * max(0, n.h_i)^alpha)
 
 where a material with a clear coat (``Material.coat``) has its diffuse term
-multiplied by the coat's Fresnel transmission in and out.
+multiplied by the rough coat's transmission in and out (:mod:`render.coat`).
 """
 
 from __future__ import annotations
@@ -15,8 +15,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from render.coat import coat_transmission
 from render.geometry import dot3, fit_intrinsics, norm3
-from render.shading import (Falloff, blinn_phong_lobe, coat_transmission, falloff_factor, light_geometry, light_offset,
+from render.shading import (Falloff, blinn_phong_lobe, falloff_factor, light_geometry, light_offset,
                             shading_and_position_gradients)
 from render.shadows import ShadowMethod, shadow_visibility
 from render.types import GBuffer, Material, PointLights, check_ambient
@@ -94,14 +95,16 @@ def _geometry(gbuffer: GBuffer, light_position: Tensor):
     return light_geometry(gbuffer.points[:, None], light_position[:, :, None, None, :])
 
 
-def _coat(gbuffer: GBuffer, material: Material) -> tuple[Tensor, Tensor] | None:
-    # The coat's weight (B, 1, H, W) and its transmission towards the camera (B, 1, H, W), or None.
+def _coat(gbuffer: GBuffer, material: Material) -> tuple | None:
+    # The coat's weight (B, 1, H, W), its shininess (broadcastable to (B, L, H, W)) and its
+    # transmission towards the camera (B, 1, H, W), or None.
     if material.coat is None:
         return None
     coat = material.coat[..., 0][:, None].to(gbuffer.points.dtype)
+    shininess = _shininess(material)
     points = gbuffer.points[:, None]
     n_dot_v = -dot3(gbuffer.normals[:, None], points) / norm3(points).clamp_min(torch.finfo(points.dtype).tiny)
-    return coat, coat_transmission(n_dot_v, coat, material.coat_f0)[0]
+    return coat, shininess, coat_transmission(n_dot_v, coat, shininess, material.coat_f0)[0]
 
 
 def _transport(gbuffer, material, light_position, falloff, shadows, shadow_options, with_specular,
@@ -133,7 +136,7 @@ def _transport(gbuffer, material, light_position, falloff, shadows, shadow_optio
     diffuse = weight * n_dot_l.clamp_min(0)
     coat = _coat(gbuffer, material)
     if coat is not None:
-        diffuse = diffuse * coat_transmission(n_dot_l, coat[0], material.coat_f0)[0] * coat[1]
+        diffuse = diffuse * coat_transmission(n_dot_l, coat[0], coat[1], material.coat_f0)[0] * coat[2]
     return LightTransport(diffuse=diffuse, specular=specular, visibility=visibility)
 
 
@@ -214,10 +217,10 @@ def light_transport_jacobian(
     if coat is not None:
         # d(f c T(c) T_o)/dp = T(c) T_o d(f c)/dp + f c T_o T'(c) dc/dp, dc/dp = (n - c l) / d.
         n_dot_l = dot3(normals, geometry.to_light)
-        inward, slope = coat_transmission(n_dot_l, coat[0], material.coat_f0)
+        inward, slope = coat_transmission(n_dot_l, coat[0], coat[1], material.coat_f0)
         d_cos = (normals - n_dot_l[..., None] * geometry.to_light) / geometry.distance[..., None]
-        d_diffuse = (inward * coat[1])[..., None] * d_diffuse + (diffuse * coat[1] * slope)[..., None] * d_cos
-        diffuse = diffuse * inward * coat[1]
+        d_diffuse = (inward * coat[2])[..., None] * d_diffuse + (diffuse * coat[2] * slope)[..., None] * d_cos
+        diffuse = diffuse * inward * coat[2]
     if shadows is ShadowMethod.NONE:
         return TransportJacobian(LightTransport(diffuse, spec, None), d_diffuse, d_specular)
 

@@ -14,7 +14,7 @@ from torch import Tensor
 
 from render.geometry import dot3, norm3
 
-__all__ = ["Falloff", "LightGeometry", "light_geometry", "falloff_factor", "blinn_phong_lobe", "coat_transmission",
+__all__ = ["Falloff", "LightGeometry", "light_geometry", "falloff_factor", "blinn_phong_lobe",
            "shading_position_gradients",
            "shading_and_position_gradients"]
 
@@ -83,25 +83,6 @@ def falloff_factor(distance: Tensor, falloff: Falloff | str) -> Tensor:
     if falloff is Falloff.NONE:
         return torch.ones_like(distance)
     return 1.0 / (distance * distance)
-
-
-def coat_transmission(cosine: Tensor, coat: Tensor, f0: float) -> tuple[Tensor, Tensor]:
-    """The share of light a clear coat lets through at incidence ``cosine`` and its
-    derivative with respect to ``cosine``: ``1 - coat F(c)`` with Schlick's
-    ``F(c) = f0 + (1 - f0) (1 - c)^5``, ``c`` clamped to [0, 1] (derivative 0 outside).
-    Shapes broadcast; ``coat`` in [0, 1] is the coat's weight (0: no coat).
-
-    Example:
-        >>> coat_transmission(torch.tensor([1.0, 0.0]), torch.tensor(1.0), 0.04)[0]
-        tensor([0.9600, 0.0000])
-    """
-    c = cosine.clamp(0, 1)
-    grazing = 1 - c
-    g4 = grazing.square().square()
-    transmission = 1 - coat * (f0 + (1 - f0) * g4 * grazing)
-    inside = (cosine > 0) & (cosine < 1)
-    slope = torch.where(inside, coat * (5 * (1 - f0)) * g4, torch.zeros_like(transmission))
-    return transmission, slope
 
 
 def blinn_phong_lobe(normals: Tensor, to_light: Tensor, to_viewer: Tensor, shininess: Tensor) -> Tensor:

@@ -212,9 +212,13 @@ class Material:
             the diffuse layer (glossy plastic, varnish, where the specular highlight
             is the coat's reflection). Light reaches the diffuse layer and leaves it
             through the coat, so the diffuse term is multiplied by
-            ``(1 - coat F(n.l)) (1 - coat F(n.v))``, with Schlick's Fresnel
-            reflectance ``F(c) = coat_f0 + (1 - coat_f0) (1 - c)^5``. The specular
-            and ambient terms are unchanged.
+            ``t(n.l) t(n.v)``, ``t(c) = 1 - coat + coat T(c) sqrt(scale)``: ``T`` the
+            transmittance of a rough coat whose Beckmann roughness follows from the
+            shininess (``sqrt(2 / (s + 2))``) and ``scale = 1 / (eta^2 (1 - R_int))``
+            the light that the coat's inside reflects back down and that leaves
+            through it later (:mod:`render.coat`; the diffuse lobe of rough plastic in
+            physically based renderers: about 0.96-1.01 at normal incidence). The
+            specular and ambient terms are unchanged.
         coat_f0: the coat's Fresnel reflectance at normal incidence (0.04: a
             refractive index of 1.5, plastics and varnishes).
 

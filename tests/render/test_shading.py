@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from render import GBuffer, Material, PointLights, ShadowedBlinnPhong, render
+from render.coat import internal_reflectance, rough_transmittance
 from render.shading import blinn_phong_lobe, falloff_factor
 
 K = torch.tensor([[20.0, 0, 7.5], [0, 20.0, 7.5], [0, 0, 1]], dtype=torch.float64)
@@ -26,30 +27,36 @@ def test_diffuse_exact_angles():
         assert value == pytest.approx(expected, abs=1e-12), name
 
 
-def test_coat_lets_through_the_fresnel_transmission_in_and_out():
-    # Schlick with f0 = 0.04: F(c) = 0.04 + 0.96 (1 - c)^5. A light at 45 degrees on a
-    # wall pixel seen at angle c_o: the diffuse value times (1 - F(1/sqrt 2)) (1 - F(c_o)).
+def test_coat_lets_through_the_rough_transmittance_in_and_out():
+    # A light at 45 degrees on a wall pixel seen at angle c_o, shininess 20 (Beckmann
+    # roughness sqrt(2 / 22)): the diffuse value times T(1/sqrt 2) T(c_o) / (eta^2 (1 - R_int)),
+    # T and R_int by quadrature here, read off the table there.
     g = flat_wall()
     kd = torch.ones(1, 16, 16, 3, dtype=torch.float64)
     X = g.points[0, 5, 9]
     lights = PointLights(position=(X + torch.tensor([0.0, -1.0, -1.0], dtype=torch.float64)).view(1, 1, 3),
                          intensity=torch.ones(1, 1, 3, dtype=torch.float64))
     c_in, c_out = 1 / math.sqrt(2), float(-(g.normals[0, 5, 9] @ X) / X.norm())
+    alpha, eta = torch.tensor([math.sqrt(2 / 22)], dtype=torch.float64), 1.5
+    T_in, T_out = rough_transmittance(torch.tensor([c_in, c_out], dtype=torch.float64), alpha, eta)[0].tolist()
+    scale = float(1 / (eta**2 * (1 - internal_reflectance(alpha, eta))))
 
-    def through(c):
-        return 1 - (0.04 + 0.96 * (1 - c) ** 5)
+    def coated(weight):
+        return Material(kd=kd, shininess=20.0, coat=torch.full_like(kd[..., :1], weight))
 
-    for weight, expected in ((1.0, c_in * through(c_in) * through(c_out)), (0.0, c_in)):
-        coat = torch.full_like(kd[..., :1], weight)
-        out = render(g, Material(kd=kd, coat=coat), lights, falloff="none", shadows="none")
-        assert out.image[0, 0, 5, 9].item() == pytest.approx(expected, abs=1e-12), weight
-    # Half a coat lets through half the reflected share; the specular term is untouched.
+    full = render(g, coated(1.0), lights, falloff="none", shadows="none").image[0, 0, 5, 9].item()
+    assert full == pytest.approx(c_in * T_in * T_out * scale, abs=2e-3)
+    assert full < c_in  # less light than bare at these angles
+    none = render(g, coated(0.0), lights, falloff="none", shadows="none").image[0, 0, 5, 9].item()
+    assert none == pytest.approx(c_in, abs=1e-12)
+    # Half a coat: each side half-way between bare and coated; the specular term is untouched.
     ks = torch.full_like(kd[..., :1], 0.5)
-    half = render(g, Material(kd=kd, ks=ks, shininess=10.0, coat=torch.full_like(ks, 0.5)), lights, falloff="none",
+    half = render(g, Material(kd=kd, ks=ks, shininess=20.0, coat=torch.full_like(ks, 0.5)), lights, falloff="none",
                   shadows="none")
-    bare = render(g, Material(kd=kd, ks=ks, shininess=10.0), lights, falloff="none", shadows="none")
+    bare = render(g, Material(kd=kd, ks=ks, shininess=20.0), lights, falloff="none", shadows="none")
+    root = math.sqrt(scale)
     assert half.diffuse[0, 0, 5, 9].item() == pytest.approx(
-        c_in * (1 - 0.5 * (1 - through(c_in))) * (1 - 0.5 * (1 - through(c_out))), abs=1e-12)
+        c_in * (0.5 + 0.5 * T_in * root) * (0.5 + 0.5 * T_out * root), abs=2e-3)
     torch.testing.assert_close(half.specular, bare.specular, rtol=0, atol=0)
 
 

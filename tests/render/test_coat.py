@@ -1,0 +1,84 @@
+import math
+
+import pytest
+import torch
+
+from render.coat import (beckmann_g1, coat_tables, coat_transmission, fresnel_dielectric, internal_reflectance,
+                         rough_transmittance)
+from render.coat import _half_vector_quadrature
+
+ETA = 1.5
+F64 = torch.float64
+
+
+def test_fresnel_at_normal_incidence_brewster_and_total_internal_reflection():
+    assert float(fresnel_dielectric(torch.tensor(1.0, dtype=F64), ETA)) == pytest.approx(((ETA - 1) / (ETA + 1)) ** 2)
+    # At Brewster's angle the p-polarised part vanishes: F = r_s^2 / 2, r_s = cos(2 theta_B).
+    brewster = math.atan(ETA)
+    expected = 0.5 * math.cos(2 * brewster) ** 2
+    assert float(fresnel_dielectric(torch.tensor(math.cos(brewster), dtype=F64), ETA)) == pytest.approx(expected)
+    # From inside, beyond the critical angle (sin > 1 / ETA), everything is reflected.
+    assert float(fresnel_dielectric(torch.tensor(0.5, dtype=F64), 1 / ETA)) == 1.0
+
+
+def test_smooth_coat_lets_through_one_minus_fresnel():
+    mu = torch.linspace(0.3, 1.0, 8, dtype=F64)
+    smooth = rough_transmittance(mu, torch.tensor([0.02], dtype=F64), ETA)[0]
+    torch.testing.assert_close(smooth, 1 - fresnel_dielectric(mu, ETA), rtol=0, atol=3e-3)
+
+
+def test_internal_reflectance_of_a_smooth_coat_is_the_diffuse_fresnel_reflectance():
+    # 2 int_0^1 F(mu, 1/eta) mu dmu by a fine rule on the Fresnel equations alone.
+    mu = (torch.arange(20000, dtype=F64) + 0.5) / 20000
+    expected = float(2 * (fresnel_dielectric(mu, 1 / ETA) * mu).mean())
+    assert 0.55 < expected < 0.65
+    assert float(internal_reflectance(torch.tensor([0.02], dtype=F64), ETA)[0]) == pytest.approx(expected, abs=3e-3)
+
+
+def test_reflected_share_by_half_vectors_equals_the_brdf_integrated_over_directions():
+    # The half-vector quadrature against the microfacet BRDF F D G / (4 mu_i mu_o) times
+    # mu_o integrated over outgoing directions on a fine grid: the change of variables.
+    alpha, mu_i = 0.3, 0.6
+    n = 600
+    mu_o = ((torch.arange(n, dtype=F64) + 0.5) / n)[:, None]
+    phi = ((torch.arange(n, dtype=F64) + 0.5) / n * 2 * math.pi)[None]
+    i = torch.tensor([math.sqrt(1 - mu_i**2), 0.0, mu_i], dtype=F64)
+    s_o = (1 - mu_o**2).sqrt()
+    o = torch.stack([s_o * phi.cos(), s_o * phi.sin(), mu_o + 0 * phi], -1)
+    h = o + i
+    h = h / h.norm(dim=-1, keepdim=True)
+    cos_h = h[..., 2]
+    D = torch.exp(-(1 - cos_h**2) / cos_h**2 / alpha**2) / (math.pi * alpha**2 * cos_h**4)
+    G = beckmann_g1(torch.tensor(mu_i, dtype=F64), alpha) * beckmann_g1(mu_o + 0 * phi, alpha)
+    F = fresnel_dielectric((h * i).sum(-1), ETA)
+    brdf_cos = F * D * G / (4 * mu_i)
+    by_directions = float(brdf_cos.sum() * (1 / n) * (2 * math.pi / n))
+    by_half_vectors = float(_half_vector_quadrature(torch.tensor([mu_i], dtype=F64), torch.tensor([alpha], dtype=F64),
+                                                    ETA, transmitted=False)[0, 0])
+    assert by_half_vectors == pytest.approx(by_directions, rel=5e-3)
+
+
+@pytest.mark.parametrize("alpha,lost", [(0.05, 0.005), (0.3, 0.005), (0.8, 0.03)])
+def test_energy_is_conserved(alpha, lost):
+    mu = torch.linspace(0.05, 1.0, 12, dtype=F64)
+    a = torch.tensor([alpha], dtype=F64)
+    total = rough_transmittance(mu, a, ETA)[0] + _half_vector_quadrature(mu, a, ETA, transmitted=False)[0]
+    assert bool((total <= 1 + 2e-3).all())
+    assert float(total[-1]) >= 1 - lost  # at normal incidence little is masked
+
+
+def test_transmission_reads_the_table_and_its_slope_is_its_derivative():
+    table, scale = coat_tables(ETA, F64)
+    assert table.shape[1] == 65 and bool((table >= 0).all() and (table <= 1).all())
+    cosine = torch.linspace(0.05, 0.95, 19, dtype=F64, requires_grad=True)
+    shininess = torch.tensor(20.0, dtype=F64)
+    value, slope = coat_transmission(cosine, torch.tensor(1.0, dtype=F64), shininess, 0.04)
+    (grad,) = torch.autograd.grad(value.sum(), cosine)
+    torch.testing.assert_close(slope, grad)
+    direct = rough_transmittance(cosine.detach(), torch.tensor([math.sqrt(2 / 22)], dtype=F64), ETA)[0]
+    root = math.sqrt(float(1 / (ETA**2 * (1 - internal_reflectance(torch.tensor([math.sqrt(2 / 22)], dtype=F64),
+                                                                        ETA)[0]))))
+    torch.testing.assert_close(value.detach(), direct * root, rtol=0, atol=2e-3)
+    # No coat: 1 everywhere, slope 0.
+    none, flat = coat_transmission(cosine, torch.tensor(0.0, dtype=F64), shininess, 0.04)
+    assert bool((none == 1).all() and (flat == 0).all())
