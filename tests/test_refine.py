@@ -1130,3 +1130,15 @@ def test_a_coated_scene_chooses_the_coat_and_a_bare_one_does_not():
     assert not never["coat"] and all(not c["coat"] for c in never["candidates"])
     with pytest.raises(ValueError, match="estimate.coat"):
         EstimateOptions(coat="sometimes")
+
+
+def test_a_coated_two_light_scene_judges_both_coat_settings_at_two_lights():
+    # The one-light fit of a two-light scene chooses the coat unreliably, so the chosen
+    # two-light model is refitted with the other setting too and the better one kept.
+    config = dataclasses.replace(MEDIUM, specular_prob=1.0)
+    rendered = render_spec(sample_scene(4, config, n_lights=2), samples=1)
+    coated = _coated_copy(rendered)
+    record = estimate_scene(coated, EstimateOptions(method="refine", max_lights=2, coat="auto"))
+    assert len(record["lights"]) == 2 and record["coat"]
+    assert {c["coat"] for c in record["candidates"] if c["n_lights"] == 2} == {True, False}
+    assert _rel_error_paired(torch.tensor([l["position"] for l in record["lights"]]), coated) < 0.01
