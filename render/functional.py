@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from render.coat import coat_transmission
+from render.coat import CoatProfile, coat_profile, coat_transmission, profile_transmission
 from render.geometry import dot3, fit_intrinsics, norm3
 from render.shading import (Falloff, blinn_phong_lobe, falloff_factor, light_geometry, light_offset,
                             shading_and_position_gradients)
@@ -96,15 +96,41 @@ def _geometry(gbuffer: GBuffer, light_position: Tensor):
 
 
 def _coat(gbuffer: GBuffer, material: Material) -> tuple | None:
-    # The coat's weight (B, 1, H, W), its shininess (broadcastable to (B, L, H, W)) and its
-    # transmission towards the camera (B, 1, H, W), or None.
+    # (transmit, outward): transmit(cosine) -> (the coat's transmission at cosine, its
+    # derivative), cosine broadcastable to (B, L, H, W); outward (B, 1, H, W), the
+    # transmission towards the camera. None without a coat.
     if material.coat is None:
         return None
-    coat = material.coat[..., 0][:, None].to(gbuffer.points.dtype)
+    dtype = gbuffer.points.dtype
+    coat = material.coat[..., 0][:, None].to(dtype)
     shininess = _shininess(material)
+    profile = _coat_profile(material, coat, shininess, dtype)
+    if profile is None:
+        def transmit(cosine: Tensor) -> tuple[Tensor, Tensor]:
+            return coat_transmission(cosine, coat, shininess, material.coat_f0)
+    else:
+        def transmit(cosine: Tensor) -> tuple[Tensor, Tensor]:
+            return profile_transmission(cosine, profile)
     points = gbuffer.points[:, None]
     n_dot_v = -dot3(gbuffer.normals[:, None], points) / norm3(points).clamp_min(torch.finfo(points.dtype).tiny)
-    return coat, shininess, coat_transmission(n_dot_v, coat, shininess, material.coat_f0)[0]
+    return transmit, transmit(n_dot_v)[0]
+
+
+def _coat_profile(material: Material, coat: Tensor, shininess: Tensor, dtype: torch.dtype) -> CoatProfile | None:
+    # The material's CoatProfile, kept on it between calls (a solver renders one material
+    # hundreds of times) and found again when coat or shininess changed in place (their
+    # version counters) or the dtype or device differ. None (coat_transmission, which
+    # differentiates them) where either needs a gradient, under torch.compile, or for a
+    # shininess texture with too many distinct values.
+    if (torch.is_grad_enabled() and (coat.requires_grad or shininess.requires_grad)) or torch.compiler.is_compiling():
+        return None
+    key = (dtype, coat.device, material.coat._version, material.shininess._version, material.coat_f0)
+    cached = material.__dict__.get("_coat_profile")
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    profile = coat_profile(coat, shininess, material.coat_f0, dtype)
+    object.__setattr__(material, "_coat_profile", (key, profile))
+    return profile
 
 
 def _transport(gbuffer, material, light_position, falloff, shadows, shadow_options, with_specular,
@@ -136,7 +162,7 @@ def _transport(gbuffer, material, light_position, falloff, shadows, shadow_optio
     diffuse = weight * n_dot_l.clamp_min(0)
     coat = _coat(gbuffer, material)
     if coat is not None:
-        diffuse = diffuse * coat_transmission(n_dot_l, coat[0], coat[1], material.coat_f0)[0] * coat[2]
+        diffuse = diffuse * coat[0](n_dot_l)[0] * coat[1]
     return LightTransport(diffuse=diffuse, specular=specular, visibility=visibility)
 
 
@@ -217,10 +243,10 @@ def light_transport_jacobian(
     if coat is not None:
         # d(f c T(c) T_o)/dp = T(c) T_o d(f c)/dp + f c T_o T'(c) dc/dp, dc/dp = (n - c l) / d.
         n_dot_l = dot3(normals, geometry.to_light)
-        inward, slope = coat_transmission(n_dot_l, coat[0], coat[1], material.coat_f0)
+        inward, slope = coat[0](n_dot_l)
         d_cos = (normals - n_dot_l[..., None] * geometry.to_light) / geometry.distance[..., None]
-        d_diffuse = (inward * coat[2])[..., None] * d_diffuse + (diffuse * coat[2] * slope)[..., None] * d_cos
-        diffuse = diffuse * inward * coat[2]
+        d_diffuse = (inward * coat[1])[..., None] * d_diffuse + (diffuse * coat[1] * slope)[..., None] * d_cos
+        diffuse = diffuse * inward * coat[1]
     if shadows is ShadowMethod.NONE:
         return TransportJacobian(LightTransport(diffuse, spec, None), d_diffuse, d_specular)
 

@@ -3,8 +3,9 @@ import math
 import pytest
 import torch
 
-from render.coat import (beckmann_g1, coat_tables, coat_transmission, fresnel_dielectric, internal_reflectance,
-                         rough_transmittance)
+from render import GBuffer, Material, light_transport
+from render.coat import (beckmann_g1, coat_profile, coat_tables, coat_transmission, fresnel_dielectric,
+                         internal_reflectance, profile_transmission, rough_transmittance)
 from render.coat import _half_vector_quadrature
 
 ETA = 1.5
@@ -82,3 +83,49 @@ def test_transmission_reads_the_table_and_its_slope_is_its_derivative():
     # No coat: 1 everywhere, slope 0.
     none, flat = coat_transmission(cosine, torch.tensor(0.0, dtype=F64), shininess, 0.04)
     assert bool((none == 1).all() and (flat == 0).all())
+
+
+def test_a_profile_reads_the_same_transmission_in_fewer_steps():
+    generator = torch.Generator().manual_seed(0)
+    coat = torch.tensor([0.0, 0.5, 1.0], dtype=F64)[torch.randint(0, 3, (2, 1, 5, 6), generator=generator)]
+    shininess = torch.tensor([3.0, 20.0, 300.0, 1e4], dtype=F64)[torch.randint(0, 4, (2, 1, 5, 6), generator=generator)]
+    cosine = torch.rand(2, 4, 5, 6, dtype=F64, generator=generator) * 1.2 - 0.1
+    cosine.requires_grad_(True)
+    profile = coat_profile(coat, shininess, 0.04)
+    assert profile.rows.numel() <= 12 * 65 and profile.offset.shape == (2, 1, 5, 6)
+    value, slope = profile_transmission(cosine, profile)
+    expected, expected_slope = coat_transmission(cosine, coat, shininess, 0.04)
+    torch.testing.assert_close(value, expected)
+    torch.testing.assert_close(slope, expected_slope)
+    (grad,) = torch.autograd.grad(value.sum(), cosine)
+    torch.testing.assert_close(grad, slope)
+    assert coat_profile(coat, shininess, 0.04, max_rows=4) is None  # too many pairs: the caller reads the table
+
+
+def _coated_scene(shininess: torch.Tensor):
+    depth = torch.full((1, 6, 8), 2.0, dtype=F64)
+    K = torch.tensor([[[8.0, 0, 4.0], [0, 8.0, 3.0], [0, 0, 1]]], dtype=F64)
+    gbuffer = GBuffer.from_depth(depth, K)
+    material = Material(kd=torch.full((1, 6, 8, 3), 0.5, dtype=F64), shininess=shininess,
+                        coat=torch.ones(1, 6, 8, 1, dtype=F64))
+    return gbuffer, material, torch.tensor([[[0.3, -1.0, 0.5]]], dtype=F64)
+
+
+def test_a_material_changed_in_place_is_rendered_with_its_new_coat():
+    shininess = torch.tensor(5.0, dtype=F64)
+    gbuffer, material, light = _coated_scene(shininess)
+    rough = light_transport(gbuffer, material, light, shadows="none").diffuse
+    shininess.fill_(2000.0)  # the same Material, now a smooth coat
+    smooth = light_transport(gbuffer, material, light, shadows="none").diffuse
+    fresh = light_transport(gbuffer, Material(kd=material.kd, shininess=2000.0, coat=material.coat), light,
+                            shadows="none").diffuse
+    torch.testing.assert_close(smooth, fresh)
+    assert float((smooth - rough).abs().max()) > 1e-3
+
+
+def test_the_coated_image_is_differentiable_in_the_shininess():
+    shininess = torch.tensor(20.0, dtype=F64, requires_grad=True)
+    gbuffer, material, light = _coated_scene(shininess)
+    assert torch.autograd.gradcheck(
+        lambda s: light_transport(gbuffer, Material(kd=material.kd, shininess=s, coat=material.coat), light,
+                                  shadows="none").diffuse, (shininess,))
