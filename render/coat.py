@@ -22,7 +22,9 @@ the linear diffuse lobe of physically based renderers' rough plastic. Its
 roughness follows from the Blinn-Phong exponent ``s`` that the scene format
 gives (the standard correspondence ``s = 2 / a^2 - 2``). ``T`` and ``R_int`` are
 found by quadrature once per index of refraction, dtype and device, and read off
-a table (:func:`coat_tables`) by bilinear interpolation in ``mu`` and ``log a``.
+a table (:func:`coat_tables`) by bilinear interpolation in ``mu`` and ``log a``;
+a renderer reads one row of it per distinct (coat, shininess) pair of a material
+(:func:`coat_profile`, then :func:`profile_transmission`: two gathers per pixel).
 The same model at a smooth coat (``a -> 0``) is the Fresnel transmittance;
 roughness lets more light in at grazing angles (masked reflection is lost to
 the reflected lobe) and lowers ``R_int``.
