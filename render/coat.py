@@ -157,7 +157,7 @@ def coat_transmission(cosine: Tensor, coat: Tensor, shininess: Tensor, f0: float
     row_weight = row_weight.expand(shape)
     row = row.expand(shape)
     at_cos = cosine.clamp(0, 1) * (TABLE_COSINES - 1)
-    col = at_cos.detach().floor().clamp(0, TABLE_COSINES - 2)
+    col = at_cos.detach().floor().nan_to_num(0).clamp(0, TABLE_COSINES - 2)  # a NaN cosine reads row 0, gives NaN
     col_weight = at_cos - col
     col = col.long().expand(shape)
     flat = table.reshape(-1)
@@ -227,7 +227,7 @@ def profile_transmission(cosine: Tensor, profile: CoatProfile) -> tuple[Tensor, 
     (to rounding) in about a third of the operations; differentiable in ``cosine``.
     ``cosine`` broadcasts against ``profile.offset``."""
     at_cos = cosine.clamp(0, 1) * (TABLE_COSINES - 1)
-    col = at_cos.detach().floor().clamp(max=TABLE_COSINES - 2)
+    col = at_cos.detach().floor().nan_to_num(0).clamp(max=TABLE_COSINES - 2)  # NaN in, NaN out, no stray index
     index = profile.offset + col.long()
     low, high = profile.rows[index], profile.rows[index + 1]
     step = high - low

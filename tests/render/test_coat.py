@@ -100,6 +100,10 @@ def test_a_profile_reads_the_same_transmission_in_fewer_steps():
     (grad,) = torch.autograd.grad(value.sum(), cosine)
     torch.testing.assert_close(grad, slope)
     assert coat_profile(coat, shininess, 0.04, max_rows=4) is None  # too many pairs: the caller reads the table
+    # A NaN cosine (a diverged light) gives NaN, not an index out of the table.
+    nan = torch.tensor([float("nan"), 0.5], dtype=F64)
+    assert torch.isnan(profile_transmission(nan.view(2, 1, 1, 1), profile)[0][0]).all()
+    assert torch.isnan(coat_transmission(nan, torch.tensor(1.0, dtype=F64), torch.tensor(20.0, dtype=F64), 0.04)[0][0])
 
 
 def _coated_scene(shininess: torch.Tensor):
