@@ -118,10 +118,11 @@ def internal_reflectance(alpha: Tensor, eta: float, n_cosines: int = 64) -> Tens
 
 
 @lru_cache(maxsize=16)
-def coat_tables(eta: float, dtype: torch.dtype = torch.float32, device: str = "cpu") -> tuple[Tensor, Tensor]:
+def coat_tables(eta: float, dtype: torch.dtype, device: str) -> tuple[Tensor, Tensor]:
     """``(T (A, M), scale (A,))`` at ``A`` log-spaced roughnesses over ``ALPHA_RANGE`` and
     ``M`` uniform cosines in [0, 1]: the transmittance and ``1 / (eta^2 (1 - R_int))``.
-    Found in float64 (0.2-0.5 s on the 2-core CPU, once per process), cached per arguments."""
+    Found in float64 (0.2-0.5 s on the 2-core CPU, once per process), cached per arguments
+    (``device`` as a string: ``str(tensor.device)``), returned in ``dtype`` on ``device``."""
     alpha = torch.exp(torch.linspace(math.log(ALPHA_RANGE[0]), math.log(ALPHA_RANGE[1]), TABLE_ALPHAS,
                                      dtype=torch.float64))
     mu = torch.linspace(0, 1, TABLE_COSINES, dtype=torch.float64)

@@ -69,7 +69,7 @@ def test_energy_is_conserved(alpha, lost):
 
 
 def test_transmission_reads_the_table_and_its_slope_is_its_derivative():
-    table, scale = coat_tables(ETA, F64)
+    table, scale = coat_tables(ETA, F64, "cpu")
     assert table.shape[1] == 65 and bool((table >= 0).all() and (table <= 1).all())
     cosine = torch.linspace(0.05, 0.95, 19, dtype=F64, requires_grad=True)
     shininess = torch.tensor(20.0, dtype=F64)
