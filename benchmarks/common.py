@@ -19,12 +19,13 @@ RESULTS = Path(__file__).resolve().parent / "results"
 def score_record(record: dict, scene):
     """One estimation record (a JSON line of ``mode=estimate``) against its scene
     file's truth: the :class:`selfsup.metrics.LightErrors` (angles about the centroid
-    of the scene's valid points) and how many true lights fall inside the 2-sigma
+    of the scene's valid points; relative intensity errors of the paired lights) and how many true lights fall inside the 2-sigma
     ellipsoid of their paired estimate's ``position_cov``."""
     position = torch.tensor([light["position"] for light in record["lights"]]).reshape(-1, 3)
+    intensity = torch.tensor([light["intensity"] for light in record["lights"]]).reshape(-1, 3)
     cov = torch.tensor([light["position_cov"] for light in record["lights"]], dtype=torch.float64).reshape(-1, 3, 3)
     g = GBuffer.from_depth(scene.depth[None], scene.K[None])
-    errors = light_errors(position, None, scene.light_pos, None, float(scene.scene_scale),
+    errors = light_errors(position, intensity, scene.light_pos, scene.light_intensity, float(scene.scene_scale),
                           g.points[0][g.mask[0]].mean(0))
     return errors, inside_two_sigma(position, cov, scene.light_pos)
 

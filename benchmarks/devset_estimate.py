@@ -3,7 +3,8 @@
     python -m benchmarks.devset_estimate --scenes ../shared/devset/direct --estimates lights.jsonl
 
 Prints per scene: lights found / true, position error (of scene size), angular
-error (degrees), seconds; then the median position error and the success rate.
+error (degrees), relative intensity error, seconds; then the median position error
+and the success rate.
 
     python -m benchmarks.devset_estimate --run ../shared/devset [--sets direct gi noisy]
 
@@ -25,7 +26,8 @@ import torch
 from benchmarks.common import score_record, write_results
 from selfsup.scenes.io import read_scene
 
-COLUMNS = ["set", "id", "found", "true", "worst_position_error", "angular_error", "success", "two_sigma", "seconds"]
+COLUMNS = ["set", "id", "found", "true", "worst_position_error", "angular_error", "intensity_error", "success",
+           "two_sigma", "seconds"]
 
 
 def score(scenes: str | Path, estimates: str | Path) -> list[dict]:
@@ -41,6 +43,7 @@ def score(scenes: str | Path, estimates: str | Path) -> list[dict]:
         rows.append({"id": record["id"], "found": len(record["lights"]), "true": scene.light_pos.shape[0],
                      "inside": inside,
                      "position": [round(e, 4) for e in err.position], "angular": [round(a, 1) for a in err.angular],
+                     "intensity": [round(e, 4) for e in err.intensity],
                      "success": err.success, "seconds": record["seconds"]})
     return rows
 
@@ -68,10 +71,12 @@ def run(devset: str | Path, sets: list[str], write: bool = True, name: str = "de
         for r in scored:
             rows.append({"set": set_name, "id": r["id"], "found": r["found"], "true": r["true"],
                          "worst_position_error": max(r["position"]), "angular_error": max(r["angular"]),
-                         "success": r["success"], "two_sigma": f"{r['inside']}/{r['true']}", "seconds": r["seconds"]})
+                         "intensity_error": max(r["intensity"], default=""), "success": r["success"],
+                         "two_sigma": f"{r['inside']}/{r['true']}", "seconds": r["seconds"]})
         right = [r for r in scored if r["found"] == r["true"]]
         rows.append({"set": set_name, "id": "all (median, count)", "found": sum(r["found"] == r["true"] for r in scored),
                      "true": len(scored), "worst_position_error": upper_median([max(r["position"]) for r in scored]),
+                     "intensity_error": upper_median([max(r["intensity"]) for r in right]) if right else "",
                      "success": f"{sum(r['success'] for r in scored)}/{len(scored)}",
                      "two_sigma": f"{sum(r['inside'] for r in right)}/{sum(r['true'] for r in right)}",
                      "seconds": round(statistics.median(r["seconds"] for r in scored), 3)})
@@ -82,9 +87,11 @@ def run(devset: str | Path, sets: list[str], write: bool = True, name: str = "de
         settings = "the default mode=estimate settings" + (f" but {changed}" if changed else "")
         header = (f"Scenes of {Path(devset).name}/<set> (an independent renderer), estimated one at a time with "
                   f"{settings} (estimate_files); position error: worst light of the scene, of "
-                  "the scene size; angular error in degrees; success: every light < 0.05. The 'all' rows: "
+                  "the scene size; angular error in degrees; intensity error: the worst paired light's "
+                  "|I_est - I_true| / |I_true|; success: every light < 0.05. The 'all' rows: "
                   "found = scenes with the right light count, true = scenes, the median worst error (the upper "
-                  "of the two middle values), successes, two_sigma: the true lights inside the 2-sigma "
+                  "of the two middle values), the median worst intensity error of the scenes given the right "
+                  "count, successes, two_sigma: the true lights inside the 2-sigma "
                   "ellipsoid of their estimate's position_cov (of the lights of the scenes given the right "
                   "count), median seconds.")
         path = write_results(name, torch.device("cpu"), rows, header, COLUMNS)

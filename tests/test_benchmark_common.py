@@ -58,3 +58,22 @@ def test_room_agreement_counts_each_light_against_its_own_exact_shadows():
     assert swapped["epipolar_missed"] + swapped["epipolar_extra"] > 0
     flipped = room_agreement(scene, (1 - own).permute(1, 2, 0), methods=("epipolar",))
     assert flipped["epipolar_missed"] == flipped["shadowed"] > 0
+
+
+def test_the_devset_score_gives_each_scene_its_worst_relative_intensity_error(tmp_path):
+    # A record with the true positions and one light 10% too bright, another 20% too dim
+    # in a two-light scene: position error 0, intensity error 0.2 (the worst paired light).
+    from benchmarks.devset_estimate import score
+    from selfsup.scenes.exact import render_spec
+    from selfsup.scenes.io import write_scene
+    from selfsup.scenes.sampler import SamplerConfig, sample_scene
+
+    scene = render_spec(sample_scene(5, SamplerConfig(height=24, width=32, n_lights_probs=(0.0, 1.0))), samples=1).scene
+    scene.meta["id"] = "probe"
+    write_scene(tmp_path / "probe.npz", scene)
+    lights = [{"position": p.tolist(), "intensity": (i * f).tolist(), "position_cov": torch.eye(3).tolist()}
+              for p, i, f in zip(scene.light_pos, scene.light_intensity, (1.1, 0.8))]
+    (tmp_path / "lights.jsonl").write_text(json.dumps({"id": "probe", "lights": lights, "seconds": 0.1}) + "\n")
+    (row,) = score(tmp_path, tmp_path / "lights.jsonl")
+    assert row["found"] == row["true"] == 2 and max(row["position"]) == 0.0
+    assert sorted(row["intensity"]) == [0.1, 0.2]
