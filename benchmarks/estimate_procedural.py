@@ -43,7 +43,7 @@ SETS = {
                                           random_holes=0.01, image_noise=0.005), [1.0]),
 }
 COLUMNS = ["set", "method", "scenes", "median_position_error", "success_rate", "count_accuracy",
-           "two_sigma_coverage", "median_position_std", "median_seconds"]
+           "two_sigma_coverage", "median_position_std", "median_intensity_error", "median_seconds"]
 
 
 def score(record: dict, scene) -> tuple[float, bool, bool, int]:
@@ -61,17 +61,19 @@ def set_scene(name: str, index: int, seed: int):
 
 
 def run_set(name: str, count: int, seed: int, options: EstimateOptions) -> dict:
-    worst, success, count_right, inside, total_lights, seconds, stds = [], 0, 0, 0, 0, [], []
+    worst, success, count_right, inside, total_lights, seconds, stds, intensity = [], 0, 0, 0, 0, [], [], []
     for index in range(count):
         scene = set_scene(name, index, seed)
         started = time.perf_counter()
         with torch.no_grad():
             record = estimate_scene(scene, options)
         seconds.append(time.perf_counter() - started)
-        error, ok, right, within = score(record, scene)
-        worst.append(error)
-        success += ok
-        count_right += right
+        errors, within = score_record(record, scene)
+        worst.append(max(errors.position))
+        success += errors.success
+        count_right += errors.count_right
+        if errors.count_right:
+            intensity.append(max(errors.intensity))
         inside += within
         total_lights += scene.light_pos.shape[0]
         stds += [float(torch.tensor(light["position_std"]).norm()) / float(scene.scene_scale) for light in record["lights"]]
@@ -79,6 +81,7 @@ def run_set(name: str, count: int, seed: int, options: EstimateOptions) -> dict:
             "median_position_error": round(statistics.median(worst), 4), "success_rate": round(success / count, 3),
             "count_accuracy": round(count_right / count, 3), "two_sigma_coverage": round(inside / total_lights, 3),
             "median_position_std": round(statistics.median(stds), 4) if stds else "",
+            "median_intensity_error": round(statistics.median(intensity), 4) if intensity else "",
             "median_seconds": round(statistics.median(seconds), 3)}
 
 
@@ -117,7 +120,9 @@ def run(scenes: int = 20, method: str = "cnn+refine", seed: int = 9100, sets: li
                   "defaults otherwise. Position error: worst light per scene, of the scene size; success: every "
                   "light < 0.05; two_sigma_coverage: share of true lights inside their 2-sigma ellipsoid "
                   f"(Mahalanobis^2 < {CHI2_3D_2SIGMA}); median_position_std: the norm of a light's position_std, of the "
-                  "scene size, median over the lights found; seconds per scene on this device.")
+                  "scene size, median over the lights found; median_intensity_error: the worst paired light's "
+                  "|I_est - I_true| / |I_true|, median over the scenes given the right count (with a wrong kd the "
+                  "intensities take its scale); seconds per scene on this device.")
         name = f"estimate_procedural_{method.replace('+', '_')}_shadows_{shadows}_search_{search_shadows}"
         name += f"_gains_{reflectance_gains}" if reflectance_gains else ""
         path = write_results(name, torch.device("cpu"), rows, header, COLUMNS)
