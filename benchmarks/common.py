@@ -19,8 +19,9 @@ RESULTS = Path(__file__).resolve().parent / "results"
 def score_record(record: dict, scene):
     """One estimation record (a JSON line of ``mode=estimate``) against its scene
     file's truth: the :class:`selfsup.metrics.LightErrors` (angles about the centroid
-    of the scene's valid points; relative intensity errors of the paired lights) and how many true lights fall inside the 2-sigma
-    ellipsoid of their paired estimate's ``position_cov``."""
+    of the scene's valid points; relative intensity errors of the paired lights) and
+    how many true lights fall inside the 2-sigma ellipsoid of their paired estimate's
+    ``position_cov``."""
     position = torch.tensor([light["position"] for light in record["lights"]]).reshape(-1, 3)
     intensity = torch.tensor([light["intensity"] for light in record["lights"]]).reshape(-1, 3)
     cov = torch.tensor([light["position_cov"] for light in record["lights"]], dtype=torch.float64).reshape(-1, 3, 3)

@@ -521,16 +521,6 @@ def has_specular(problem: FitProblem) -> Tensor:
     return (ks > 0).flatten(1).any(1)
 
 
-def coated(material: Material, images: Tensor) -> Material:
-    """``material`` with a clear coat (``render.Material.coat``) on the pixels with ``ks > 0``
-    of the images ``images`` (a 1-D long tensor), added to any coat it has."""
-    B = material.kd.shape[0]
-    coat = (material.ks.amax(-1, keepdim=True) > 0).to(material.kd.dtype).expand(B, -1, -1, -1)
-    chosen = torch.zeros(B, dtype=coat.dtype, device=coat.device).index_fill_(0, images, 1.0)
-    coat = coat * chosen[:, None, None, None]
-    return dataclasses.replace(material, coat=coat if material.coat is None else torch.maximum(coat, material.coat))
-
-
 def _with_coat(material: Material, on: list[bool]) -> Material:
     # material with a clear coat on the ks > 0 pixels of the images where ``on``, none elsewhere.
     if not any(on):
@@ -761,9 +751,9 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
         judged_problem(problem, options)  # and the criterion's subsample's, likewise
     specular_of = has_specular(problem).tolist()
     coat_of = [options.coat == "always" and spec for spec in specular_of]  # auto adds the images the coat wins
-    if any(coat_of):
-        problem.material = coated(problem.material, torch.tensor(
-            [i for i, c in enumerate(coat_of) if c], dtype=torch.long, device=device))
+    if any(coat_of) or problem.material.coat is not None:
+        # Exactly these coats: a pass of reflectance_gains starts bare of the coats the last one chose.
+        problem.material = _with_coat(problem.material, coat_of)
 
     def searched_problem() -> FitProblem:
         return problem if options.search_shadows == options.shadows else problem.with_shadows(options.search_shadows)
@@ -817,7 +807,7 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
     elif options.coat == "auto" and shiny:
         # The one-light model again with a coat on the specular pixels, from the bare fit's
         # light; every later model of the images where it wins keeps the coat.
-        trial = problem.with_material(coated(problem.material, index(shiny)))
+        trial = problem.with_material(_with_coat(problem.material, [i in shiny for i in everyone]))
         for specular in (False, True):
             group = [i for i in shiny if best[i].specular == specular]
             if not group:
@@ -831,7 +821,7 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
                     best[i] = c
                     coat_of[i] = True
         if any(coat_of):
-            problem.material = coated(problem.material, index([i for i in everyone if coat_of[i]]))
+            problem.material = _with_coat(problem.material, coat_of)
             searched = searched_problem()
     growing = everyone
     for n_lights in range(2, options.max_lights + 1):

@@ -1132,6 +1132,20 @@ def test_a_coated_scene_chooses_the_coat_and_a_bare_one_does_not():
         EstimateOptions(coat="sometimes")
 
 
+def test_a_pass_of_the_estimator_starts_from_the_coats_its_options_give():
+    # reflectance_gains runs the estimator again on the same problem: a coat the last
+    # pass chose must not stay on the material of the next one.
+    from selfsup.estimate import _with_coat, estimate_batch, prepare
+
+    config = dataclasses.replace(MEDIUM, specular_prob=1.0)
+    scene = render_spec(sample_scene(3, config, n_lights=1), samples=1).scene
+    options = EstimateOptions(method="refine", max_lights=1, coat="never")
+    problem = prepare([scene], options)
+    problem.material = _with_coat(problem.material, [True])  # as a pass under auto leaves it
+    ((best, tried),) = estimate_batch(problem, options)
+    assert problem.material.coat is None and not best.coat and not any(c.coat for c in tried)
+
+
 def test_a_coated_two_light_scene_judges_both_coat_settings_at_two_lights():
     # The one-light fit of a two-light scene chooses the coat unreliably, so the chosen
     # two-light model is refitted with the other setting too and the better one kept.
