@@ -168,7 +168,7 @@ def coat_transmission(cosine: Tensor, coat: Tensor, shininess: Tensor, f0: float
 
     low = entry(row, col) * (1 - row_weight) + entry(row + 1, col) * row_weight
     high = entry(row, col + 1) * (1 - row_weight) + entry(row + 1, col + 1) * row_weight
-    root_scale = (scale[row] * (1 - row_weight) + scale[row + 1] * row_weight).sqrt()
+    root_scale = _between_rows(scale, row, row_weight).sqrt()
     coated = (low + (high - low) * col_weight) * root_scale
     transmission = 1 - coat + coat * coated
     inside = (cosine > 0) & (cosine < 1)
@@ -183,6 +183,11 @@ def _roughness_rows(shininess: Tensor) -> tuple[Tensor, Tensor]:
     at_alpha = (log_alpha - lo) / (hi - lo) * (TABLE_ALPHAS - 1)
     row = at_alpha.floor().clamp(0, TABLE_ALPHAS - 2)
     return row.long(), at_alpha - row
+
+
+def _between_rows(values: Tensor, row: Tensor, weight: Tensor) -> Tensor:
+    # values (a table or its scale) interpolated between roughness rows row and row + 1.
+    return values[row] * (1 - weight) + values[row + 1] * weight
 
 
 @dataclass(frozen=True)
@@ -216,8 +221,8 @@ def coat_profile(coat: Tensor, shininess: Tensor, f0: float, dtype: torch.dtype 
         return None
     table, scale = coat_tables(coat_eta(float(f0)), dtype, str(coat.device))
     row, weight = _roughness_rows(distinct[:, 1])
-    transmittance = table[row] * (1 - weight[:, None]) + table[row + 1] * weight[:, None]  # (U, M)
-    root_scale = (scale[row] * (1 - weight) + scale[row + 1] * weight).sqrt()
+    transmittance = _between_rows(table, row, weight[:, None])  # (U, M)
+    root_scale = _between_rows(scale, row, weight).sqrt()
     weight_of_coat = distinct[:, :1]
     rows = 1 - weight_of_coat + weight_of_coat * transmittance * root_scale[:, None]
     return CoatProfile(rows.reshape(-1), (inverse * TABLE_COSINES).view(shape))
