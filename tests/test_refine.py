@@ -916,6 +916,26 @@ def test_batched_files_match_single_files_and_a_bad_one_costs_no_other(tmp_path)
         estimate_files(tmp_path, tmp_path / "x.jsonl", options, progress=False, batch=0)
 
 
+def test_files_with_one_shininess_for_every_pixel_are_estimated(tmp_path):
+    # shininess of shape () (the format allows it) alone and in a batch of two.
+    config = dataclasses.replace(SMALL, height=24, width=32)
+    for seed in (6, 7):
+        arrays = dict(np.load(_written(tmp_path, seed, config)))
+        arrays["shininess"] = np.array(30.0, np.float32)
+        np.savez(tmp_path / f"scene_{seed}.npz", **arrays)
+    options = EstimateOptions(max_lights=1, refine=RefineOptions(max_iters=(10, 3)))
+    for batch in (1, 2):
+        summary = estimate_files(tmp_path, tmp_path / f"out_{batch}.jsonl", options, progress=False, batch=batch)
+        assert summary["done"] == 2 and not summary["failures"]
+
+
+def _written(folder, seed, config):
+    path = folder / "written" / f"{seed}.npz"
+    path.parent.mkdir(exist_ok=True)
+    write_scene(path, _scene(seed, config=config))
+    return path
+
+
 @pytest.mark.parametrize("method", [
     "spawn",
     pytest.param("fork", marks=pytest.mark.skipif(not sys.platform.startswith("linux"), reason="forked workers: Linux only")),

@@ -28,9 +28,19 @@ def test_round_trip(tmp_path):
     write_scene(tmp_path / "s.npz", scene)
     back = read_scene(tmp_path / "s.npz")
     assert back.id == "tiny" and back.falloff == "inverse_square"
-    for key in ("image", "depth", "K", "kd", "ks", "shininess", "ambient", "light_pos", "light_intensity"):
+    for key in ("image", "depth", "K", "kd", "ks", "shininess", "ambient", "light_pos", "light_intensity",
+                "scene_scale"):
         torch.testing.assert_close(getattr(back, key), getattr(scene, key))
     assert np.load(tmp_path / "s.npz")["image"].dtype == np.float32  # plain numpy reads it
+
+
+def test_scalar_fields_stay_scalars(tmp_path):
+    # The format allows shininess of shape (); a reader that made it (1,) gave a
+    # Material that rejected every such file.
+    path = _write_raw(tmp_path / "s.npz", shininess=np.array(20.0, np.float32))
+    scene = read_scene(path)
+    assert scene.shininess.shape == () and scene.scene_scale.shape == ()
+    assert render_inputs(scene)[1].shininess.shape == ()
 
 
 def _write_raw(path, **arrays):

@@ -125,7 +125,9 @@ def read_scene(path: str | Path) -> Scene:
     meta.setdefault("id", path.stem)
 
     def tensor(key):
-        return torch.from_numpy(np.ascontiguousarray(arrays[key], dtype=np.float32)) if key in arrays else None
+        # np.array, not np.ascontiguousarray: that one returns a 0-d array as shape (1,),
+        # which made a scalar shininess a per-pixel-less (1,) no Material accepts.
+        return torch.from_numpy(np.array(arrays[key], dtype=np.float32, order="C")) if key in arrays else None
 
     return Scene(
         image=tensor("image"), depth=tensor("depth"), K=tensor("K"), kd=tensor("kd"), meta=meta,
