@@ -147,6 +147,7 @@ class GBuffer:
         normals: Tensor | None = None,
         *,
         max_relative_step: float = 0.1,
+        missing_normals: str = "mask",
     ) -> "GBuffer":
         """Build the G-buffer of a z-depth map.
 
@@ -160,10 +161,15 @@ class GBuffer:
                 :func:`render.geometry.normals_from_points`).
             max_relative_step: depth jump between neighbours, relative to depth,
                 above which two pixels are taken to lie on different surfaces.
+            missing_normals: what a pixel with depth but a missing given normal gets:
+                ``"mask"`` (masked out) or ``"from_depth"`` (the normal estimated from
+                the depth, as if no normals were given; masked where none can be).
 
         Returns:
             The G-buffer; pixels with missing depth or normal are masked out.
         """
+        if missing_normals not in ("mask", "from_depth"):
+            raise ValueError(f"missing_normals must be 'mask' or 'from_depth', got {missing_normals!r}")
         depth = _require_tensor("depth", depth)
         if depth.dim() != 3:
             raise ValueError(f"depth must have shape (B, H, W), got {_shape(depth)}")
@@ -188,6 +194,10 @@ class GBuffer:
             has_normal = length > 1e-6
             # Normalise the given normals (guard: missing ones have zero length).
             normals = normals / length.clamp_min(1e-6)[..., None]
+            if missing_normals == "from_depth" and bool((mask & ~has_normal).any()):
+                estimated, has_estimate = normals_from_points(points, mask, max_relative_step=max_relative_step)
+                normals = torch.where(has_normal[..., None], normals, estimated)
+                has_normal = has_normal | has_estimate
         return cls(points=points, normals=normals, mask=mask & has_normal, intrinsics=K)
 
     def check_finite(self) -> None:

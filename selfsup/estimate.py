@@ -312,7 +312,8 @@ def saturated_pixels(image: Tensor, mask: Tensor, min_share: float = 0.002) -> T
     peak = masked.flatten(2).amax(-1)[..., None, None]  # (B, 3, 1, 1)
     at_peak = (masked == peak) & mask[:, None]
     count = at_peak.flatten(2).sum(-1)  # (B, 3)
-    clipped = (count >= 3) & (count >= min_share * mask.flatten(1).sum(-1, keepdim=True))
+    # A channel black everywhere is dark, not clipped.
+    clipped = (count >= 3) & (count >= min_share * mask.flatten(1).sum(-1, keepdim=True)) & (peak[..., 0, 0] > 0)
     return (at_peak & clipped[..., None, None]).any(1)
 
 
@@ -376,11 +377,15 @@ def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.floa
     if len(falloffs) > 1:
         raise ValueError(f"scenes of one batch must share a falloff, got {sorted(falloffs)}")
     shininess = _stacked_field(scenes, "shininess", device)
+    # The format's missing normals (all zero) are the file's silence there: estimated from the depth.
     gbuffer = GBuffer.from_depth(_stacked_field(scenes, "depth", device), _stacked_field(scenes, "K", device),
-                                 _stacked_field(scenes, "normals", device))
+                                 _stacked_field(scenes, "normals", device), missing_normals="from_depth")
     material = Material(kd=_stacked_field(scenes, "kd", device), ks=_stacked_field(scenes, "ks", device),
                         shininess=shininess[0] if len(scenes) == 1 and shininess.dim() == 1 else shininess)
     image = _stacked_field(scenes, "image", device).permute(0, 3, 1, 2).to(dtype)
+    dark = (~((image > 0) & gbuffer.mask[:, None]).flatten(1).any(1)).tolist()
+    if any(dark):
+        raise SceneFileError(scenes[dark.index(True)].id, "the image is zero on every valid pixel: no light to estimate")
     if mask_saturated:
         clipped = saturated_pixels(image, gbuffer.mask)
         if bool(clipped.any()):

@@ -929,6 +929,25 @@ def test_files_with_one_shininess_for_every_pixel_are_estimated(tmp_path):
         assert summary["done"] == 2 and not summary["failures"]
 
 
+def test_files_without_normals_or_light_are_handled_as_the_format_says(tmp_path):
+    # All-zero normals are missing ones: estimated from the depth, as for a file without
+    # the key (they were masked out, and such a file had no valid pixel left). A black
+    # image has no light to estimate: named, not a crash or a clipped-pixel complaint.
+    config = dataclasses.replace(SMALL, height=24, width=32)
+    arrays = dict(np.load(_written(tmp_path, 6, config)))
+    np.savez(tmp_path / "a_given.npz", **arrays)
+    np.savez(tmp_path / "b_no_key.npz", **{k: v for k, v in arrays.items() if k != "normals"})
+    np.savez(tmp_path / "c_zero.npz", **{**arrays, "normals": np.zeros_like(arrays["normals"])})
+    np.savez(tmp_path / "d_black.npz", **{**arrays, "image": np.zeros_like(arrays["image"])})
+    options = EstimateOptions(max_lights=1, refine=RefineOptions(max_iters=(10, 3)))
+    summary = estimate_files(tmp_path, tmp_path / "out.jsonl", options, progress=False)
+    assert summary["done"] == 3 and list(summary["failures"]) == [str(tmp_path / "d_black.npz")]
+    assert "zero on every valid pixel" in summary["failures"][str(tmp_path / "d_black.npz")]
+    given, no_key, zero = (json.loads(line) for line in (tmp_path / "out.jsonl").read_text().splitlines())
+    assert zero["lights"][0]["position"] == no_key["lights"][0]["position"]
+    assert np.linalg.norm(np.subtract(zero["lights"][0]["position"], given["lights"][0]["position"])) < 0.05
+
+
 def _written(folder, seed, config):
     path = folder / "written" / f"{seed}.npz"
     path.parent.mkdir(exist_ok=True)

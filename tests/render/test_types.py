@@ -82,6 +82,23 @@ def test_given_normals_are_normalised_and_zero_ones_masked():
     torch.testing.assert_close(g.normals[0, 0, 0], torch.tensor([0.0, 0, -1]))
 
 
+def test_missing_given_normals_can_come_from_the_depth():
+    # A plane facing the camera: the estimate from depth is its normal, (0, 0, -1).
+    n = torch.zeros(1, 6, 6, 3)
+    n[..., 2] = -1.0
+    n[0, 2, 2] = 0
+    n[0, 3, 4] = float("nan")
+    g = GBuffer.from_depth(torch.full((1, 6, 6), 1.0), K1, normals=n, missing_normals="from_depth")
+    assert g.mask[0, 2, 2] and g.mask[0, 3, 4]
+    torch.testing.assert_close(g.normals[0, 2, 2], torch.tensor([0.0, 0, -1]))
+    torch.testing.assert_close(g.normals[0, 3, 4], torch.tensor([0.0, 0, -1]))
+    everywhere = GBuffer.from_depth(torch.full((1, 6, 6), 1.0), K1, normals=torch.zeros(1, 6, 6, 3),
+                                    missing_normals="from_depth")
+    assert torch.equal(everywhere.mask, GBuffer.from_depth(torch.full((1, 6, 6), 1.0), K1).mask)
+    with pytest.raises(ValueError, match="missing_normals must be"):
+        GBuffer.from_depth(torch.full((1, 6, 6), 1.0), K1, normals=n, missing_normals="zero")
+
+
 def test_shape_errors_name_the_problem():
     with pytest.raises(ValueError, match=r"depth must have shape \(B, H, W\)"):
         GBuffer.from_depth(torch.ones(8, 8), K1)
