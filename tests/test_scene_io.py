@@ -62,6 +62,9 @@ def _write_raw(path, **arrays):
         ({"light_intensity": None}, "light_pos and light_intensity"),
         ({"shininess": np.zeros((6, 8), np.float32)}, "shininess must be > 0"),
         ({"meta": np.array("{not json")}, "meta is not JSON"),
+        ({"K": np.zeros((3, 3), np.float32)}, "K must be pinhole intrinsics"),
+        ({"K": np.diag([8.0, -8.0, 1.0]).astype(np.float32)}, "with fx, fy > 0"),
+        ({"meta": np.array('{"falloff": "linear"}')}, "meta.falloff must be one of ['inverse_square', 'none'], got 'linear'"),
     ],
 )
 def test_bad_files_name_file_and_reason(tmp_path, change, reason):

@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from render import GBuffer, Material, PointLights
+from render.shading import Falloff
 
 __all__ = ["Scene", "SceneFileError", "read_scene", "write_scene", "render_inputs"]
 
@@ -109,6 +110,10 @@ def read_scene(path: str | Path) -> Scene:
     for key in ("image", "K", "kd", "ks", "shininess", "ambient", "light_pos", "light_intensity"):
         if key in arrays and not np.isfinite(arrays[key]).all():
             raise SceneFileError(path, f"{key} holds non-finite values")
+    K = arrays["K"]
+    if not (K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1], atol=1e-6) and K[1, 0] == 0):
+        raise SceneFileError(path, f"K must be pinhole intrinsics [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, "
+                                   f"got {K.tolist()}")
     if (image < 0).any():
         raise SceneFileError(path, "image holds negative values (it must be linear RGB >= 0)")
     if "shininess" in arrays and (arrays["shininess"] <= 0).any():
@@ -122,6 +127,9 @@ def read_scene(path: str | Path) -> Scene:
         raise SceneFileError(path, f"meta is not JSON ({error})") from None
     if not isinstance(meta, dict):
         raise SceneFileError(path, "meta must be a JSON object")
+    falloffs = [f.value for f in Falloff]
+    if meta.get("falloff", Falloff.INVERSE_SQUARE.value) not in falloffs:
+        raise SceneFileError(path, f"meta.falloff must be one of {falloffs}, got {meta['falloff']!r}")
     meta.setdefault("id", path.stem)
 
     def tensor(key):
