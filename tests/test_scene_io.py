@@ -43,6 +43,22 @@ def test_scalar_fields_stay_scalars(tmp_path):
     assert render_inputs(scene)[1].shininess.shape == ()
 
 
+def test_a_subsampled_scene_keeps_the_points_of_the_pixels_it_keeps():
+    H, W = 7, 9
+    scene = _scene(H, W)
+    scene.depth = 1.5 + torch.rand(H, W)
+    scene.K = torch.tensor([[9.0, 0.0, 4.2], [0, 8.0, 3.1], [0, 0, 1]])
+    scene.normals = torch.nn.functional.normalize(torch.randn(H, W, 3), dim=-1)
+    sub = scene.subsampled(3)
+    assert sub.image.shape == (3, 3, 3) and sub.shininess.shape == (3, 3) and sub.ambient.shape == (3,)
+    points = render_inputs(scene)[0].points[0, ::3, ::3]
+    torch.testing.assert_close(render_inputs(sub)[0].points[0], points)
+    torch.testing.assert_close(sub.normals, scene.normals[::3, ::3])
+    assert scene.subsampled(1) is scene and torch.equal(sub.light_pos, scene.light_pos)
+    with pytest.raises(ValueError, match="stride must be an integer >= 1"):
+        scene.subsampled(0)
+
+
 def _write_raw(path, **arrays):
     base = {k: v.numpy() for k, v in vars(_scene()).items() if isinstance(v, torch.Tensor)}
     base["meta"] = np.array('{"id": "x"}')
@@ -64,6 +80,7 @@ def _write_raw(path, **arrays):
         ({"meta": np.array("{not json")}, "meta is not JSON"),
         ({"K": np.zeros((3, 3), np.float32)}, "K must be pinhole intrinsics"),
         ({"K": np.diag([8.0, -8.0, 1.0]).astype(np.float32)}, "with fx, fy > 0"),
+        ({"K": np.array([[8.0, 0.5, 3.5], [0, 8.0, 2.5], [0, 0, 1]], np.float32)}, "intrinsics with skew are not supported"),
         ({"meta": np.array('{"falloff": "linear"}')}, "meta.falloff must be one of ['inverse_square', 'none'], got 'linear'"),
     ],
 )

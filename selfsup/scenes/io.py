@@ -67,6 +67,25 @@ class Scene:
     def falloff(self) -> str:
         return str(self.meta.get("falloff", "inverse_square"))
 
+    def subsampled(self, stride: int) -> "Scene":
+        """Every ``stride``-th pixel of every row and column from the first, ``K`` made
+        to match (its first two rows over ``stride``): each kept pixel keeps its depth,
+        so its 3D point is the one it had; the lights and the truth are unchanged."""
+        if not (isinstance(stride, int) and stride >= 1):
+            raise ValueError(f"stride must be an integer >= 1, got {stride!r}")
+        if stride == 1:
+            return self
+        H, W = self.image.shape[:2]
+
+        def pick(value: Tensor | None) -> Tensor | None:  # the per-pixel fields (H, W, ...)
+            per_pixel = value is not None and value.dim() >= 2 and tuple(value.shape[:2]) == (H, W)
+            return value[::stride, ::stride].contiguous() if per_pixel else value
+
+        K = self.K.clone()
+        K[:2] /= stride
+        return replace(self, image=pick(self.image), depth=pick(self.depth), kd=pick(self.kd), ks=pick(self.ks),
+                       shininess=pick(self.shininess), normals=pick(self.normals), K=K)
+
 
 def _shape_ok(array: np.ndarray, *shapes: tuple) -> bool:
     return any(array.shape == s for s in shapes)
@@ -112,8 +131,10 @@ def read_scene(path: str | Path) -> Scene:
             raise SceneFileError(path, f"{key} holds non-finite values")
     K = arrays["K"]
     if not (K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1], atol=1e-6) and K[1, 0] == 0):
-        raise SceneFileError(path, f"K must be pinhole intrinsics [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, "
+        raise SceneFileError(path, f"K must be pinhole intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, "
                                    f"got {K.tolist()}")
+    if K[0, 1] != 0:
+        raise SceneFileError(path, f"K has skew K[0, 1] = {K[0, 1]}: intrinsics with skew are not supported")
     if (image < 0).any():
         raise SceneFileError(path, "image holds negative values (it must be linear RGB >= 0)")
     if "shininess" in arrays and (arrays["shininess"] <= 0).any():
