@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import logging
 import math
 import sys
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from selfsup.estimate import (EstimateOptions, estimate_batch, estimate_files, estimate_scene, prepare, problem_of,
+from selfsup.estimate import (EstimateOptions, estimate_batch, estimate_files, estimate_scene, pixel_stride, prepare, problem_of,
                               problems_of, records)
 from selfsup.metrics import light_errors
 from render import EpipolarShadowOptions, GBuffer, Material
@@ -946,6 +947,25 @@ def test_files_without_normals_or_light_are_handled_as_the_format_says(tmp_path)
     given, no_key, zero = (json.loads(line) for line in (tmp_path / "out.jsonl").read_text().splitlines())
     assert zero["lights"][0]["position"] == no_key["lights"][0]["position"]
     assert np.linalg.norm(np.subtract(zero["lights"][0]["position"], given["lights"][0]["position"])) < 0.05
+
+
+def test_a_file_over_max_pixels_is_estimated_on_a_subsample(tmp_path, caplog):
+    assert [pixel_stride(*size) for size in ((480, 640, 76800), (120, 160, 76800), (481, 641, 76800),
+                                            (480, 640, None))] == [2, 1, 3, 1]
+    config = dataclasses.replace(SMALL, height=48, width=64)
+    _written(tmp_path, 6, config)
+    options = EstimateOptions(max_lights=1, refine=RefineOptions(max_iters=(10, 3)))
+    every = estimate_files(tmp_path / "written", tmp_path / "all.jsonl", dataclasses.replace(options, max_pixels=None),
+                           progress=False)
+    with caplog.at_level(logging.INFO, logger="selfsup.estimate"):
+        sub = estimate_files(tmp_path / "written", tmp_path / "sub.jsonl", dataclasses.replace(options, max_pixels=800),
+                             progress=False, workers=1)
+    assert every["done"] == sub["done"] == 1
+    assert "estimated on every 2nd pixel" in caplog.text
+    a, b = (json.loads((tmp_path / name).read_text()) for name in ("all.jsonl", "sub.jsonl"))
+    assert np.linalg.norm(np.subtract(a["lights"][0]["position"], b["lights"][0]["position"])) < 0.02
+    with pytest.raises(ValueError, match="max_pixels must be null or an integer >= 1"):
+        EstimateOptions(max_pixels=0)
 
 
 def _written(folder, seed, config):
