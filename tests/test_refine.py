@@ -895,6 +895,16 @@ def test_files_speed_benchmark_times_the_command_on_a_directory():
     assert row["scenes"] == 2 and row["workers"] == 1 and row["seconds_per_scene"] > 0 and row["success_rate"] == 1.0
 
 
+def test_large_images_benchmark_compares_every_pixel_with_the_subsample():
+    from benchmarks.large_images import run
+
+    rows = run(1, 48, 64, 777, max_pixels=768)
+    assert [r["id"] for r in rows][1::2] == ["all (median, count)"] * 2
+    for row in rows:
+        assert row["stride"] == 2 and row["found_all"] == row["found_default"] == 1
+        assert row["answers_apart"] < 0.05 and row["seconds_all"] > 0 and row["seconds_default"] > 0
+
+
 def test_batched_files_match_single_files_and_a_bad_one_costs_no_other(tmp_path):
     config = dataclasses.replace(SMALL, height=24, width=32)
     for seed in (6, 7):
