@@ -585,13 +585,19 @@ def judged_problem(problem: FitProblem, options: EstimateOptions) -> FitProblem:
     judged = subsample(problem, options.criterion_stride)
     if not bool(judged.gbuffer.mask.flatten(1).any(1).all()):
         judged = problem
+    return _criterion_light(judged, options)
+
+
+def _criterion_light(problem: FitProblem, options: EstimateOptions) -> FitProblem:
+    # The problem's light transport as the criterion models it: its cast shadows and, where
+    # the file leaves light unaccounted for, each light's indirect light.
     if options.criterion_thickness is not None and options.criterion_shadows == "epipolar":
-        judged = judged.with_shadows("epipolar", EpipolarShadowOptions(scene_thickness=options.criterion_thickness))
+        problem = problem.with_shadows("epipolar", EpipolarShadowOptions(scene_thickness=options.criterion_thickness))
     elif options.criterion_shadows != problem.shadows:
-        judged = judged.with_shadows(options.criterion_shadows)
+        problem = problem.with_shadows(options.criterion_shadows)
     if options.indirect == "auto" and problem.ambient is None and problem.gbuffer.intrinsics is not None:
-        judged = judged.with_indirect()
-    return judged
+        problem = problem.with_indirect()
+    return problem
 
 
 def _groups(best: list[Candidate]) -> dict[tuple[int, bool], list[int]]:
@@ -958,8 +964,19 @@ def _network_candidates(problem: FitProblem, slots: Tensor, presence: Tensor, sp
 def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, list[Candidate]]],
             options: EstimateOptions) -> list[dict]:
     """The JSON-ready records (no ``seconds``) of :func:`estimate_batch`'s results, with
-    each light's position covariance (one batched call per light count and switch)."""
+    each light's position covariance (one batched call per light count and switch).
+
+    Where the file leaves light unaccounted for (no ambient) and ``options.indirect``
+    is ``auto``, the reported intensities and ambient are solved again at the chosen
+    positions with the light the criterion models (each light's indirect light and
+    its cast shadows, :func:`judged_problem`, at every pixel): the fit's own, without
+    them, take indirect light for light of the lamps. On the path-traced files the
+    median worst intensity error fell, devset gi 0.114 -> 0.102, Mitsuba rooms 0.158
+    -> 0.107 and 0.538 -> 0.439 (README, "Intensities under indirect light"); the
+    positions and covariances stay the fit's."""
     covariances: list[Tensor | None] = [best.covariance for best, _ in results]
+    lit: list[tuple[Tensor, Tensor] | None] = [None] * len(results)
+    resolve = options.indirect == "auto" and problem.ambient is None and problem.gbuffer.intrinsics is not None
     own = [i for i, c in enumerate(covariances) if c is None]
     for (n_lights, specular), indices in _groups([results[i][0] for i in own]).items():
         group = [own[j] for j in indices]
@@ -970,15 +987,23 @@ def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, 
                                   correlation_px=float(block**2), albedo_error=options.albedo_error,
                                   albedo_block_px=block, indirect_variation=options.indirect_variation,
                                   indirect_length=options.indirect_length, normal_error=options.normal_error).cpu()
+        if resolve:
+            final = replace(options.refine, specular=specular, robust_scale=options.final_robust_scale)
+            _, intensity, ambient, *_ = evaluate(_criterion_light(problem.select(at), options), fit.position, final)
         for j, i in enumerate(group):
             covariances[i] = cov[j]
-    return [_record(scene_id, best, tried, cov) for scene_id, (best, tried), cov in zip(ids, results, covariances)]
+            if resolve:
+                lit[i] = intensity[j : j + 1], ambient[j : j + 1]
+    return [_record(scene_id, best, tried, cov, solved)
+            for scene_id, (best, tried), cov, solved in zip(ids, results, covariances, lit)]
 
 
-def _record(scene_id: str, best: Candidate, tried: list[Candidate], cov: Tensor) -> dict:
-    # cov: (L, 3, 3) position covariance of the chosen model's lights.
+def _record(scene_id: str, best: Candidate, tried: list[Candidate], cov: Tensor,
+            solved: tuple[Tensor, Tensor] | None = None) -> dict:
+    # cov: (L, 3, 3) position covariance of the chosen model's lights; solved: the
+    # intensities (1, L, 3) and ambient (1, 3) to report instead of the fit's.
     std = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
-    fit = best.fit
+    fit = best.fit if solved is None else replace(best.fit, intensity=solved[0], ambient=solved[1])
     # Brightest light first (summed RGB intensity): the same scene gives the same record
     # whichever start each light was found from.
     order = fit.intensity[0].sum(-1).cpu().argsort(descending=True, stable=True).tolist()

@@ -978,6 +978,36 @@ def test_a_file_over_max_pixels_is_estimated_on_a_subsample(tmp_path, caplog):
         EstimateOptions(max_pixels=0)
 
 
+def test_intensities_under_unaccounted_light_are_solved_with_its_indirect_light():
+    # An image with each light's first bounce (selfsup.indirect, the model itself) added
+    # and no ambient given: the fit, direct light only, takes the bounce for more lamp;
+    # the reported intensities, solved again with it at the chosen position, do not.
+    from render import light_transport
+    from selfsup.indirect import indirect_columns
+
+    scene = _scene(6, config=MEDIUM)
+    problem = prepare([scene], EstimateOptions())
+    true = scene.light_pos[None]
+    diffuse = light_transport(problem.gbuffer, problem.material, true, falloff="inverse_square", shadows="none",
+                              specular=False).diffuse
+    bounce = (indirect_columns(problem.gbuffer, problem.material.kd, diffuse)
+              * scene.light_intensity.T[None, :, :, None, None]).sum(2)[0]  # (3, H, W)
+    scene = dataclasses.replace(scene, image=scene.image + bounce.permute(1, 2, 0), ambient=None)
+    options = EstimateOptions(max_lights=1)
+    problem = prepare([scene], options)
+    best = estimate_batch(problem, options)[0][0]
+    record = records([scene.id], problem, [(best, [best])], options)[0]
+
+    def error(intensity):
+        return float((torch.as_tensor(intensity).reshape(3) - scene.light_intensity[0]).abs().max() / scene.light_intensity[0].max())
+
+    fitted, reported = error(best.fit.intensity[0, 0]), error(record["lights"][0]["intensity"])
+    assert reported < 0.5 * fitted and reported < 0.03, (fitted, reported)
+    assert record["lights"][0]["position"] == best.fit.position[0, 0].tolist()
+    never = records([scene.id], problem, [(best, [best])], dataclasses.replace(options, indirect="never"))[0]
+    assert never["lights"][0]["intensity"] == best.fit.intensity[0, 0].tolist()
+
+
 def _written(folder, seed, config):
     path = folder / "written" / f"{seed}.npz"
     path.parent.mkdir(exist_ok=True)
