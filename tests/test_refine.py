@@ -1008,6 +1008,23 @@ def test_intensities_under_unaccounted_light_are_solved_with_its_indirect_light(
     assert never["lights"][0]["intensity"] == best.fit.intensity[0, 0].tolist()
 
 
+def test_normals_of_the_other_sign_convention_are_turned_round(tmp_path, caplog):
+    # Normals facing away from the camera (an OpenGL-style file) gave a light on the
+    # wrong side; now they are turned round, with a warning, and give the file's answer.
+    config = dataclasses.replace(SMALL, height=24, width=32)
+    arrays = dict(np.load(_written(tmp_path, 6, config)))
+    np.savez(tmp_path / "a_given.npz", **arrays)
+    normals = -arrays["normals"]
+    normals[:4] = 0  # missing there: estimated from the depth, facing the camera already
+    np.savez(tmp_path / "b_away.npz", **{**arrays, "normals": normals})
+    options = EstimateOptions(max_lights=1, refine=RefineOptions(max_iters=(10, 3)))
+    with caplog.at_level(logging.WARNING, logger="selfsup.estimate"):
+        estimate_files(tmp_path, tmp_path / "out.jsonl", options, progress=False, workers=1)
+    assert "normals face away from the camera" in caplog.text
+    given, away = (json.loads(line) for line in (tmp_path / "out.jsonl").read_text().splitlines())
+    assert np.linalg.norm(np.subtract(given["lights"][0]["position"], away["lights"][0]["position"])) < 0.02
+
+
 def _written(folder, seed, config):
     path = folder / "written" / f"{seed}.npz"
     path.parent.mkdir(exist_ok=True)

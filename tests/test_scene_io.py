@@ -79,6 +79,8 @@ def _write_raw(path, **arrays):
         ({"shininess": np.zeros((6, 8), np.float32)}, "shininess must be > 0"),
         ({"meta": np.array("{not json")}, "meta is not JSON"),
         ({"K": np.zeros((3, 3), np.float32)}, "K must be pinhole intrinsics"),
+        ({"kd": -np.ones((6, 8, 3), np.float32)}, "kd holds negative values"),
+        ({"ambient": np.array([0.1, -0.1, 0.0], np.float32)}, "ambient holds negative values"),
         ({"K": np.diag([8.0, -8.0, 1.0]).astype(np.float32)}, "with fx, fy > 0"),
         ({"K": np.array([[8.0, 0.5, 3.5], [0, 8.0, 2.5], [0, 0, 1]], np.float32)}, "intrinsics with skew are not supported"),
         ({"meta": np.array('{"falloff": "linear"}')}, "meta.falloff must be one of ['inverse_square', 'none'], got 'linear'"),

@@ -137,6 +137,9 @@ def read_scene(path: str | Path) -> Scene:
         raise SceneFileError(path, f"K has skew K[0, 1] = {K[0, 1]}: intrinsics with skew are not supported")
     if (image < 0).any():
         raise SceneFileError(path, "image holds negative values (it must be linear RGB >= 0)")
+    for key in ("kd", "ks", "ambient"):
+        if key in arrays and (arrays[key] < 0).any():
+            raise SceneFileError(path, f"{key} holds negative values (reflectance and light are >= 0)")
     if "shininess" in arrays and (arrays["shininess"] <= 0).any():
         raise SceneFileError(path, "shininess must be > 0")
     valid = np.isfinite(depth) & (depth > 0)
