@@ -56,6 +56,32 @@ class SamplerConfig:
     exposure_range: tuple[float, float] = (0.6, 1.1)
     scale_range: tuple[float, float] = (0.7, 1.4)
 
+    def __post_init__(self):
+        # Bad settings are named here, not met as a NaN probability or an empty room deep in sampling.
+        if not (isinstance(self.height, int) and isinstance(self.width, int) and self.height >= 1 and self.width >= 1):
+            raise ValueError(f"sampler height and width must be integers >= 1, got {self.height!r} x {self.width!r}")
+        probs = tuple(float(p) for p in self.n_lights_probs)
+        if not probs or not all(math.isfinite(p) and p >= 0 for p in probs) or sum(probs) <= 0:
+            raise ValueError(f"sampler n_lights_probs must be finite, >= 0 and not all 0, got {list(self.n_lights_probs)}")
+        self.n_lights_probs = probs
+        ranges = {"fov_x_deg": (0, 180), "room_width": (0, math.inf), "room_depth": (0, math.inf),
+                  "room_height": (0, math.inf), "ks_range": (0, math.inf), "shininess_range": (0, math.inf),
+                  "ambient_range": (0, math.inf), "exposure_range": (0, math.inf), "scale_range": (0, math.inf)}
+        for name, (low, high) in ranges.items():
+            a, b = (float(x) for x in getattr(self, name))
+            positive = name not in ("ks_range", "ambient_range")  # these two may reach 0
+            if not (low <= a <= b < high and (a > low or not positive)):
+                raise ValueError(f"sampler {name} must be a range [low, high] with {low} {'<' if positive else '<='} "
+                                 f"low <= high < {high}, got {list(getattr(self, name))}")
+        a, b = self.n_objects
+        if not (0 <= a <= b):
+            raise ValueError(f"sampler n_objects must be a range [low, high] with 0 <= low <= high, got {[a, b]}")
+        for name in ("two_side_walls_prob", "specular_prob", "ambient_zero_prob"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"sampler {name} must be a probability in [0, 1], got {getattr(self, name)}")
+        if not self.light_margin >= 0:
+            raise ValueError(f"sampler light_margin must be >= 0 metres, got {self.light_margin}")
+
 
 @dataclass(frozen=True)
 class Materials:

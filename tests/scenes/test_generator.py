@@ -1,6 +1,7 @@
 """Procedural scenes: sampler, exact rendering, degradations, datasets, files."""
 
 import dataclasses
+import re
 import subprocess
 import sys
 
@@ -259,3 +260,19 @@ def test_generate_speed_benchmark_reports_the_median_loader_run_and_its_range():
         low, high = map(float, row["range_scenes_per_s"].split("-"))
         assert low <= row["scenes_per_s"] <= high
     assert all(row["scenes_per_s"] > 0 for row in rows)
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(n_lights_probs=(0.0, 0.0)), "n_lights_probs must be finite, >= 0 and not all 0"),
+    (dict(n_lights_probs=(1.0, -0.5)), "n_lights_probs"),
+    (dict(height=0), "height and width must be integers >= 1"),
+    (dict(room_width=(5.0, 3.0)), "room_width must be a range"),
+    (dict(fov_x_deg=(50.0, 190.0)), "fov_x_deg must be a range"),
+    (dict(scale_range=(0.0, 1.0)), "scale_range must be a range"),
+    (dict(n_objects=(3, 1)), "n_objects must be a range"),
+    (dict(specular_prob=1.5), "specular_prob must be a probability"),
+    (dict(light_margin=-0.1), "light_margin must be >= 0"),
+])
+def test_bad_sampler_settings_are_named(change, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        dataclasses.replace(SamplerConfig(), **change)
