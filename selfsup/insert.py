@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -175,11 +176,19 @@ def default_sphere(gbuffer: GBuffer, pixel: tuple[float, float] = (0.5, 0.7), si
     return Sphere(centre=point + radius * normal, radius=radius)
 
 
+def _check_placement(pixel: tuple[float, float], size: float) -> None:
+    if not (len(pixel) == 2 and all(0 <= float(f) <= 1 for f in pixel)):
+        raise ValueError(f"insert.pixel must be two fractions of the width and height in [0, 1], got {list(pixel)}")
+    if not (math.isfinite(size) and size > 0):
+        raise ValueError(f"insert.size must be > 0 (of the scene's bounding-box diagonal), got {size}")
+
+
 def place_object(gbuffer: GBuffer, obj: Sphere | Mesh, pixel: tuple[float, float] = (0.5, 0.7),
                  size: float = 0.05) -> Sphere | Mesh:
     """``obj`` resting where :func:`default_sphere` puts its sphere, ``size`` times the
     scene's bounding-box diagonal in radius (a mesh: half its largest side). A mesh's
     own +y axis (the OBJ convention's up) is turned along the surface normal."""
+    _check_placement(pixel, size)
     if isinstance(obj, Sphere):
         placed = default_sphere(gbuffer, pixel, size)
         return dataclasses.replace(obj, centre=placed.centre, radius=placed.radius)
@@ -259,6 +268,7 @@ def insert_files(scene: str, output: str, estimates: str | None = None, size: fl
     from selfsup.scenes.generate import to_rgb8
     from selfsup.scenes.io import read_scene
 
+    _check_placement(pixel, size)  # before any estimate is made
     if object == "sphere":
         shape = Sphere(centre=torch.zeros(3), radius=1.0)
     elif object == "cube":

@@ -89,6 +89,18 @@ def test_sphere_sits_on_an_upward_surface(scene):
     assert float(nearest) == pytest.approx(sphere.radius, rel=0.05)
 
 
+@pytest.mark.parametrize("pixel, size, message", [
+    ((1.5, 0.5), 0.05, "insert.pixel must be two fractions"),
+    ((0.5,), 0.05, "insert.pixel must be two fractions"),
+    ((0.5, 0.7), -1.0, "insert.size must be > 0"),
+    ((0.5, 0.7), float("nan"), "insert.size must be > 0"),
+])
+def test_bad_placements_are_named(scene, pixel, size, message):
+    gbuffer, _, _ = render_inputs(scene)
+    with pytest.raises(ValueError, match=message):
+        place_object(gbuffer, Sphere(centre=torch.zeros(3), radius=1.0), pixel, size)
+
+
 def test_bad_estimate_record_is_named():
     with pytest.raises(ValueError, match="scene_9 lacks lights"):
         lights_from_record({"id": "scene_9", "lights": [{"intensity": [1, 1, 1]}]})
