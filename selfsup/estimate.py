@@ -50,13 +50,13 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from render import GBuffer, Material, light_transport
+from render import Material, light_transport
 from render.geometry import normal_noise, plane_fit, smooth_normals, surface_segments
 from render.shadows import EpipolarShadowOptions, ShadowMethod
 from selfsup import albedo_free
 from selfsup.refine import (Fit, FitProblem, RefineOptions, evaluate, position_covariance, refine, reweighted,
                             robust_loss, search, solve_linear, subsample)
-from selfsup.scenes.io import Scene, SceneFileError, read_scene
+from selfsup.scenes.io import Scene, SceneFileError, read_scene, scene_gbuffer
 
 __all__ = ["EstimateOptions", "Candidate", "bic", "saturated_pixels", "problem_of", "problems_of", "prepare", "estimate_scene",
            "estimate_batch", "records", "has_specular", "estimate_files", "scene_files", "segment_gains",
@@ -388,21 +388,8 @@ def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.floa
     if len(falloffs) > 1:
         raise ValueError(f"scenes of one batch must share a falloff, got {sorted(falloffs)}")
     shininess = _stacked_field(scenes, "shininess", device)
-    # The format's missing normals (all zero) are the file's silence there: estimated from the depth.
-    gbuffer = GBuffer.from_depth(_stacked_field(scenes, "depth", device), _stacked_field(scenes, "K", device),
-                                 _stacked_field(scenes, "normals", device), missing_normals="from_depth")
-    # Normals given with the other sign convention (facing away from the camera, unlike the
-    # format's) are turned round; a file's own normals face away on at most 0.02% of
-    # pixels (devset, Mitsuba sets), where sensor noise tilts them past the view ray.
-    facing = (gbuffer.normals * -gbuffer.points).sum(-1) > 0
-    away = ((~facing & gbuffer.mask).flatten(1).sum(1) > 0.5 * gbuffer.mask.flatten(1).sum(1)).tolist()
-    if any(away):
-        for scene, flip in zip(scenes, away):
-            if flip:
-                log.warning("%s: the normals face away from the camera on most pixels (the format's face it): "
-                            "turned round", scene.id)
-        turn = torch.tensor(away, device=facing.device)[:, None, None] & ~facing  # not those estimated from depth
-        gbuffer = replace(gbuffer, normals=torch.where(turn[..., None], -gbuffer.normals, gbuffer.normals))
+    gbuffer = scene_gbuffer(_stacked_field(scenes, "depth", device), _stacked_field(scenes, "K", device),
+                            _stacked_field(scenes, "normals", device), [scene.id for scene in scenes])
     material = Material(kd=_stacked_field(scenes, "kd", device), ks=_stacked_field(scenes, "ks", device),
                         shininess=shininess[0] if len(scenes) == 1 and shininess.dim() == 1 else shininess)
     image = _stacked_field(scenes, "image", device).permute(0, 3, 1, 2).to(dtype)

@@ -1018,7 +1018,7 @@ def test_normals_of_the_other_sign_convention_are_turned_round(tmp_path, caplog)
     normals[:4] = 0  # missing there: estimated from the depth, facing the camera already
     np.savez(tmp_path / "b_away.npz", **{**arrays, "normals": normals})
     options = EstimateOptions(max_lights=1, refine=RefineOptions(max_iters=(10, 3)))
-    with caplog.at_level(logging.WARNING, logger="selfsup.estimate"):
+    with caplog.at_level(logging.WARNING, logger="selfsup.scenes.io"):
         estimate_files(tmp_path, tmp_path / "out.jsonl", options, progress=False, workers=1)
     assert "normals face away from the camera" in caplog.text
     given, away = (json.loads(line) for line in (tmp_path / "out.jsonl").read_text().splitlines())

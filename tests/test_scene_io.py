@@ -59,6 +59,20 @@ def test_a_subsampled_scene_keeps_the_points_of_the_pixels_it_keeps():
         scene.subsampled(0)
 
 
+def test_render_inputs_read_normals_as_the_format_says():
+    # The estimator and the renderer's inputs (mode=insert, devset_render) share the
+    # rules: missing normals from the depth, the other sign convention turned round.
+    scene = _scene()
+    scene.normals = torch.zeros(6, 8, 3)
+    scene.normals[..., 2] = -1.0  # facing the camera (a plane at z = 2)
+    given = render_inputs(scene)[0]
+    scene.normals = -scene.normals
+    scene.normals[0, 0] = 0
+    turned = render_inputs(scene)[0]
+    assert bool(turned.mask.all())
+    torch.testing.assert_close(turned.normals, given.normals)
+
+
 def _write_raw(path, **arrays):
     base = {k: v.numpy() for k, v in vars(_scene()).items() if isinstance(v, torch.Tensor)}
     base["meta"] = np.array('{"id": "x"}')
