@@ -879,6 +879,24 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
                     best[i] = c
                     still.append(i)
         growing = sorted(still)
+    # A chosen model of several lights is refitted without each of its lights in turn, from
+    # the others' positions: the search of fewer lights can miss a basin that the larger
+    # model's fit found (a one-light fit drawn towards interreflections), and a light then
+    # pays for itself against that miss alone. The criterion alone decides: fewer lights
+    # need no extra evidence.
+    for (n_lights, specular), group in _groups(best).items():
+        if n_lights < 2:
+            continue
+        positions = torch.cat([best[i].fit.position for i in group])  # (G, n, 3)
+        rest = torch.cat([torch.cat([positions[:, :k], positions[:, k + 1:]], 1) for k in range(n_lights)])
+        images = group * n_lights  # light k dropped from every image of the group, then k + 1
+        sub = problem.select(index(images))
+        fit = refine(sub, rest, replace(coarse, specular=specular))
+        for i, c in zip(images, _candidates(sub, fit, n_lights - 1, [specular] * len(images), options)):
+            c = replace(c, coat=coat_of[i])
+            tried[i].append(c)
+            if c.criterion < best[i].criterion:
+                best[i] = c
     if options.coat == "auto" and shiny:
         # A two-light scene's one-light fit chooses the coat unreliably (the missing light
         # weighs more than the coat): its chosen model is refitted with the other setting
