@@ -880,10 +880,9 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[tuple[
                     still.append(i)
         growing = sorted(still)
     # A chosen model of several lights is refitted without each of its lights in turn, from
-    # the others' positions: the search of fewer lights can miss a basin that the larger
-    # model's fit found (a one-light fit drawn towards interreflections), and a light then
-    # pays for itself against that miss alone. The criterion alone decides: fewer lights
-    # need no extra evidence.
+    # the others' positions: the fit of fewer lights can stop where the criterion (which
+    # sees cast shadows) judges it poorly, and a light then pays for itself against that
+    # stop alone. The criterion alone decides: fewer lights need no extra evidence.
     for (n_lights, specular), group in _groups(best).items():
         if n_lights < 2:
             continue
