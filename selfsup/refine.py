@@ -876,7 +876,9 @@ def position_blocks(info: Tensor, sigma2: Tensor, n_lights: int, extra: Tensor |
     distant light's position got almost no variance, and the same scene given in
     millimetres a position_std a hundred times too small. A direction the data do not
     constrain (a scaled eigenvalue under 1e-12) gets the variance of one that small,
-    enormous rather than zero: unknown is not certain.
+    enormous rather than zero: unknown is not certain. It stays finite (at most the
+    dtype's largest value), also where nothing has any curvature (a light that lights
+    no pixel, its ambient given): a record must hold numbers, and inf beside 0 made NaN.
     """
     B, k, _ = info.shape
     matrix = info.double()
@@ -884,12 +886,15 @@ def position_blocks(info: Tensor, sigma2: Tensor, n_lights: int, extra: Tensor |
     # A parameter with no curvature at all is scaled by 1: its row is zero either way.
     scale = torch.where(diagonal > 0, diagonal, torch.ones_like(diagonal)).rsqrt()  # (B, k)
     eigenvalues, vectors = torch.linalg.eigh(matrix * scale[:, :, None] * scale[:, None, :])
-    floor = 1e-12 * eigenvalues.amax(-1, keepdim=True).clamp_min(1e-300)
+    # With any curvature the unit diagonal makes the largest eigenvalue at least 1; with
+    # none (a zero matrix) 1 stands in for it.
+    floor = 1e-12 * eigenvalues.amax(-1, keepdim=True).clamp_min(1.0)
     scaled_inverse = (vectors / eigenvalues.clamp_min(floor)[:, None, :]) @ vectors.transpose(-1, -2)
     inverse = scaled_inverse * scale[:, :, None] * scale[:, None, :]
     cov = inverse * sigma2.double()[:, None, None]
     if extra is not None:
         cov = cov + inverse @ extra.double() @ inverse
-    cov = cov.to(info.dtype)
+    largest = torch.finfo(info.dtype).max
+    cov = cov.clamp(-largest, largest).to(info.dtype)
     pos_cov = cov[:, : 3 * n_lights, : 3 * n_lights].reshape(B, n_lights, 3, n_lights, 3)
     return torch.stack([pos_cov[:, i, :, i, :] for i in range(n_lights)], 1)

@@ -196,6 +196,11 @@ def test_position_covariance_does_not_depend_on_the_units():
     # Nothing constrains a parameter: an enormous variance, not none.
     info[0, :] = info[:, 0] = 0
     assert float(position_blocks(info.float()[None], torch.ones(1), 2)[0, 0, 0, 0]) > 1e9
+    # Nothing constrains anything (a light that lights no pixel, the ambient given): still
+    # numbers, enormous on the diagonal (the zero matrix's inverse was inf, and inf x 0 NaN).
+    for sigma2 in (1.0, 1e30):
+        blocks = position_blocks(torch.zeros(1, 6, 6), torch.tensor([sigma2]), 2)
+        assert bool(torch.isfinite(blocks).all()) and float(blocks.diagonal(dim1=-2, dim2=-1).amin()) > 1e9
 
 
 def test_position_std_follows_the_scene_into_millimetres():
