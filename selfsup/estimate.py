@@ -1234,8 +1234,14 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
                     failed[str(path)] = reasons[path]
                     log.error("skipped %s: %s", path, reasons[path])
                 elif path in done:
+                    try:  # strict JSON: one NaN would break a strict reader on every line
+                        line = json.dumps(done[path], allow_nan=False)
+                    except ValueError:
+                        failed[str(path)] = "its estimate holds a non-finite number (NaN or inf), which JSON cannot carry"
+                        log.error("skipped %s: %s", path, failed[str(path)])
+                        continue
                     seconds.append(done[path]["seconds"])
-                    out.write(json.dumps(done[path]) + "\n")
+                    out.write(line + "\n")
             out.flush()
             if bar is not None:
                 bar.update(len(chunk))

@@ -487,6 +487,31 @@ def test_estimate_files_writes_jsonl_and_skips_bad_files(tmp_path):
     assert set(record["lights"][0]) >= {"position", "intensity", "position_std"}
 
 
+def test_a_record_with_a_non_finite_number_fails_its_file_not_the_output(tmp_path, monkeypatch):
+    # Python writes NaN as a bare NaN, which no strict JSON reader accepts: one such line
+    # would cost every line of the file. Such a record fails its own file, named.
+    import selfsup.estimate
+
+    for name, seed in (("a.npz", 6), ("b.npz", 7)):
+        write_scene(tmp_path / name, _scene(seed))
+    records = selfsup.estimate.records
+
+    def with_a_nan(ids, *args, **kwargs):
+        out = records(ids, *args, **kwargs)
+        for record in out:
+            if record["id"] == _scene(7).id:
+                record["lights"][0]["position_std"][0] = float("nan")
+        return out
+
+    monkeypatch.setattr(selfsup.estimate, "records", with_a_nan)
+    options = EstimateOptions(max_lights=1, refine=RefineOptions(max_iters=(10, 3)))
+    summary = estimate_files(tmp_path, tmp_path / "lights.jsonl", options, progress=False)
+    assert summary["done"] == 1 and summary["failed"] == 1
+    assert "non-finite" in summary["failures"][str(tmp_path / "b.npz")]
+    lines = (tmp_path / "lights.jsonl").read_text().splitlines()
+    assert len(lines) == 1 and json.loads(lines[0], parse_constant=lambda c: pytest.fail(c))["id"] == _scene(6).id
+
+
 def test_estimate_command_exits_non_zero_when_a_file_fails(tmp_path):
     import subprocess
     import sys
