@@ -67,6 +67,12 @@ def unproject_depth(depth: Tensor, K: Tensor) -> Tensor:
         >>> unproject_depth(torch.ones(1, 3, 3), K)[0, 1, 1]
         tensor([0., 0., 1.])
     """
+    last_row = (K[:, 2] - K.new_tensor([0.0, 0.0, 1.0])).abs().le(1e-6).all(-1)
+    pinhole = (K[:, 0, 0] > 0) & (K[:, 1, 1] > 0) & (K[:, 1, 0] == 0) & last_row
+    if not bool(pinhole.all()):
+        # A zero or negative focal length unprojected every pixel to nothing (all masked, silently).
+        raise ValueError(f"K must be pinhole intrinsics [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0; "
+                         f"image {int((~pinhole).nonzero()[0])} of the batch is not: {K[~pinhole][0].tolist()}")
     if bool((K[:, 0, 1] != 0).any()):
         # kornia's unprojection ignores skew; refuse rather than silently misplace points.
         raise ValueError("intrinsics with non-zero skew K[0, 1] are not supported")

@@ -25,6 +25,29 @@ def test_skewed_intrinsics_rejected():
         GBuffer.from_depth(torch.ones(1, 8, 8), K)
 
 
+@pytest.mark.parametrize("entry, value", [((0, 0), 0.0), ((1, 1), -100.0), ((2, 2), 0.0), ((1, 0), 3.0)])
+def test_non_pinhole_intrinsics_are_named(entry, value):
+    # A zero or negative focal length left every pixel masked, silently.
+    K = K1.clone()
+    K[entry] = value
+    with pytest.raises(ValueError, match="pinhole intrinsics"):
+        GBuffer.from_depth(torch.ones(2, 8, 8), K)
+
+
+@pytest.mark.parametrize("shadows", ["none", "epipolar", "paper"])
+def test_an_empty_batch_renders_to_an_empty_image(shadows):
+    from render import ShadowedBlinnPhong
+
+    g = GBuffer.from_depth(torch.ones(0, 6, 8), K1)
+    position = torch.zeros(0, 2, 3, requires_grad=True)
+    image = ShadowedBlinnPhong(shadows=shadows)(g, Material(kd=torch.zeros(0, 6, 8, 3)),
+                                                PointLights(position=position, intensity=torch.ones(0, 2, 3)),
+                                                torch.zeros(0, 3))
+    assert image.shape == (0, 3, 6, 8)
+    image.sum().backward()
+    assert position.grad.shape == (0, 2, 3)
+
+
 def test_plane_normals_exact_and_facing_camera():
     # A tilted plane z = 2 + 0.5 y: normal ~ (0, -0.5, 1) normalised, flipped to face camera.
     H, W = 48, 64
