@@ -102,6 +102,9 @@ class TrainerOptions:
             raise ValueError(f"max_steps, batch_size and val_every must be >= 1: {self}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
+        if not self.max_minutes >= 0 or self.threads < 0:  # -3 minutes read as no cap, silently
+            raise ValueError(f"trainer.max_minutes must be >= 0 (0: no cap) and trainer.threads >= 0 (0: torch's "
+                             f"default), got {self.max_minutes} and {self.threads}")
 
 
 @dataclass

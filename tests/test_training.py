@@ -172,6 +172,9 @@ def test_config_composes_every_group_and_overrides():
         build_trainer(_cfg("experiment=smoke", "model.max_lights=1", "trainer.out_dir=x"))
     with pytest.raises(ValueError, match="unknown mode 'fly'"):
         run(_cfg("mode=fly"))
+    for bad in ("trainer.max_minutes=-3", "trainer.threads=-1", "trainer.batch_size=0"):
+        with pytest.raises(ValueError, match=bad.split("=")[0].split(".")[1]):
+            build_trainer(_cfg("experiment=smoke", bad, "trainer.out_dir=x"))
 
 
 def test_a_few_training_steps_lower_the_loss_on_a_tiny_set(tmp_path, pool):
