@@ -116,6 +116,11 @@ class LoggerOptions:
     image_every: int = 1  # image grids every n-th validation; 0: never
     images: int = 4
 
+    def __post_init__(self):
+        if self.log_every < 1 or self.image_every < 0 or self.images < 1:  # log_every=0 died in step % 0
+            raise ValueError(f"logger.log_every and logger.images must be >= 1 and logger.image_every >= 0 (0: never), "
+                             f"got {self.log_every}, {self.images} and {self.image_every}")
+
 
 @dataclass
 class _Dist:
@@ -170,6 +175,8 @@ class Trainer:
                  optim: OptimOptions, trainer: TrainerOptions, logger: LoggerOptions, loss: LossOptions,
                  renderer: ShadowedBlinnPhong, seed: int = 0, config: dict | None = None):
         self.model_config = dict(model_config)
+        with torch.device("meta"):  # a bad model setting is named now, before any scene is rendered (no weights made)
+            LightNet(**self.model_config)
         self.sampler, self.degradations, self.samples = sampler, degradations, samples
         self.pool_options, self.optim, self.options, self.logger, self.loss = pool, optim, trainer, logger, loss
         self.renderer = renderer

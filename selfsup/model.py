@@ -197,8 +197,13 @@ class LightNet(nn.Module):
             raise ValueError(f"max_lights must be >= 1, got {max_lights}")
         if cascade_levels < 1:
             raise ValueError(f"cascade_levels must be >= 1, got {cascade_levels}")
-        if input_size % 2 ** len(widths):
-            raise ValueError(f"input_size {input_size} must be divisible by 2^{len(widths)} (one halving per stage)")
+        if input_size < 2 ** len(widths) or input_size % 2 ** len(widths):
+            raise ValueError(f"input_size {input_size} must be a positive multiple of 2^{len(widths)} (one halving per stage)")
+        if min(widths, default=1) < 1 or hidden < 1:
+            raise ValueError(f"widths and hidden must be >= 1 channels, got {list(widths)} and {hidden}")
+        if anchors_per_axis < 2 or not anchor_extent > 0 or evidence_points < 1:
+            raise ValueError(f"anchors_per_axis must be >= 2, anchor_extent > 0 and evidence_points >= 1, got "
+                             f"{anchors_per_axis}, {anchor_extent} and {evidence_points}")
         self.max_lights = max_lights
         self.input_size = input_size
         self.falloff = Falloff(falloff)

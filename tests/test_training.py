@@ -172,7 +172,11 @@ def test_config_composes_every_group_and_overrides():
         build_trainer(_cfg("experiment=smoke", "model.max_lights=1", "trainer.out_dir=x"))
     with pytest.raises(ValueError, match="unknown mode 'fly'"):
         run(_cfg("mode=fly"))
-    for bad in ("trainer.max_minutes=-3", "trainer.threads=-1", "trainer.batch_size=0"):
+    # Each named before any scene is rendered (several died deep in the first step: step % 0,
+    # a zero division, an amin over no anchors).
+    for bad in ("trainer.max_minutes=-3", "trainer.threads=-1", "trainer.batch_size=0", "logger.log_every=0",
+                "logger.images=-2", "model.input_size=0", "model.hidden=0", "model.anchors_per_axis=0",
+                "model.anchor_extent=-1", "model.evidence_points=0", "model.cascade_levels=0"):
         with pytest.raises(ValueError, match=bad.split("=")[0].split(".")[1]):
             build_trainer(_cfg("experiment=smoke", bad, "trainer.out_dir=x"))
 
