@@ -55,6 +55,10 @@ class ShadowedBlinnPhong(nn.Module):
         if isinstance(shadow_options, dict) or shadow_options is None:
             shadow_options = default_options(self.shadows, **(shadow_options or {}))
         self.shadow_options = shadow_options
+        if not isinstance(diffuse, bool) or not (isinstance(specular, bool) or specular == "auto"):
+            # Named here: the training loss reads the switch itself ("maybe" trained with the specular term on).
+            raise ValueError(f"diffuse must be True or False and specular True, False or 'auto', got {diffuse!r} and "
+                             f"{specular!r}")
         self.diffuse = diffuse
         self.specular = specular
         self.check_finite = check_finite

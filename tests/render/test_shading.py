@@ -153,6 +153,10 @@ def test_bad_render_arguments():
         render(g, mat, bad)
     with pytest.raises(ValueError, match="ambient must have shape"):
         render(g, mat, lights, torch.ones(2, 2))
+    # The layer names a bad switch when built: the training loss reads it without rendering.
+    for switches in (dict(specular="maybe"), dict(specular=1), dict(diffuse="yes")):
+        with pytest.raises(ValueError, match="specular True, False or 'auto'"):
+            ShadowedBlinnPhong(**switches)
     with pytest.raises(TypeError, match="needs EpipolarShadowOptions"):
         from render import CubeShadowOptions
         render(g, mat, lights, shadow_options=CubeShadowOptions())
