@@ -249,6 +249,8 @@ class EstimateOptions:
             raise ValueError(f"estimate.weak_light_penalty must be 0 (off) or >= 1, got {self.weak_light_penalty}")
         if not self.weak_light_min_share >= 0:
             raise ValueError(f"estimate.weak_light_min_share must be >= 0, got {self.weak_light_min_share}")
+        if not 0 <= self.min_light_share <= 1:
+            raise ValueError(f"estimate.min_light_share must be a share in [0, 1], got {self.min_light_share}")
         for name in ("block_width", "albedo_free_block_width"):
             if not 0 < getattr(self, name) <= 1:
                 raise ValueError(f"estimate.{name} must be in (0, 1] (of the image width), got {getattr(self, name)}")

@@ -239,8 +239,11 @@ class RefineOptions:
             raise ValueError(f"method must be lm, adam or gd, got {self.method!r}")
         if len(self.max_iters) != len(self.strides):
             raise ValueError(f"max_iters {self.max_iters} and strides {self.strides} must have the same length")
-        if any(s < 1 for s in self.strides) or any(i < 0 for i in self.max_iters):
-            raise ValueError("strides must be >= 1 and max_iters >= 0")
+        if not self.strides or any(s < 1 for s in self.strides) or any(i < 0 for i in self.max_iters):
+            raise ValueError(f"strides need one level or more, each >= 1, and max_iters >= 0, got strides "
+                             f"{self.strides} and max_iters {self.max_iters}")
+        if not (self.fd_step > 0 and self.learning_rate > 0):  # 0: no shadow derivative, no first-order step
+            raise ValueError(f"fd_step and learning_rate must be > 0, got {self.fd_step}, {self.learning_rate}")
         if not (self.tol >= 0 and self.step_tol >= 0):
             raise ValueError(f"tol and step_tol must be >= 0, got {self.tol}, {self.step_tol}")
         if self.irls_passes < 1:

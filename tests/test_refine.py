@@ -660,6 +660,14 @@ def test_bad_refine_inputs_are_named():
         refine(problem, torch.full((1, 1, 3), float("nan")))
     with pytest.raises(ValueError, match="method"):
         RefineOptions(method="newton")
+    # Each ran before, silently: no refinement at all, no step, no shadow derivative, no second light.
+    for bad, name in ((dict(strides=(), max_iters=()), "strides"), (dict(fd_step=0.0), "fd_step"),
+                      (dict(learning_rate=0.0), "learning_rate")):
+        with pytest.raises(ValueError, match=name):
+            RefineOptions(**bad)
+    for share in (-1.0, 2.0):
+        with pytest.raises(ValueError, match="min_light_share"):
+            EstimateOptions(min_light_share=share)
 
 
 def test_sensor_noise_in_the_depth_is_taken_out_of_the_normals():
