@@ -128,6 +128,8 @@ class ProceduralScenes(Dataset):
                  base_seed: int = 0, samples: int = 2, max_lights: int | None = None):
         if length < 1:
             raise ValueError(f"length must be >= 1, got {length}")
+        if samples < 1:  # named here, not in the first worker that renders
+            raise ValueError(f"samples must be >= 1 (anti-aliasing samples per pixel side), got {samples}")
         self.sampler = sampler
         self.degradations = degradations or Degradations()
         self.length = length

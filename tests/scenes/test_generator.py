@@ -51,6 +51,8 @@ def test_dataset_batches_equal_its_items():
             assert torch.equal(item[key], one[key]), key
     with pytest.raises(IndexError):
         data.__getitems__([0, 4])
+    with pytest.raises(ValueError, match="samples must be >= 1"):  # it died in the first worker that rendered
+        ProceduralScenes(SMALL, length=4, samples=0)
 
 
 @pytest.mark.parametrize("seed", range(4))
