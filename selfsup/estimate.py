@@ -1239,7 +1239,8 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
                     try:  # strict JSON: one NaN would break a strict reader on every line
                         line = json.dumps(done[path], allow_nan=False)
                     except ValueError:
-                        failed[str(path)] = "its estimate holds a non-finite number (NaN or inf), which JSON cannot carry"
+                        failed[str(path)] = ("its estimate holds a non-finite number (NaN or inf), "
+                                             "which JSON cannot carry")
                         log.error("skipped %s: %s", path, failed[str(path)])
                         continue
                     seconds.append(done[path]["seconds"])

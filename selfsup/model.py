@@ -198,7 +198,8 @@ class LightNet(nn.Module):
         if cascade_levels < 1:
             raise ValueError(f"cascade_levels must be >= 1, got {cascade_levels}")
         if input_size < 2 ** len(widths) or input_size % 2 ** len(widths):
-            raise ValueError(f"input_size {input_size} must be a positive multiple of 2^{len(widths)} (one halving per stage)")
+            raise ValueError(f"input_size {input_size} must be a positive multiple of 2^{len(widths)} "
+                             "(one halving per stage)")
         if min(widths, default=1) < 1 or hidden < 1:
             raise ValueError(f"widths and hidden must be >= 1 channels, got {list(widths)} and {hidden}")
         if anchors_per_axis < 2 or not anchor_extent > 0 or evidence_points < 1:
