@@ -512,6 +512,30 @@ def test_a_record_with_a_non_finite_number_fails_its_file_not_the_output(tmp_pat
     assert len(lines) == 1 and json.loads(lines[0], parse_constant=lambda c: pytest.fail(c))["id"] == _scene(6).id
 
 
+def test_an_image_in_other_units_gets_the_same_lights(tmp_path):
+    # The fit runs in float32 with a few absolute floors: devset direct 021 times 1e-8 got its
+    # light 0.0068 of the scene off (0.0005 as given) and its intensity 8% low; times 1e18
+    # it failed. This scene times 1e-20 got its light 0.56 m off; times 1e20 it failed. Such
+    # a file is estimated at a power of ten of its values, reported in its own units.
+    scene = _scene(6)
+    options = EstimateOptions(max_lights=1, refine=RefineOptions(max_iters=(10, 3)))
+    given = estimate_scene(scene, options)
+    for factor in (1e-20, 1e20):
+        names = (f"a_{factor:g}.npz", "b_given.npz")
+        write_scene(tmp_path / names[0], dataclasses.replace(scene, image=scene.image * factor))
+        write_scene(tmp_path / names[1], scene)
+        out = tmp_path / f"{factor:g}.jsonl"
+        summary = estimate_files(tmp_path, out, options, progress=False, batch=2)  # both in one batch
+        assert summary["failed"] == 0, summary["failures"]
+        scaled, plain = (json.loads(line) for line in out.read_text().splitlines()[-2:])
+        for record, k in ((scaled, factor), (plain, 1.0)):
+            light = record["lights"][0]
+            np.testing.assert_allclose(light["position"], given["lights"][0]["position"], rtol=0, atol=1e-4)
+            np.testing.assert_allclose(np.array(light["intensity"]) / k, given["lights"][0]["intensity"], rtol=1e-3)
+        for path in names:
+            (tmp_path / path).unlink()
+
+
 def test_estimate_command_exits_non_zero_when_a_file_fails(tmp_path):
     import subprocess
     import sys
