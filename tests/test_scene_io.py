@@ -98,6 +98,11 @@ def _write_raw(path, **arrays):
         ({"K": np.diag([8.0, -8.0, 1.0]).astype(np.float32)}, "with fx, fy > 0"),
         ({"K": np.array([[8.0, 0.5, 3.5], [0, 8.0, 2.5], [0, 0, 1]], np.float32)}, "intrinsics with skew are not supported"),
         ({"meta": np.array('{"falloff": "linear"}')}, "meta.falloff must be one of ['inverse_square', 'none'], got 'linear'"),
+        # A capture's raw integers, read as numbers, were silently wrong (sRGB read as linear,
+        # lights in millimetres).
+        ({"image": np.full((6, 8, 3), 128, np.uint8)}, "image must be floating point, got uint8 (8-bit images"),
+        ({"depth": np.full((6, 8), 2000, np.uint16)}, "depth must be floating point, got uint16 (16-bit depth"),
+        ({"K": np.array([["a"] * 3] * 3)}, "K must be numbers"),
     ],
 )
 def test_bad_files_name_file_and_reason(tmp_path, change, reason):
@@ -105,6 +110,13 @@ def test_bad_files_name_file_and_reason(tmp_path, change, reason):
     with pytest.raises(SceneFileError, match=re.escape(reason)) as info:
         read_scene(path)
     assert "bad.npz" in str(info.value)
+
+
+def test_integer_intrinsics_and_shininess_are_read(tmp_path):
+    # Exact in integers, unlike an image's or a depth map's units.
+    K = np.array([[8, 0, 3], [0, 8, 2], [0, 0, 1]])
+    scene = read_scene(_write_raw(tmp_path / "ints.npz", K=K, shininess=np.array(32)))
+    assert scene.K.dtype == torch.float32 and float(scene.shininess) == 32.0
 
 
 def test_unreadable_file(tmp_path):

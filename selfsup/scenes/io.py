@@ -111,6 +111,18 @@ def read_scene(path: str | Path) -> Scene:
     if missing:
         raise SceneFileError(path, f"missing key(s) {', '.join(missing)}")
     image, depth = arrays["image"], arrays["depth"]
+    # Integers are a capture's raw units, not the format's: 8-bit images are gamma-encoded
+    # sRGB (the model is linear in light), 16-bit depth a sensor's millimetres (the lights
+    # would come out in millimetres, not metres). Read as numbers they are silently wrong.
+    hints = {"image": " (8-bit images are usually gamma-encoded sRGB: decode to linear RGB floats)",
+             "depth": " (16-bit depth is usually a sensor's millimetres: divide to metres as floats)",
+             "kd": " (8-bit albedo: divide by 255, decoded to linear)"}
+    for key in ("image", "depth", "kd", "ks", "normals", "ambient", "K", "shininess", "scene_scale", "light_pos",
+                "light_intensity"):
+        maps = key in ("image", "depth", "kd", "ks", "normals", "ambient")  # integers: K, shininess, ... are exact
+        if key in arrays and arrays[key].dtype.kind not in ("f" if maps else "fiu"):
+            raise SceneFileError(path, f"{key} must be {'floating point' if maps else 'numbers'}, got "
+                                       f"{arrays[key].dtype}{hints.get(key, '') if arrays[key].dtype.kind in 'iu' else ''}")
     if image.ndim != 3 or image.shape[2] != 3:
         raise SceneFileError(path, f"image must have shape (H, W, 3), got {image.shape}")
     H, W = image.shape[:2]
