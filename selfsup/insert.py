@@ -207,12 +207,20 @@ def place_object(gbuffer: GBuffer, obj: Sphere | Mesh, pixel: tuple[float, float
 
 def lights_from_record(record: dict) -> tuple[Tensor, Tensor, Tensor]:
     """``(positions (L, 3), intensities (L, 3), ambient (3,))`` of an estimate's JSON record."""
+    name = f"estimate record {record.get('id', '?')}"
     try:
         position = torch.tensor([light["position"] for light in record["lights"]], dtype=torch.float32)
         intensity = torch.tensor([light["intensity"] for light in record["lights"]], dtype=torch.float32)
         ambient = torch.tensor(record.get("ambient", [0.0, 0.0, 0.0]), dtype=torch.float32)
-    except (KeyError, TypeError) as error:
-        raise ValueError(f"estimate record {record.get('id', '?')} lacks lights/position/intensity: {error}") from None
+    except (KeyError, TypeError, ValueError) as error:
+        raise ValueError(f"{name} lacks lights/position/intensity or holds a ragged list: {error}") from None
+    L = len(record["lights"])
+    # Three finite numbers each: three lights of two coordinates were reshaped silently into two of three.
+    for field, value, shape in (("positions", position, (L, 3)), ("intensities", intensity, (L, 3)),
+                                ("ambient", ambient, (3,))):
+        if ((L or field == "ambient") and tuple(value.shape) != shape) or not bool(torch.isfinite(value).all()):
+            raise ValueError(f"{name}: its {field} must be three finite numbers{'' if field == 'ambient' else ' each'}, "
+                             f"got {value.tolist()}")
     return position.reshape(-1, 3), intensity.reshape(-1, 3), ambient
 
 

@@ -104,6 +104,16 @@ def test_bad_placements_are_named(scene, pixel, size, message):
 def test_bad_estimate_record_is_named():
     with pytest.raises(ValueError, match="scene_9 lacks lights"):
         lights_from_record({"id": "scene_9", "lights": [{"intensity": [1, 1, 1]}]})
+    # A record from another tool: three lights of two coordinates were read as two lights of three.
+    light = {"position": [1.0, 2.0, 3.0], "intensity": [1.0, 1.0, 1.0]}
+    for bad, message in (({"lights": [{**light, "position": [1.0, 2.0]}] * 3}, "positions must be three"),
+                         ({"lights": [{**light, "intensity": [1.0, float("nan"), 1.0]}]}, "intensities must be three"),
+                         ({"lights": [light], "ambient": [0.1]}, "ambient must be three"),
+                         ({"lights": [light, {**light, "position": [1.0]}]}, "ragged")):
+        with pytest.raises(ValueError, match=message):
+            lights_from_record({"id": "x", **bad})
+    position, intensity, ambient = lights_from_record({"id": "x", "lights": []})
+    assert position.shape == intensity.shape == (0, 3) and ambient.shape == (3,)
 
 
 def test_insert_mode_writes_a_picture(tmp_path, scene):
