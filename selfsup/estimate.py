@@ -1256,7 +1256,9 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
     where = _device(device)
     files = scene_files(input)
     if not files:
-        raise FileNotFoundError(f"no .npz scene files in {input}")
+        folders = sorted(p.name for p in Path(input).iterdir() if p.is_dir() and any(p.glob("*.npz")))
+        raise FileNotFoundError(f"no .npz scene files in {input}" + (
+            f" (its sub-folders {', '.join(folders)} hold some: give one of them)" if folders else ""))
     chunks = [files[first : first + batch] for first in range(0, len(files), batch)]
     workers = min(worker_count(workers, len(files), where), len(chunks))
     if options.method in ("cnn", "cnn+refine"):

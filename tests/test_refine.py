@@ -536,6 +536,15 @@ def test_an_image_in_other_units_gets_the_same_lights(tmp_path):
             (tmp_path / path).unlink()
 
 
+def test_a_folder_of_folders_names_the_ones_with_scenes(tmp_path):
+    # The devset's root holds direct/, gi/ and noisy/, not scenes.
+    for folder in ("gi", "empty"):
+        (tmp_path / folder).mkdir()
+    write_scene(tmp_path / "gi" / "a.npz", _scene(6))
+    with pytest.raises(FileNotFoundError, match=r"no \.npz scene files in .* \(its sub-folders gi hold some"):
+        estimate_files(tmp_path, tmp_path / "o.jsonl", EstimateOptions(), progress=False)
+
+
 def test_estimate_command_exits_non_zero_when_a_file_fails(tmp_path):
     import subprocess
     import sys
