@@ -69,8 +69,8 @@ def shadow_visibility(
         return None
     if options is not None and not isinstance(options, _OPTIONS[method]):
         raise TypeError(f"shadow method {method.value!r} needs {_OPTIONS[method].__name__}, got {type(options).__name__}")
-    if points.shape[0] == 0:  # an empty batch: nothing to cast
-        return points.new_ones(0, light_position.shape[1], *points.shape[1:3])
+    if points.shape[0] == 0 or light_position.shape[1] == 0:  # no image or no light: nothing to cast
+        return points.new_ones(points.shape[0], light_position.shape[1], *points.shape[1:3])
     if method is ShadowMethod.PAPER:
         return cube_shadow_visibility(points, mask, light_position, options)
     if intrinsics is None:

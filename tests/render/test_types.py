@@ -35,7 +35,7 @@ def test_non_pinhole_intrinsics_are_named(entry, value):
 
 
 @pytest.mark.parametrize("shadows", ["none", "epipolar", "paper"])
-def test_an_empty_batch_renders_to_an_empty_image(shadows):
+def test_an_empty_batch_or_no_light_renders_without_error(shadows):
     from render import ShadowedBlinnPhong
 
     g = GBuffer.from_depth(torch.ones(0, 6, 8), K1)
@@ -46,6 +46,12 @@ def test_an_empty_batch_renders_to_an_empty_image(shadows):
     assert image.shape == (0, 3, 6, 8)
     image.sum().backward()
     assert position.grad.shape == (0, 2, 3)
+    # No light at all (a network's empty slot set), through the functional form too.
+    from render import light_transport
+
+    g = GBuffer.from_depth(torch.full((2, 6, 8), 2.0), K1)
+    transport = light_transport(g, Material(kd=torch.full((2, 6, 8, 3), 0.5)), torch.zeros(2, 0, 3), shadows=shadows)
+    assert transport.diffuse.shape == (2, 0, 6, 8)
 
 
 def test_plane_normals_exact_and_facing_camera():
