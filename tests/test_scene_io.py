@@ -112,6 +112,18 @@ def test_bad_files_name_file_and_reason(tmp_path, change, reason):
     assert "bad.npz" in str(info.value)
 
 
+def test_albedo_above_one_is_read_with_a_warning(tmp_path, caplog):
+    # Percent albedo scales the intensities by 100 and leaves the positions: a warning, not an error.
+    base = _scene()
+    with caplog.at_level("WARNING"):
+        scene = read_scene(_write_raw(tmp_path / "percent.npz", kd=base.kd.numpy() * 100))
+    assert torch.allclose(scene.kd, base.kd * 100) and "kd reaches" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        read_scene(_write_raw(tmp_path / "unit.npz"))
+    assert "kd reaches" not in caplog.text
+
+
 def test_integer_intrinsics_and_shininess_are_read(tmp_path):
     # Exact in integers, unlike an image's or a depth map's units.
     K = np.array([[8, 0, 3], [0, 8, 2], [0, 0, 1]])

@@ -157,6 +157,9 @@ def read_scene(path: str | Path) -> Scene:
             raise SceneFileError(path, f"{key} holds negative values (reflectance and light are >= 0)")
     if "shininess" in arrays and (arrays["shininess"] <= 0).any():
         raise SceneFileError(path, "shininess must be > 0")
+    if float(arrays["kd"].max()) > 1.5:  # percent or 8-bit values stored as floats, most likely
+        log.warning("%s: kd reaches %.3g, but the format's albedo is in [0, 1]: the lights' intensities come out "
+                    "divided by the same factor (positions are unaffected)", path, float(arrays["kd"].max()))
     valid = np.isfinite(depth) & (depth > 0)
     if not valid.any():
         raise SceneFileError(path, "no pixel has a valid depth (empty valid mask)")
