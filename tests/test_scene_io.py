@@ -112,16 +112,20 @@ def test_bad_files_name_file_and_reason(tmp_path, change, reason):
     assert "bad.npz" in str(info.value)
 
 
-def test_albedo_above_one_is_read_with_a_warning(tmp_path, caplog):
+def test_albedo_above_one_and_depth_in_millimetres_are_read_with_a_warning(tmp_path, caplog):
     # Percent albedo scales the intensities by 100 and leaves the positions: a warning, not an error.
     base = _scene()
     with caplog.at_level("WARNING"):
         scene = read_scene(_write_raw(tmp_path / "percent.npz", kd=base.kd.numpy() * 100))
     assert torch.allclose(scene.kd, base.kd * 100) and "kd reaches" in caplog.text
     caplog.clear()
+    with caplog.at_level("WARNING"):  # depth in millimetres, likewise
+        read_scene(_write_raw(tmp_path / "mm.npz", depth=base.depth.numpy() * 1000))
+    assert "median depth is" in caplog.text
+    caplog.clear()
     with caplog.at_level("WARNING"):
         read_scene(_write_raw(tmp_path / "unit.npz"))
-    assert "kd reaches" not in caplog.text
+    assert "kd reaches" not in caplog.text and "median depth" not in caplog.text
 
 
 def test_integer_intrinsics_and_shininess_are_read(tmp_path):

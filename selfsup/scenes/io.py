@@ -163,6 +163,9 @@ def read_scene(path: str | Path) -> Scene:
     valid = np.isfinite(depth) & (depth > 0)
     if not valid.any():
         raise SceneFileError(path, "no pixel has a valid depth (empty valid mask)")
+    if float(np.median(depth[valid])) > 100:  # a sensor's millimetres as floats, most likely
+        log.warning("%s: the median depth is %.4g, but the format's depth is in metres: the lights come out in the "
+                    "depth's units", path, float(np.median(depth[valid])))
     try:
         meta = json.loads(str(arrays["meta"]))
     except json.JSONDecodeError as error:
