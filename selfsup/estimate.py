@@ -959,8 +959,7 @@ def working_range(scene: Scene) -> tuple[Scene, float]:
     and that factor (1: the scene as it is, as for every file of the devset and of our
     generator). The fit's intensities and ambient come out multiplied by the factor too (the
     model is linear in them): :func:`_unscaled` undoes it in the record."""
-    valid = torch.isfinite(scene.depth) & (scene.depth > 0)
-    values = scene.image[valid]
+    values = scene.image[scene.depth_valid]
     values = values[values > 0]
     if values.numel() == 0:
         return scene, 1.0  # a black image: problems_of names it

@@ -70,6 +70,11 @@ class Scene:
     def falloff(self) -> str:
         return str(self.meta.get("falloff", "inverse_square"))
 
+    @property
+    def depth_valid(self) -> Tensor:
+        """``(H, W)`` the pixels with a depth (the format: 0 or non-finite is missing)."""
+        return torch.isfinite(self.depth) & (self.depth > 0)
+
     def subsampled(self, stride: int) -> "Scene":
         """Every ``stride``-th pixel of every row and column from the first, ``K`` made
         to match (its first two rows over ``stride``): each kept pixel keeps its depth,
@@ -117,12 +122,14 @@ def read_scene(path: str | Path) -> Scene:
     hints = {"image": " (8-bit images are usually gamma-encoded sRGB: decode to linear RGB floats)",
              "depth": " (16-bit depth is usually a sensor's millimetres: divide to metres as floats)",
              "kd": " (8-bit albedo: divide by 255, decoded to linear)"}
-    for key in ("image", "depth", "kd", "ks", "normals", "ambient", "K", "shininess", "scene_scale", "light_pos",
-                "light_intensity"):
-        maps = key in ("image", "depth", "kd", "ks", "normals", "ambient")  # integers: K, shininess, ... are exact
-        if key in arrays and arrays[key].dtype.kind not in ("f" if maps else "fiu"):
-            raise SceneFileError(path, f"{key} must be {'floating point' if maps else 'numbers'}, got "
-                                       f"{arrays[key].dtype}{hints.get(key, '') if arrays[key].dtype.kind in 'iu' else ''}")
+    for key in ("image", "depth", "kd", "ks", "normals", "ambient"):
+        kind = arrays[key].dtype.kind if key in arrays else "f"
+        if kind != "f":
+            raise SceneFileError(path, f"{key} must be floating point, got {arrays[key].dtype}"
+                                       + (hints.get(key, "") if kind in "iu" else ""))
+    for key in ("K", "shininess", "scene_scale", "light_pos", "light_intensity"):  # exact in integers too
+        if key in arrays and arrays[key].dtype.kind not in "fiu":
+            raise SceneFileError(path, f"{key} must be numbers, got {arrays[key].dtype}")
     if image.ndim != 3 or image.shape[2] != 3:
         raise SceneFileError(path, f"image must have shape (H, W, 3), got {image.shape}")
     H, W = image.shape[:2]
@@ -157,15 +164,17 @@ def read_scene(path: str | Path) -> Scene:
             raise SceneFileError(path, f"{key} holds negative values (reflectance and light are >= 0)")
     if "shininess" in arrays and (arrays["shininess"] <= 0).any():
         raise SceneFileError(path, "shininess must be > 0")
-    if float(arrays["kd"].max()) > 1.5:  # percent or 8-bit values stored as floats, most likely
+    kd_max = float(arrays["kd"].max())
+    if kd_max > 1.5:  # percent or 8-bit values stored as floats, most likely
         log.warning("%s: kd reaches %.3g, but the format's albedo is in [0, 1]: the lights' intensities come out "
-                    "divided by the same factor (positions are unaffected)", path, float(arrays["kd"].max()))
+                    "divided by the same factor (positions are unaffected)", path, kd_max)
     valid = np.isfinite(depth) & (depth > 0)
     if not valid.any():
         raise SceneFileError(path, "no pixel has a valid depth (empty valid mask)")
-    if float(np.median(depth[valid])) > 100:  # a sensor's millimetres as floats, most likely
+    median_depth = float(np.median(depth[valid]))
+    if median_depth > 100:  # a sensor's millimetres as floats, most likely
         log.warning("%s: the median depth is %.4g, but the format's depth is in metres: the lights come out in the "
-                    "depth's units", path, float(np.median(depth[valid])))
+                    "depth's units", path, median_depth)
     try:
         meta = json.loads(str(arrays["meta"]))
     except json.JSONDecodeError as error:
