@@ -106,6 +106,9 @@ def run(cfg: DictConfig):
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")
 def main(cfg: DictConfig) -> None:
+    from selfsup.scenes.dataset import retain_freed_memory
+
+    retain_freed_memory()  # our own process: rendering and estimation free large arrays by the hundred
     result = run(cfg)
     if cfg.mode == "estimate" and result["failed"]:
         raise SystemExit(1)  # some files failed: each is named in the log above

@@ -1,6 +1,7 @@
 """Procedural scenes: sampler, exact rendering, degradations, datasets, files."""
 
 import dataclasses
+import os
 import re
 import subprocess
 import sys
@@ -10,6 +11,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from render import GBuffer, Material, PointLights, render
+from selfsup.scenes import dataset
 from selfsup.scenes.dataset import ProceduralScenes, collate, protocol_specs
 from selfsup.scenes.degrade import Degradations, degrade
 from selfsup.scenes.exact import render_spec, render_specs
@@ -214,6 +216,25 @@ def test_dataset_is_reproducible_and_worker_safe():
     assert direct["light_mask"].shape == (4, 2)
     with pytest.raises(IndexError):
         data[4]
+
+
+class _ReportsRetention(ProceduralScenes):
+    # Each item says whether the process that rendered it keeps its freed memory.
+    def __getitems__(self, indices):
+        items = super().__getitems__(indices)
+        for item in items:
+            item["retains"] = torch.tensor(dataset._retaining["pid"] == os.getpid())
+        return items
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_dataloader_workers_keep_their_freed_memory_and_the_caller_is_left_alone():
+    data = _ReportsRetention(SMALL, length=2, base_seed=1, samples=1)
+    loaded = next(iter(DataLoader(data, batch_size=1, num_workers=2, collate_fn=collate)))
+    assert loaded["retains"].all()
+    if dataset._retaining["pid"] != os.getpid():  # unless this process asked for it
+        assert not data[0]["retains"]
+    assert dataset.retain_freed_memory() and dataset.retain_freed_memory()
 
 
 def test_rendering_a_scene_imports_no_sympy():
