@@ -324,46 +324,51 @@ def _pairs(batch: PrimitiveBatch, bundles: Bundles, k: int) -> tuple[Tensor, Ten
     return bundle[keep], row[keep]
 
 
-def _pair_hits(batch: PrimitiveBatch, bundles: Bundles, t_min: float, kinds: range):
-    """``t (M, S)`` of every (bundle, primitive) pair of ``kinds`` that may meet
-    (``_FAR`` where it does not), with its ``bundle (M,)`` and global index ``(M,)``."""
-    ts, which, index = [], [], []
+# (bundle, primitive) pairs tested at once: a block's (pairs, 64) float32 arrays of 1 MB
+# stay in the 2 MB L2 cache of the 2-core CPU, where an elementwise pass costs about half
+# of what it costs on arrays of 8 MB (a plane test, ad hoc: 2.6 against 4.8 ns per pair and ray).
+_PAIRS_PER_BLOCK = 4096
+
+
+def _pair_blocks(batch: PrimitiveBatch, bundles: Bundles, t_min: float, kinds: range):
+    """Blocks of the (bundle, primitive) pairs of ``kinds`` that may meet, each as
+    ``t (m, S)`` (``_FAR`` where the pair does not meet), ``bundle (m,)`` and the
+    primitive's global index ``(m,)``, with ``m <= _PAIRS_PER_BLOCK``."""
     first = batch.first
     for k in kinds:
         kind, fn = _KINDS[k]
         table = getattr(batch.prims, kind)
-        if table.shape[0]:
-            bundle, row = _pairs(batch, bundles, k)
-            if bundle.numel():
-                origin = bundles.origin.index_select(0, bundle).T[:, :, None]  # (3, M, 1)
-                ts.append(fn(table.index_select(0, row), origin, bundles.d.index_select(1, bundle), t_min))
-                which.append(bundle)
-                index.append(row + first[k])
-    if not ts:
-        empty = torch.zeros(0, dtype=torch.long)
-        return bundles.d.new_zeros(0, bundles.d.shape[-1]), empty, empty
-    return torch.cat(ts), torch.cat(which), torch.cat(index)
+        if not table.shape[0]:
+            continue
+        bundle, row = _pairs(batch, bundles, k)
+        for start in range(0, bundle.shape[0], _PAIRS_PER_BLOCK):
+            which, rows = bundle[start : start + _PAIRS_PER_BLOCK], row[start : start + _PAIRS_PER_BLOCK]
+            origin = bundles.origin.index_select(0, which).T[:, :, None]  # (3, m, 1)
+            yield fn(table.index_select(0, rows), origin, bundles.d.index_select(1, which), t_min), which, rows + first[k]
 
 
-def _per_ray(values: Tensor, bundle: Tensor, bundles: int, fill: float, reduce: str) -> Tensor:
-    # Reduce pair rows (M, S) into their bundles' rays (N, S): "amin" or "amax".
-    out = values.new_full((bundles, values.shape[-1]), fill)
+def _reduce_into(out: Tensor, bundle: Tensor, values: Tensor, reduce: str) -> None:
+    # Reduce pair rows values (m, S) into their bundles' rays, out (N, S): "amin" or "amax" with out's own values.
     with warnings.catch_warnings():  # index_reduce_ is "beta"; 2-3x faster than scatter_reduce_ here
         warnings.filterwarnings("ignore", message="index_reduce", category=UserWarning)
-        return out.index_reduce_(0, bundle, values, reduce)
+        out.index_reduce_(0, bundle, values, reduce)
 
 
 def cast_bundles(batch: PrimitiveBatch, bundles: Bundles, t_min: float = 0.0) -> tuple[Tensor, Tensor]:
     """Nearest hit of each bundled ray: ``t (N*S,)`` (``inf`` where none) and the global
     index ``(N*S,)`` of the primitive (-1 where none; the first listed on a tie)."""
-    N = bundles.d.shape[1]
-    t_pair, bundle, index = _pair_hits(batch, bundles, t_min, range(len(_KINDS)))
-    t = _per_ray(t_pair, bundle, N, _FAR, "amin")
+    N, S = bundles.d.shape[1:]
+    blocks = list(_pair_blocks(batch, bundles, t_min, range(len(_KINDS))))
+    t = bundles.d.new_full((N, S), _FAR)
+    for t_pair, bundle, _ in blocks:
+        _reduce_into(t, bundle, t_pair, "amin")
     # The first primitive at the nearest t: global index g weighs n - g among the equal ones.
     n = batch.local.shape[0]
-    at_nearest = _mask(torch.eq, t_pair, t.index_select(0, bundle)) * _mask(torch.lt, t_pair, _FAR)
-    weight = _per_ray(at_nearest * (n - index[:, None]).to(t.dtype), bundle, N, 0.0, "amax").reshape(-1)
-    t = t.reshape(-1)
+    weight = bundles.d.new_zeros(N, S)
+    for t_pair, bundle, index in blocks:
+        at_nearest = _mask(torch.eq, t_pair, t.index_select(0, bundle)) * _mask(torch.lt, t_pair, _FAR)
+        _reduce_into(weight, bundle, at_nearest * (n - index[:, None]).to(t.dtype), "amax")
+    t, weight = t.reshape(-1), weight.reshape(-1)
     miss = _mask(torch.ge, t, _FAR)
     return t / (1 - miss), _select(miss, -1.0, n - weight).long()
 
@@ -371,11 +376,12 @@ def cast_bundles(batch: PrimitiveBatch, bundles: Bundles, t_min: float = 0.0) ->
 def blocked_bundles(batch: PrimitiveBatch, bundles: Bundles, t_min: float = 0.0, objects_only: bool = False) -> Tensor:
     """Whether each bundled ray hits a primitive with ``t_min < t < t_max``: ``(N*S,)`` bool.
     ``objects_only`` leaves the planes out."""
-    N = bundles.d.shape[1]
-    t_pair, bundle, _ = _pair_hits(batch, bundles, t_min, range(int(objects_only), len(_KINDS)))
-    t_max = bundles.t_max if bundles.t_max is not None else bundles.d.new_full(bundles.d.shape[1:], _FAR)
-    hit = _mask(torch.lt, t_pair, t_max.index_select(0, bundle))
-    return _per_ray(hit, bundle, N, 0.0, "amax").reshape(-1) > 0
+    N, S = bundles.d.shape[1:]
+    t_max = bundles.t_max if bundles.t_max is not None else bundles.d.new_full((N, S), _FAR)
+    hit = bundles.d.new_zeros(N, S)
+    for t_pair, bundle, _ in _pair_blocks(batch, bundles, t_min, range(int(objects_only), len(_KINDS))):
+        _reduce_into(hit, bundle, _mask(torch.lt, t_pair, t_max.index_select(0, bundle)), "amax")
+    return hit.reshape(-1) > 0
 
 
 def _dense_t(prims: Primitives, o: Tensor, d: Tensor, t_min: float) -> Tensor:
