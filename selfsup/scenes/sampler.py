@@ -149,20 +149,21 @@ def _rot_y(angle: float) -> Tensor:
     return torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=torch.float64)
 
 
-def _box_sdf(p: Tensor, box: Tensor) -> Tensor:
-    # Exact signed distance to an oriented box; p (N, 3), box (15,) -> (N,)
-    rot = box[6:15].reshape(3, 3)
-    local = (p - box[:3]) @ rot
-    q = local.abs() - box[3:6]
-    return q.clamp_min(0).norm(dim=-1) + q.max(-1).values.clamp_max(0)
+def _box_sdf(p: Tensor, boxes: Tensor) -> Tensor:
+    # Exact signed distances to oriented boxes; p (N, 3), boxes (X, 15) -> (N, X).
+    local = (p - boxes[:, None, :3]) @ boxes[:, 6:15].reshape(-1, 3, 3)  # (X, N, 3)
+    q = local.abs() - boxes[:, None, 3:6]
+    return (q.clamp_min(0).norm(dim=-1) + q.max(-1).values.clamp_max(0)).T
 
 
-def _cylinder_sdf(p: Tensor, cyl: Tensor) -> Tensor:
-    rel = p - cyl[:3]
-    along = rel @ cyl[3:6]
-    radial = (rel - along[:, None] * cyl[3:6]).norm(dim=-1)
-    q = torch.stack([radial - cyl[6], along.abs() - cyl[7]], -1)
-    return q.clamp_min(0).norm(dim=-1) + q.max(-1).values.clamp_max(0)
+def _cylinder_sdf(p: Tensor, cylinders: Tensor) -> Tensor:
+    # Exact signed distances to capped cylinders; p (N, 3), cylinders (C, 8) -> (N, C).
+    rel = p - cylinders[:, None, :3]  # (C, N, 3)
+    axis = cylinders[:, None, 3:6]
+    along = (rel @ cylinders[:, 3:6, None])[..., 0]
+    radial = (rel - along[..., None] * axis).norm(dim=-1)
+    q = torch.stack([radial - cylinders[:, 6:7], along.abs() - cylinders[:, 7:8]], -1)
+    return (q.clamp_min(0).norm(dim=-1) + q.max(-1).values.clamp_max(0)).T
 
 
 def signed_distance(prims: Primitives, points: Tensor, include_planes: bool = True) -> Tensor:
@@ -170,17 +171,16 @@ def signed_distance(prims: Primitives, points: Tensor, include_planes: bool = Tr
 
     Planes count as half-spaces on the side their normal points away from.
     """
-    dist = torch.full(points.shape[:1], float("inf"), dtype=points.dtype)
-    if include_planes:
-        for plane in prims.planes:
-            dist = torch.minimum(dist, (points - plane[:3]) @ plane[3:6])
-    for sphere in prims.spheres:
-        dist = torch.minimum(dist, (points - sphere[:3]).norm(dim=-1) - sphere[3])
-    for box in prims.boxes:
-        dist = torch.minimum(dist, _box_sdf(points, box))
-    for cyl in prims.cylinders:
-        dist = torch.minimum(dist, _cylinder_sdf(points, cyl))
-    return dist
+    parts = [torch.full(points.shape[:1] + (1,), float("inf"), dtype=points.dtype)]
+    if include_planes and prims.planes.shape[0]:
+        parts.append(((points - prims.planes[:, None, :3]) @ prims.planes[:, 3:6, None])[..., 0].T)
+    if prims.spheres.shape[0]:
+        parts.append(((points - prims.spheres[:, None, :3]).norm(dim=-1) - prims.spheres[:, 3:4]).T)
+    if prims.boxes.shape[0]:
+        parts.append(_box_sdf(points, prims.boxes))
+    if prims.cylinders.shape[0]:
+        parts.append(_cylinder_sdf(points, prims.cylinders))
+    return torch.cat(parts, 1).amin(1)
 
 
 class _Objects:
