@@ -67,7 +67,7 @@ class Degradations:
         return any(v > 0 for v in (self.depth_noise, self.depth_quantisation, self.edge_hole_jump, self.random_holes))
 
     def describe(self) -> dict:
-        return {k: v for k, v in dataclasses.asdict(self).items() if v != getattr(Degradations(), k)}
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if getattr(self, f.name) != f.default}
 
 
 def _degrade_depth(depth: Tensor, d: Degradations, gen: torch.Generator) -> Tensor:

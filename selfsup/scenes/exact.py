@@ -442,43 +442,58 @@ def render_specs(specs: list[SceneSpec], samples: int = 2, falloff: str = "inver
             sizes = [pixels[b].numel() * samples * samples for b in todo]
             sub_batch = _Batch([specs[b] for b in todo])
             average(at, _trace(sub_batch, list(sub_dirs(at).reshape(3, -1).split(sizes, 1))), sub_batch)
+    # Each scene's image at unit exposure, ambient included, (3, B, H * W), and the 99th
+    # percentile of its brightest channel on valid pixels, which fixes its exposure.
+    ambient = torch.stack([spec.ambient_relative for spec in specs]).T[:, :, None]
+    unit_image = radiance.view(3, B, H * W) + kd.view(3, B, H * W) * ambient
+    brightest = torch.maximum(torch.maximum(unit_image[0], unit_image[1]), unit_image[2])
+    quantile = _quantiles(brightest, centre.valid.view(B, H * W), 0.99)
     results = []
     for b, spec in enumerate(specs):
         rows = slice(b * H * W, (b + 1) * H * W)
         primitive = centre.primitive[rows]
         results.append(_finish(spec, centre.valid[rows], centre.t[rows], centre.points[:, rows], centre.normals[:, rows],
-                               centre.visibility[: batch.n_lights[b], rows], radiance[:, rows], kd[:, rows],
+                               centre.visibility[: batch.n_lights[b], rows], unit_image[:, b], quantile[b], kd[:, rows],
                                batch.materials.ks.index_select(0, primitive),
                                batch.materials.shininess.index_select(0, primitive), samples, supersampled[b], falloff))
     return results
 
 
-def _quantile(values: Tensor, q: float) -> Tensor:
-    """``torch.quantile(values, q)`` (linear interpolation) of a 1-D tensor from its top
-    values only: a partial sort, 10x faster for the 99th percentile of an image."""
-    n = values.numel()
-    position = q * (n - 1)
-    low = int(position)
-    top = torch.topk(values, n - low).values  # descending: top[-1] is sorted[low]
-    below, above = top[-1], top[-2] if n - low > 1 else top[-1]
-    return below + (position - low) * (above - below)
+def _quantiles(values: Tensor, valid: Tensor, q: float) -> Tensor:
+    """``torch.quantile(values[b][valid[b]], q)`` (linear interpolation) of each row of
+    ``values, valid (B, N)``: ``(B,)``, 0 for a row without valid values. From the rows'
+    top values only, one partial sort for all rows: 10x faster than a full sort for the
+    99th percentile of an image, and 2x faster than a partial sort per row."""
+    counts = valid.sum(1).tolist()
+    lows = [int(q * (n - 1)) if n else 0 for n in counts]
+    k = max(n - low for n, low in zip(counts, lows))
+    if k == 0:
+        return values.new_zeros(values.shape[0])
+    top = torch.topk(torch.where(valid, values, -math.inf), k, dim=1).values  # descending: top[b, n - low - 1] is sorted[low]
+    out = []
+    for b, (n, low) in enumerate(zip(counts, lows)):
+        if not n:
+            out.append(values.new_zeros(()))
+            continue
+        below, above = top[b, n - low - 1], top[b, n - low - 2] if n - low > 1 else top[b, n - low - 1]
+        out.append(below + (q * (n - 1) - low) * (above - below))
+    return torch.stack(out)
 
 
 def _finish(spec: SceneSpec, valid: Tensor, depth: Tensor, points: Tensor, normals: Tensor, visibility: Tensor,
-            radiance: Tensor, kd: Tensor, ks: Tensor, shininess: Tensor, samples: int, supersampled: int,
-            falloff: str) -> RenderedScene:
-    # One scene's exposure, ground truth and file contents from its rays in pixel order:
-    # valid, depth, ks, shininess (H * W,); points, normals, radiance, kd (3, H * W); visibility (L, H * W).
+            unit_image: Tensor, brightest_quantile: Tensor, kd: Tensor, ks: Tensor, shininess: Tensor, samples: int,
+            supersampled: int, falloff: str) -> RenderedScene:
+    # One scene's exposure, ground truth and file contents from its rays in pixel order: valid, depth, ks,
+    # shininess (H * W,); points, normals, unit_image (ambient included), kd (3, H * W); visibility (L, H * W);
+    # brightest_quantile: the 99th percentile of the unit image's brightest channel on valid pixels.
     H, W = spec.height, spec.width
     lights = spec.light_position
-    unit_image = radiance + kd * spec.ambient_relative[:, None]
-    brightest = torch.maximum(torch.maximum(unit_image[0], unit_image[1]), unit_image[2])
-    exposure = spec.exposure / _quantile(brightest[valid], 0.99).clamp_min(1e-6)
+    exposure = spec.exposure / brightest_quantile.clamp_min(1e-6)
     image = unit_image * (exposure * valid)
     intensity = spec.light_relative_intensity * exposure
     ambient = spec.ambient_relative * exposure
-    pts = points[:, valid]
-    scene_scale = (pts.amax(1) - pts.amin(1)).norm()
+    # The extent of the valid points (a masked maximum: 2x faster than selecting them first).
+    scene_scale = (torch.where(valid, points, -math.inf).amax(1) - torch.where(valid, points, math.inf).amin(1)).norm()
     meta = {"id": f"procedural_{spec.seed}", "generator": GENERATOR_NAME, "falloff": falloff,
             "n_lights": int(lights.shape[0]), "aa_samples": samples, "aa_pixels": supersampled,
             "seed": spec.seed, **spec.meta}
