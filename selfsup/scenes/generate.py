@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import Tensor
+from torch.utils.data import DataLoader, Dataset, get_worker_info
 
-from selfsup.scenes.dataset import protocol_specs
+from selfsup.scenes.dataset import protocol_specs, retain_freed_memory
 from selfsup.scenes.degrade import Degradations, degrade
 from selfsup.scenes.exact import RenderedScene, render_specs
 from selfsup.scenes.io import write_scene
@@ -58,35 +59,68 @@ def contact_sheet(rows: list[list[np.ndarray]], path: str | Path) -> None:
     imsave(str(path), sheet, check_contrast=False)
 
 
+class _SetParts(Dataset):
+    """Part ``i`` of a set: the scenes ``i * _BATCH ...`` rendered together, degraded and
+    written; an item is ``(paths, contact sheet rows)`` of its scenes."""
+
+    def __init__(self, out_dir: Path, total: int, seed: int, sampler: SamplerConfig, degradations: Degradations,
+                 samples: int, specs: list | None, sheet_rows: int):
+        self.out_dir, self.total, self.seed, self.sampler = out_dir, total, seed, sampler
+        self.degradations, self.samples, self.specs, self.sheet_rows = degradations, samples, specs, sheet_rows
+
+    def __len__(self) -> int:
+        return -(-self.total // _BATCH)
+
+    def __getitem__(self, part: int) -> tuple[list[Path], list[list[np.ndarray]]]:
+        if get_worker_info() is not None:  # a DataLoader worker: a process of ours
+            retain_freed_memory()
+        protocol = self.specs is not None
+        indices = range(part * _BATCH, min((part + 1) * _BATCH, self.total))
+        batch = [self.specs[i] if protocol else sample_scene(self.seed * 1_000_003 + i, self.sampler) for i in indices]
+        paths, rows = [], []
+        for index, spec, rendered in zip(indices, batch, render_specs(batch, samples=self.samples)):
+            inputs = degrade(rendered.scene, self.degradations, spec.seed)
+            inputs.meta["id"] = f"{'protocol' if protocol else 'procedural'}_{self.seed}_{index:05d}"
+            path = self.out_dir / f"scene_{index:05d}.npz"
+            write_scene(path, inputs)
+            paths.append(path)
+            if index < self.sheet_rows:
+                rows.append(_panels(rendered, inputs))
+        return paths, rows
+
+
+def _as_is(item):
+    return item
+
+
 def generate_set(out: str, count: int = 100, seed: int = 0, sampler: SamplerConfig | None = None,
                  degradations: Degradations | None = None, samples: int = 2, protocol: bool = False,
-                 contact_sheet_rows: int = 6) -> list[Path]:
+                 contact_sheet_rows: int = 6, workers: int = 0) -> list[Path]:
     """Write ``count`` scene files (or the 9 x 6 protocol set) into ``out``.
 
     Files are ``<out>/scene_<index>.npz`` in the format of ``../shared/scene-format.md``
     with ground truth; the inputs carry the chosen degradations. With
-    ``contact_sheet_rows > 0`` also writes ``<out>/contact_sheet.png``.
+    ``contact_sheet_rows > 0`` also writes ``<out>/contact_sheet.png``. ``workers``:
+    processes that render and write parts of 16 scenes each (0: this process); the
+    files are the same whatever the count.
     """
     sampler = sampler or SamplerConfig()
     degradations = degradations or Degradations()
+    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 0:
+        raise ValueError(f"generate.workers must be an integer >= 0 (0: render in this process), got {workers!r}")
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     specs = protocol_specs(sampler, seed=seed + 7000) if protocol else None
     total = len(specs) if protocol else count
     if total < 1:
         raise ValueError(f"count must be >= 1, got {count}")
+    parts = _SetParts(out_dir, total, seed, sampler, degradations, samples, specs, contact_sheet_rows)
     paths, rows = [], []
-    for first in range(0, total, _BATCH):
-        indices = range(first, min(first + _BATCH, total))
-        batch = [specs[i] if protocol else sample_scene(seed * 1_000_003 + i, sampler) for i in indices]
-        for index, spec, rendered in zip(indices, batch, render_specs(batch, samples=samples)):
-            inputs = degrade(rendered.scene, degradations, spec.seed)
-            inputs.meta["id"] = f"{'protocol' if protocol else 'procedural'}_{seed}_{index:05d}"
-            path = out_dir / f"scene_{index:05d}.npz"
-            write_scene(path, inputs)
-            paths.append(path)
-            if len(rows) < contact_sheet_rows:
-                rows.append(_panels(rendered, inputs))
+    # Batch None: each part comes back as it is, in order, from min(workers, parts) processes.
+    for part_paths, part_rows in DataLoader(parts, batch_size=None, num_workers=min(workers, len(parts)),
+                                            collate_fn=_as_is):
+        paths.extend(part_paths)
+        rows.extend(part_rows)
     if rows:
         contact_sheet(rows, out_dir / "contact_sheet.png")
     log.info("wrote %d scene files to %s", len(paths), out_dir)

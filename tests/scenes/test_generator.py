@@ -6,6 +6,7 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 from torch.utils.data import DataLoader
@@ -271,6 +272,20 @@ def test_generate_mode_writes_readable_files_and_contact_sheet(tmp_path):
     assert len(paths) == 3 and (tmp_path / "contact_sheet.png").stat().st_size > 0
     scene = read_scene(paths[0])
     assert scene.image.shape == (24, 32, 3) and scene.light_pos.shape == (1, 3) and float(scene.scene_scale) > 0
+
+
+def test_generate_set_writes_the_same_files_from_worker_processes(tmp_path):
+    from selfsup.scenes.generate import generate_set
+
+    tiny = dataclasses.replace(SMALL, height=12, width=16)
+    alone = generate_set(str(tmp_path / "alone"), count=18, sampler=tiny, contact_sheet_rows=0, workers=0)
+    spread = generate_set(str(tmp_path / "spread"), count=18, sampler=tiny, contact_sheet_rows=0, workers=2)
+    assert [p.name for p in alone] == [p.name for p in spread] == [f"scene_{i:05d}.npz" for i in range(18)]
+    for a, b in zip(alone, spread):
+        with np.load(a) as x, np.load(b) as y:
+            assert x.files == y.files and all(np.array_equal(x[k], y[k]) for k in x.files)
+    with pytest.raises(ValueError, match="generate.workers"):
+        generate_set(str(tmp_path / "bad"), count=1, sampler=tiny, workers=-1)
 
 
 def test_generate_speed_benchmark_reports_the_median_loader_run_and_its_range():
