@@ -127,8 +127,9 @@ def retain_freed_memory(nbytes: int = _RETAINED_BYTES) -> bool:
 
     Ray casting a batch allocates and frees arrays of megabytes by the hundred. By
     default glibc returns the heap's freed top at once, and the next arrays pay for
-    their pages again (a page fault on each first touch): 8-15% of the generator's
-    time at 32 scenes of 128x128 on the 2-core CPU, the peak memory unchanged.
+    their pages again (a page fault on each first touch): 7% of the generator's
+    time through a 2-worker DataLoader at 32 scenes of 128x128 on the 2-core CPU,
+    6-15% in one process, the peak memory unchanged.
     :class:`ProceduralScenes` calls this in DataLoader workers (processes that only
     render), and ``train.py`` for its own process; a library call changes nothing
     else of the caller's process. Returns whether it took effect (False without glibc).
