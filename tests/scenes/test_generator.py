@@ -97,6 +97,18 @@ def test_exact_renderer_agrees_with_render_layer_without_occluders(seed):
     assert rel.max() < 1e-4
 
 
+def test_batched_quantiles_equal_torch_quantile_of_each_rows_valid_values():
+    from selfsup.scenes.exact import _quantiles
+
+    gen = torch.Generator().manual_seed(3)
+    values = torch.rand(5, 300, generator=gen)
+    valid = torch.rand(5, 300, generator=gen) < torch.tensor([[0.9], [0.5], [0.02], [1.0], [0.0]])
+    got = _quantiles(values, valid, 0.99)
+    for row in range(4):
+        torch.testing.assert_close(got[row], torch.quantile(values[row][valid[row]], 0.99), rtol=0, atol=1e-6)
+    assert got[4] == 0  # no valid value
+
+
 def test_antialiasing_averages_edges_only():
     spec = sample_scene(1, SMALL)
     sharp, smooth = render_spec(spec, samples=1).scene, render_spec(spec, samples=3).scene
