@@ -106,14 +106,18 @@ def generate_set(out: str, count: int = 100, seed: int = 0, sampler: SamplerConf
     """
     sampler = sampler or SamplerConfig()
     degradations = degradations or Degradations()
-    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 0:
-        raise ValueError(f"generate.workers must be an integer >= 0 (0: render in this process), got {workers!r}")
+    # Named here, before any directory or scene is made (not as a TypeError or a worker's traceback).
+    for key, value, low, meaning in (("generate.count", count, 1, "scene files"),
+                                     ("data.samples", samples, 1, "anti-aliasing samples per pixel side"),
+                                     ("generate.contact_sheet_rows", contact_sheet_rows, 0, "rows"),
+                                     ("generate.workers", workers, 0, "processes; 0: this one")):
+        if (key != "generate.count" or not protocol) and (not isinstance(value, int) or isinstance(value, bool)
+                                                         or value < low):
+            raise ValueError(f"{key} must be an integer >= {low} ({meaning}), got {value!r}")
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     specs = protocol_specs(sampler, seed=seed + 7000) if protocol else None
     total = len(specs) if protocol else count
-    if total < 1:
-        raise ValueError(f"count must be >= 1, got {count}")
     parts = _SetParts(out_dir, total, seed, sampler, degradations, samples, specs, contact_sheet_rows)
     paths, rows = [], []
     # Batch None: each part comes back as it is, in order, from min(workers, parts) processes.

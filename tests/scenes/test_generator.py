@@ -296,8 +296,12 @@ def test_generate_set_writes_the_same_files_from_worker_processes(tmp_path):
     for a, b in zip(alone, spread):
         with np.load(a) as x, np.load(b) as y:
             assert x.files == y.files and all(np.array_equal(x[k], y[k]) for k in x.files)
-    with pytest.raises(ValueError, match="generate.workers"):
-        generate_set(str(tmp_path / "bad"), count=1, sampler=tiny, workers=-1)
+    for bad, message in ((dict(workers=-1), "generate.workers"), (dict(count=2.5), "generate.count"),
+                         (dict(count=0), "generate.count"), (dict(samples=0), "data.samples"),
+                         (dict(contact_sheet_rows=-1), "generate.contact_sheet_rows")):
+        with pytest.raises(ValueError, match=message):
+            generate_set(str(tmp_path / "bad"), **{"count": 1, "sampler": tiny, **bad})
+    assert not (tmp_path / "bad").exists()
 
 
 def test_generate_speed_benchmark_reports_the_median_loader_run_and_its_range():
