@@ -202,19 +202,15 @@ class PrimitiveBatch:
 
     @staticmethod
     def of(scenes: list[Primitives]) -> "PrimitiveBatch":
-        tables, start, count, scene, local = [], [], [], [], []
-        sizes = torch.tensor([[getattr(p, kind).shape[0] for kind, _ in _KINDS] for p in scenes])
-        for k, (kind, _) in enumerate(_KINDS):
-            tables.append(torch.cat([getattr(p, kind) for p in scenes]))
-            count.append(sizes[:, k])
-            start.append(sizes[:, k].cumsum(0) - sizes[:, k])
-            # Within scene b, kind k's rows follow the scene's earlier kinds.
-            before = sizes[:, :k].sum(1)
-            for b in range(len(scenes)):
-                scene.extend([b] * int(sizes[b, k]))
-                local.extend(range(int(before[b]), int(before[b] + sizes[b, k])))
-        return PrimitiveBatch(Primitives(*tables), torch.stack(start, 1), torch.stack(count, 1),
-                              torch.tensor(scene, dtype=torch.long), torch.tensor(local, dtype=torch.long))
+        tables = [torch.cat([getattr(p, kind) for p in scenes]) for kind, _ in _KINDS]
+        count = torch.tensor([[getattr(p, kind).shape[0] for kind, _ in _KINDS] for p in scenes], dtype=torch.long)
+        start = count.cumsum(0) - count  # each scene's first row in each kind's table
+        before = count.cumsum(1) - count  # within a scene, a kind's rows follow its earlier kinds'
+        scene = torch.cat([torch.arange(len(scenes)).repeat_interleave(count[:, k]) for k in range(len(_KINDS))])
+        # Row r of kind k belongs to scene b = scene[r]: its local index is before[b, k] + (r - start[b, k]).
+        local = torch.cat([torch.arange(int(count[:, k].sum())) + (before[:, k] - start[:, k]).repeat_interleave(count[:, k])
+                           for k in range(len(_KINDS))])
+        return PrimitiveBatch(Primitives(*tables), start, count, scene, local)
 
     @property
     def first(self) -> list[int]:
