@@ -241,13 +241,13 @@ class _ReportsRetention(ProceduralScenes):
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
-def test_dataloader_workers_keep_their_freed_memory_and_the_caller_is_left_alone():
+def test_dataloader_workers_keep_their_freed_memory_and_the_caller_is_left_alone(monkeypatch):
+    monkeypatch.setitem(dataset._retaining, "pid", None)  # whatever this test process did before
     data = _ReportsRetention(SMALL, length=2, base_seed=1, samples=1)
     loaded = next(iter(DataLoader(data, batch_size=1, num_workers=2, collate_fn=collate)))
     assert loaded["retains"].all()
-    if dataset._retaining["pid"] != os.getpid():  # unless this process asked for it
-        assert not data[0]["retains"]
-    assert dataset.retain_freed_memory() and dataset.retain_freed_memory()
+    assert not data[0]["retains"] and dataset._retaining["pid"] is None  # rendered here: left alone
+    assert dataset.retain_freed_memory() and dataset._retaining["pid"] == os.getpid()
 
 
 def test_rendering_a_scene_imports_no_sympy():
