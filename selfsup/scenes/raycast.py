@@ -108,11 +108,20 @@ def _along(vector: Tensor, d: Tensor) -> Tensor:
     return d[0] * vector[:, 0:1] + d[1] * vector[:, 1:2] + d[2] * vector[:, 2:3]
 
 
+def _none_within(x: Tensor, limit: float) -> bool:
+    """Whether no element of ``x`` has ``|x| <= limit`` (NaN is not within): two passes, where
+    the guards against such elements cost four (a guard then adds zeros, exactly)."""
+    return not x.numel() or not bool(x.abs().amin() <= limit)
+
+
 def _planes(pl: Tensor, o: Tensor, d: Tensor, t_min: float) -> Tensor:
     normal = pl[:, 3:6]
     oc = _offsets(o, pl[:, :3])
     denom = _along(normal, d)
     numer = -(oc[0] * normal[:, 0:1] + oc[1] * normal[:, 1:2] + oc[2] * normal[:, 2:3])
+    if _none_within(denom, 1e-12):  # no ray runs along its plane
+        t = (numer / denom).clamp(-_FAR, _FAR)
+        return _select(_mask(torch.gt, t, t_min), t, _FAR)
     parallel = _mask(torch.le, denom.abs(), 1e-12)
     t = (numer / (denom + parallel)).clamp(-_FAR, _FAR)
     return _select((1 - parallel) * _mask(torch.gt, t, t_min), t, _FAR)
@@ -140,7 +149,10 @@ def _boxes(bx: Tensor, o: Tensor, d: Tensor, t_min: float) -> Tensor:
         d_local = _along(axis, d)
         o_local = oc[0] * axis[:, 0:1] + oc[1] * axis[:, 1:2] + oc[2] * axis[:, 2:3]
         # Axis-parallel rays: a tiny stand-in direction keeps 1/d finite with the right slab answer.
-        inv = 1.0 / (d_local + 1e-30 * _mask(torch.le, d_local.abs(), 1e-30))
+        if _none_within(d_local, 1e-30):  # no ray runs along the slab
+            inv = 1.0 / d_local
+        else:
+            inv = 1.0 / (d_local + 1e-30 * _mask(torch.le, d_local.abs(), 1e-30))
         half = bx[:, 3 + j : 4 + j]
         ta, tb = (-half - o_local) * inv, (half - o_local) * inv
         low, high = torch.minimum(ta, tb), torch.maximum(ta, tb)
