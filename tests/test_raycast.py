@@ -16,6 +16,20 @@ def test_box_hit_from_outside_and_inside():
     torch.testing.assert_close(hit.normal, torch.tensor([[0.0, 0, -1], [0.0, 0, 1]], dtype=torch.float64))
 
 
+def test_a_ray_along_a_plane_or_slab_changes_no_other_rays_hit():
+    # Plane and box tests guard against rays with no component across a plane or slab
+    # only in blocks that hold one; other rays must get the same t either way.
+    prims = Primitives(planes=torch.tensor([[0, 1.0, 0, 0, -1, 0]]),
+                       boxes=torch.tensor([[0.3, 0, 5.0, 1, 1, 1, 0.8, 0, 0.6, 0, 1, 0, -0.6, 0, 0.8]]))
+    generic = torch.tensor([[0.05, 0.3, 1.0], [0.1, -0.02, 1.0], [0.02, 0.21, 1.0]])
+    along = torch.tensor([[0.0, 0.0, 1.0]])  # along the plane y = 1, and along the box's y slab
+    alone = cast_rays(prims, torch.zeros(3, 3), generic)
+    mixed = cast_rays(prims, torch.zeros(4, 3), torch.cat([generic, along]))
+    assert torch.equal(alone.t, mixed.t[:3]) and torch.equal(alone.primitive, mixed.primitive[:3])
+    assert mixed.primitive[3] == 1 and torch.isfinite(mixed.t[3])  # the box, not the plane it runs along
+    assert alone.primitive.tolist() == [0, 1, 1]  # the floor, then the box
+
+
 def test_sphere_plane_cylinder_hits():
     prims = Primitives(
         planes=torch.tensor([[0, 1.0, 0, 0, -1, 0]], dtype=torch.float64),
