@@ -175,22 +175,29 @@ def _cylinders(cy: Tensor, o: Tensor, d: Tensor, t_min: float) -> Tensor:
     b = o_perp[0] * d_perp[0] + o_perp[1] * d_perp[1] + o_perp[2] * d_perp[2]
     c = o_perp[0] * o_perp[0] + o_perp[1] * o_perp[1] + o_perp[2] * o_perp[2] - radius**2
     disc = b * b - a * c
-    crosses = _mask(torch.gt, a, 1e-20)  # else the ray runs along the axis: inside for all t, or never
     root = disc.clamp_min(0).sqrt()
-    safe_a = a + (1 - crosses)
-    side_low = _select(crosses, ((-b - root) / safe_a).clamp(-_FAR, _FAR), -_FAR)
-    side_high = _select(crosses, ((-b + root) / safe_a).clamp(-_FAR, _FAR), _FAR)
-    side = crosses * _mask(torch.ge, disc, 0.0) + (1 - crosses) * _mask(torch.le, c, 0.0)
-    tilted = _mask(torch.gt, d_ax.abs(), 1e-20)  # else the ray runs between the caps' planes, or outside
-    safe_d = d_ax + (1 - tilted)
-    ta = ((-half_h - o_ax) / safe_d).clamp(-_FAR, _FAR)
-    tb = ((half_h - o_ax) / safe_d).clamp(-_FAR, _FAR)
-    slab_low = _select(tilted, torch.minimum(ta, tb), -_FAR)
-    slab_high = _select(tilted, torch.maximum(ta, tb), _FAR)
-    slab = tilted + (1 - tilted) * _mask(torch.le, o_ax.abs(), half_h)
+    if bool(a.amin() > 1e-20) and bool(d_ax.abs().amin() > 1e-20):  # no ray needs the guards below (NaN would)
+        side_low, side_high = ((-b - root) / a).clamp(-_FAR, _FAR), ((-b + root) / a).clamp(-_FAR, _FAR)
+        ta = ((-half_h - o_ax) / d_ax).clamp(-_FAR, _FAR)
+        tb = ((half_h - o_ax) / d_ax).clamp(-_FAR, _FAR)
+        slab_low, slab_high = torch.minimum(ta, tb), torch.maximum(ta, tb)
+        inside = _mask(torch.ge, disc, 0.0)
+    else:
+        crosses = _mask(torch.gt, a, 1e-20)  # else the ray runs along the axis: inside for all t, or never
+        safe_a = a + (1 - crosses)
+        side_low = _select(crosses, ((-b - root) / safe_a).clamp(-_FAR, _FAR), -_FAR)
+        side_high = _select(crosses, ((-b + root) / safe_a).clamp(-_FAR, _FAR), _FAR)
+        side = crosses * _mask(torch.ge, disc, 0.0) + (1 - crosses) * _mask(torch.le, c, 0.0)
+        tilted = _mask(torch.gt, d_ax.abs(), 1e-20)  # else the ray runs between the caps' planes, or outside
+        safe_d = d_ax + (1 - tilted)
+        ta = ((-half_h - o_ax) / safe_d).clamp(-_FAR, _FAR)
+        tb = ((half_h - o_ax) / safe_d).clamp(-_FAR, _FAR)
+        slab_low = _select(tilted, torch.minimum(ta, tb), -_FAR)
+        slab_high = _select(tilted, torch.maximum(ta, tb), _FAR)
+        inside = side * (tilted + (1 - tilted) * _mask(torch.le, o_ax.abs(), half_h))
     enter, leave = torch.maximum(side_low, slab_low), torch.minimum(side_high, slab_high)
     t = _select(_mask(torch.gt, enter, t_min), enter, leave)
-    return _select(side * slab * _mask(torch.ge, leave, enter) * _mask(torch.gt, t, t_min), t, _FAR)
+    return _select(inside * _mask(torch.ge, leave, enter) * _mask(torch.gt, t, t_min), t, _FAR)
 
 
 _KINDS = (("planes", _planes), ("spheres", _spheres), ("boxes", _boxes), ("cylinders", _cylinders))
