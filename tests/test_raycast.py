@@ -20,14 +20,15 @@ def test_a_ray_along_a_plane_or_slab_changes_no_other_rays_hit():
     # Plane and box tests guard against rays with no component across a plane or slab
     # only in blocks that hold one; other rays must get the same t either way.
     prims = Primitives(planes=torch.tensor([[0, 1.0, 0, 0, -1, 0]]),
-                       boxes=torch.tensor([[0.3, 0, 5.0, 1, 1, 1, 0.8, 0, 0.6, 0, 1, 0, -0.6, 0, 0.8]]))
-    generic = torch.tensor([[0.05, 0.3, 1.0], [0.1, -0.02, 1.0], [0.02, 0.21, 1.0]])
-    along = torch.tensor([[0.0, 0.0, 1.0]])  # along the plane y = 1, and along the box's y slab
-    alone = cast_rays(prims, torch.zeros(3, 3), generic)
-    mixed = cast_rays(prims, torch.zeros(4, 3), torch.cat([generic, along]))
-    assert torch.equal(alone.t, mixed.t[:3]) and torch.equal(alone.primitive, mixed.primitive[:3])
-    assert mixed.primitive[3] == 1 and torch.isfinite(mixed.t[3])  # the box, not the plane it runs along
-    assert alone.primitive.tolist() == [0, 1, 1]  # the floor, then the box
+                       boxes=torch.tensor([[0.3, 0, 5.0, 1, 1, 1, 0.8, 0, 0.6, 0, 1, 0, -0.6, 0, 0.8]]),
+                       cylinders=torch.tensor([[-1.5, 0, 4.0, 0, 1, 0, 0.3, 0.5]]))
+    generic = torch.tensor([[0.05, 0.3, 1.0], [0.1, -0.02, 1.0], [0.02, 0.21, 1.0], [-0.375, 0.05, 1.0]])
+    along = torch.tensor([[0.0, 0.0, 1.0], [-0.375, 0.0, 1.0]])  # along the plane y = 1, the box's y slab, the caps
+    alone = cast_rays(prims, torch.zeros(4, 3), generic)
+    mixed = cast_rays(prims, torch.zeros(6, 3), torch.cat([generic, along]))
+    assert torch.equal(alone.t, mixed.t[:4]) and torch.equal(alone.primitive, mixed.primitive[:4])
+    assert alone.primitive.tolist() == [0, 1, 1, 2]  # the floor, the box twice, the cylinder
+    assert mixed.primitive[4:].tolist() == [1, 2]  # the box, the cylinder: not the plane they run along
 
 
 def test_sphere_plane_cylinder_hits():
