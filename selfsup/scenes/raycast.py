@@ -415,8 +415,11 @@ def hit_normals(prims: Primitives, points: Tensor, index: Tensor) -> Tensor:
     # Planes first in the global order: their normals are a gather; the other kinds are solved on their rays.
     planes = prims.planes.shape[0]
     unit = prims.planes[:, 3:6] / prims.planes[:, 3:6].norm(dim=-1, keepdim=True).clamp_min(1e-30)
-    normal_of = torch.cat([unit, unit.new_zeros(1, 3)]).T.to(points.dtype).contiguous()  # (3, planes + 1): none last
-    normal = normal_of.index_select(1, torch.where((index >= 0) & (index < planes), index, planes))
+    others = sum(getattr(prims, kind).shape[0] for kind, _ in _KINDS[1:])
+    # (3, P + 2) by index + 1: none (-1) first, the planes' normals, zeros for the other kinds and for any
+    # index out of range (a NaN ray's), clamped to the last.
+    normal_of = torch.cat([unit.new_zeros(1, 3), unit, unit.new_zeros(others + 1, 3)]).T.to(points.dtype).contiguous()
+    normal = normal_of.index_select(1, (index + 1).clamp_(0, planes + others + 1))
     curved = (index >= planes).nonzero(as_tuple=True)[0]
     if not curved.numel():
         return normal
