@@ -312,31 +312,33 @@ def _pairs(batch: PrimitiveBatch, bundles: Bundles, k: int) -> tuple[Tensor, Ten
     if not bundle.numel():
         return bundle, bundle
     row = torch.arange(bundle.shape[0]) - torch.repeat_interleave(counts.cumsum(0) - counts, counts)
-    row = row + batch.start[bundles.scene, k][bundle]
+    row = row + batch.start[bundles.scene, k].index_select(0, bundle)
     kind = _KINDS[k][0]
-    origin = bundles.origin.index_select(0, bundle).double()
-    axis = bundles.axis.index_select(0, bundle)
-    spread = bundles.spread.index_select(0, bundle)
+    # One gather of a per-bundle and of a per-primitive table, then per pair by component
+    # (columns of the gathered rows): no (M, 3) arrays, no reductions over a last axis of 3.
+    origin, axis = bundles.origin.double(), bundles.axis
+    b = torch.cat([origin, axis, torch.stack([bundles.spread, bundles.near, bundles.far,
+                                              (origin * origin).sum(-1).sqrt()], 1)], 1).index_select(0, bundle)
+    o, a, spread, near, far, origin_norm = b[:, 0:3].T, b[:, 3:6].T, b[:, 6], b[:, 7], b[:, 8], b[:, 9]
     if kind == "planes":
-        plane = batch.prims.planes.index_select(0, row).double()
+        plane = batch.prims.planes.double().index_select(0, row).T  # point, normal
         # Signed distance from the origin; the rays must head that way, and reach that far.
-        gap = ((plane[:, :3] - origin) * plane[:, 3:6]).sum(-1)
-        toward = torch.acos(((axis * plane[:, 3:6]).sum(-1) * torch.sign(gap)).clamp(-1, 1))
+        gap = (plane[0] - o[0]) * plane[3] + (plane[1] - o[1]) * plane[4] + (plane[2] - o[2]) * plane[5]
+        toward = torch.acos(((a[0] * plane[3] + a[1] * plane[4] + a[2] * plane[5]) * torch.sign(gap)).clamp(-1, 1))
         ok = (toward <= math.pi / 2 + spread + 1e-3) | (gap == 0)
-        ok &= gap.abs() * (1 - 1e-3) < bundles.far.index_select(0, bundle)
-        keep = ok.nonzero(as_tuple=True)[0]
-        return bundle[keep], row[keep]
-    bound = _bounds(kind, getattr(batch.prims, kind).index_select(0, row)).double()
-    offset = bound[:, :3] - origin
-    dist = offset.norm(dim=-1).clamp_min(1e-300)
-    radius = bound[:, 3] * (1 + 1e-3) + 1e-6 * (dist + origin.norm(dim=-1))
-    toward = torch.acos(((axis * offset).sum(-1) / dist).clamp(-1, 1))
-    reach = torch.where(radius < dist, torch.asin((radius / dist).clamp_max(1)), torch.full_like(dist, math.pi))
-    ok = toward <= spread + reach + 1e-3
-    ok &= dist + radius > bundles.near[bundle]
-    ok &= dist - radius < bundles.far[bundle]
+        ok &= gap.abs() * (1 - 1e-3) < far
+    else:
+        bound = _bounds(kind, getattr(batch.prims, kind)).double().index_select(0, row).T  # centre, radius
+        offset = [bound[i] - o[i] for i in range(3)]
+        dist = (offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2]).sqrt().clamp_min(1e-300)
+        radius = bound[3] * (1 + 1e-3) + 1e-6 * (dist + origin_norm)
+        toward = torch.acos(((a[0] * offset[0] + a[1] * offset[1] + a[2] * offset[2]) / dist).clamp(-1, 1))
+        reach = torch.where(radius < dist, torch.asin((radius / dist).clamp_max(1)), torch.full_like(dist, math.pi))
+        ok = toward <= spread + reach + 1e-3
+        ok &= dist + radius > near
+        ok &= dist - radius < far
     keep = ok.nonzero(as_tuple=True)[0]
-    return bundle[keep], row[keep]
+    return bundle.index_select(0, keep), row.index_select(0, keep)
 
 
 # (bundle, primitive) pairs tested at once: a block's (pairs, 64) float32 arrays of 1 MB
