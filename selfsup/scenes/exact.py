@@ -397,10 +397,10 @@ def render_specs(specs: list[SceneSpec], samples: int = 2, falloff: str = "inver
     pixels = torch.stack([u.reshape(-1), v.reshape(-1), torch.ones(H * W)])
     inverse_K = torch.linalg.inv(torch.stack([spec.K.float() for spec in specs]))
     centre_dirs = inverse_K @ pixels
-    traced = _trace(batch, list(inverse_K @ pixels[:, order]))
-    # Back to pixel order: pixel i of scene b is ray b * H * W + rank[i] of the trace.
-    rank = order.argsort()
-    centre = traced.take((torch.arange(B)[:, None] * (H * W) + rank[None]).reshape(-1))
+    # Back to pixel order: pixel i of scene b is ray b * H * W + rank[i] of the trace, rank =
+    # order.argsort() (the traced arrays in tile order are freed at once).
+    pixel_rays = (torch.arange(B)[:, None] * (H * W) + order.argsort()[None]).reshape(-1)
+    centre = _trace(batch, list(inverse_K @ pixels[:, order])).take(pixel_rays)
     radiance, kd, pattern = _shade(batch, centre, falloff)
     supersampled = [0] * B
     if samples > 1:
@@ -438,6 +438,7 @@ def render_specs(specs: list[SceneSpec], samples: int = 2, falloff: str = "inver
         if at.numel():
             sub, missed = _same_primitive(batch, centre.take(at), sub_dirs(at))
             average(at, sub, batch)
+            del sub  # freed for the arrays that follow
             geometry.view(-1)[at[missed]] = True  # traced in full below, which overwrites them
         full = geometry.view(B, -1)
         pixels = [order[full[b].index_select(0, order)] for b in range(B)]  # in tile order
