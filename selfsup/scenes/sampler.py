@@ -140,8 +140,15 @@ def _u(gen: torch.Generator, bounds) -> float:
     return low + (high - low) * torch.rand(1, generator=gen, dtype=torch.float64).item()
 
 
-def _log_u(gen: torch.Generator, bounds) -> float:
-    return math.exp(_u(gen, (math.log(bounds[0]), math.log(bounds[1]))))
+def _us(gen: torch.Generator, *bounds) -> list[float]:
+    """:func:`_u` of each of ``bounds`` in turn, from one draw of that many numbers: the
+    same numbers (the generator yields doubles one after another either way), one call."""
+    draws = torch.rand(len(bounds), generator=gen, dtype=torch.float64).tolist()
+    return [float(low) + (float(high) - float(low)) * u for (low, high), u in zip(bounds, draws)]
+
+
+def _log_bounds(bounds) -> tuple[float, float]:
+    return math.log(bounds[0]), math.log(bounds[1])
 
 
 def _rot_y(angle: float) -> Tensor:
@@ -203,11 +210,11 @@ class _Objects:
 
 def _place_object(gen: torch.Generator, objs: _Objects, room_w: float, room_d: float) -> None:
     kind = int(torch.randint(0, 6, (1,), generator=gen))
+    # Each try draws its position and the sizes it needs at once, in the order they are used.
+    x_range, z_range = (-room_w / 2 + 0.35, room_w / 2 - 0.35), (0.9, room_d - 0.35)
     for _ in range(12):
-        x = _u(gen, (-room_w / 2 + 0.35, room_w / 2 - 0.35))
-        z = _u(gen, (0.9, room_d - 0.35))
         if kind == 0:  # box on the floor
-            half = [_u(gen, (0.1, 0.45)), _u(gen, (0.1, 0.5)), _u(gen, (0.1, 0.45))]
+            x, z, *half = _us(gen, x_range, z_range, (0.1, 0.45), (0.1, 0.5), (0.1, 0.45))
             radius = math.hypot(half[0], half[2])
             if objs.free(x, z, radius):
                 objs.box([x, half[1], z], half, _u(gen, (0, math.pi)))
@@ -216,14 +223,14 @@ def _place_object(gen: torch.Generator, objs: _Objects, room_w: float, room_d: f
                 objs.names.append("box")
                 return
         elif kind == 1:  # sphere resting on the floor
-            r = _u(gen, (0.1, 0.45))
+            x, z, r = _us(gen, x_range, z_range, (0.1, 0.45))
             if objs.free(x, z, r):
                 objs.spheres.append([x, r, z, r])
                 objs.footprints.append((x, z, r))
                 objs.names.append("sphere")
                 return
         elif kind == 2:  # upright cylinder
-            r, h = _u(gen, (0.08, 0.3)), _u(gen, (0.1, 0.6))
+            x, z, r, h = _us(gen, x_range, z_range, (0.08, 0.3), (0.1, 0.6))
             if objs.free(x, z, r):
                 objs.cylinders.append([x, h, z, 0, 1, 0, r, h])
                 objs.footprints.append((x, z, r))
@@ -231,24 +238,24 @@ def _place_object(gen: torch.Generator, objs: _Objects, room_w: float, room_d: f
                 objs.names.append("cylinder")
                 return
         elif kind == 3:  # pedestal table: thin top on one column
-            hx, hz, top = _u(gen, (0.3, 0.7)), _u(gen, (0.25, 0.5)), _u(gen, (0.5, 0.9))
+            x, z, hx, hz, top = _us(gen, x_range, z_range, (0.3, 0.7), (0.25, 0.5), (0.5, 0.9))
             radius = math.hypot(hx, hz)
             if objs.free(x, z, radius):
-                thick = _u(gen, (0.02, 0.04))
-                objs.box([x, top - thick, z], [hx, thick, hz], _u(gen, (0, math.pi)))
+                thick, angle = _us(gen, (0.02, 0.04), (0, math.pi))
+                objs.box([x, top - thick, z], [hx, thick, hz], angle)
                 objs.cylinders.append([x, (top - 2 * thick) / 2, z, 0, 1, 0, 0.05, (top - 2 * thick) / 2])
                 objs.footprints.append((x, z, radius))
                 objs.tops.append((x, z, top, min(hx, hz)))
                 objs.names.append("table")
                 return
         elif kind == 4:  # shelf on the back wall
-            hx, hz, y = _u(gen, (0.3, 0.8)), _u(gen, (0.1, 0.18)), _u(gen, (0.6, 1.7))
-            thick = _u(gen, (0.015, 0.03))
+            x, z, hx, hz, y, thick = _us(gen, x_range, z_range, (0.3, 0.8), (0.1, 0.18), (0.6, 1.7), (0.015, 0.03))
             objs.box([x, y, room_d - hz], [hx, thick, hz])
             objs.tops.append((x, room_d - hz, y + thick, min(hx, hz)))
             objs.names.append("shelf")
             return
         else:  # something on top of an earlier object, else a sphere on the floor
+            _us(gen, x_range, z_range)  # a position, unused, as every try draws
             if objs.tops:
                 index = int(torch.randint(0, len(objs.tops), (1,), generator=gen))
                 tx, tz, ty, free_r = objs.tops.pop(index)
@@ -301,8 +308,9 @@ def sample_scene(seed: int, config: SamplerConfig | None = None, n_lights: int |
     """
     config = config or SamplerConfig()
     gen = torch.Generator().manual_seed(int(seed))
-    scale = _log_u(gen, config.scale_range)
-    room_w, room_d, room_h = _u(gen, config.room_width), _u(gen, config.room_depth), _u(gen, config.room_height)
+    log_scale, room_w, room_d, room_h = _us(gen, _log_bounds(config.scale_range), config.room_width,
+                                            config.room_depth, config.room_height)
+    scale = math.exp(log_scale)
 
     up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
     planes = [[0, 0, 0, *up.tolist()], [0, 0, room_d, 0, 0, -1]]
@@ -346,10 +354,11 @@ def sample_scene(seed: int, config: SamplerConfig | None = None, n_lights: int |
         lights = torch.stack(chosen)
 
     # Camera at the open side, looking in, slightly down.
-    camera = torch.tensor([_u(gen, (-0.3, 0.3)) * room_w, _u(gen, (1.0, 1.8)), _u(gen, (-0.6, 0.3))], dtype=torch.float64)
-    target = torch.tensor([_u(gen, (-0.2, 0.2)) * room_w, _u(gen, (0.2, 0.8)), _u(gen, (0.55, 0.85)) * room_d], dtype=torch.float64)
+    cx, cy, cz, tx, ty, tz, fov = _us(gen, (-0.3, 0.3), (1.0, 1.8), (-0.6, 0.3), (-0.2, 0.2), (0.2, 0.8), (0.55, 0.85),
+                                      config.fov_x_deg)
+    camera = torch.tensor([cx * room_w, cy, cz], dtype=torch.float64)
+    target = torch.tensor([tx * room_w, ty, tz * room_d], dtype=torch.float64)
     rot = _camera_rotation(target - camera)
-    fov = _u(gen, config.fov_x_deg)
 
     def to_cam(p: Tensor) -> Tensor:
         return (p - camera) @ rot.T
