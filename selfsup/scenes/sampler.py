@@ -134,21 +134,16 @@ def _uniform(gen: torch.Generator, low: float, high: float, *shape: int) -> Tens
     return low + (high - low) * torch.rand(shape or (1,), generator=gen, dtype=torch.float64)
 
 
-def _u(gen: torch.Generator, bounds) -> float:
-    # What float(_uniform(...)) gives, in Python floats (the same float64 operations, no tensor calls).
-    low, high = float(bounds[0]), float(bounds[1])
-    return low + (high - low) * torch.rand(1, generator=gen, dtype=torch.float64).item()
-
-
 def _us(gen: torch.Generator, *bounds) -> list[float]:
-    """:func:`_u` of each of ``bounds`` in turn, from one draw of that many numbers: the
-    same numbers (the generator yields doubles one after another either way), one call."""
+    """A number uniform in each of ``bounds`` in turn, from one draw of that many doubles
+    (the generator yields the same doubles one after another as in single draws), computed
+    in Python floats as ``float(_uniform(...))`` would (the same float64 operations)."""
     draws = torch.rand(len(bounds), generator=gen, dtype=torch.float64).tolist()
     return [float(low) + (float(high) - float(low)) * u for (low, high), u in zip(bounds, draws)]
 
 
-def _log_bounds(bounds) -> tuple[float, float]:
-    return math.log(bounds[0]), math.log(bounds[1])
+def _u(gen: torch.Generator, bounds) -> float:
+    return _us(gen, bounds)[0]
 
 
 def _rot_y(angle: float) -> Tensor:
@@ -308,7 +303,7 @@ def sample_scene(seed: int, config: SamplerConfig | None = None, n_lights: int |
     """
     config = config or SamplerConfig()
     gen = torch.Generator().manual_seed(int(seed))
-    log_scale, room_w, room_d, room_h = _us(gen, _log_bounds(config.scale_range), config.room_width,
+    log_scale, room_w, room_d, room_h = _us(gen, tuple(math.log(x) for x in config.scale_range), config.room_width,
                                             config.room_depth, config.room_height)
     scale = math.exp(log_scale)
 
