@@ -72,20 +72,22 @@ class Degradations:
 
 def _degrade_depth(depth: Tensor, d: Degradations, gen: torch.Generator) -> Tensor:
     valid = depth > 0
-    z = depth.clone()
+    z = depth
+    squared = depth**2
     if d.depth_noise > 0:
-        z = z + d.depth_noise * z**2 * torch.randn(z.shape, generator=gen, dtype=z.dtype)
+        z = z + d.depth_noise * squared * torch.randn(z.shape, generator=gen, dtype=z.dtype)
     if d.depth_quantisation > 0:
-        step = d.depth_quantisation * depth**2
+        step = d.depth_quantisation * squared
         z = torch.round(z / step.clamp_min(1e-9)) * step  # step > 0 where depth is valid
     keep = valid & (z > 0)
     if d.edge_hole_jump > 0:
-        # Relative depth range over each 3x3 neighbourhood of the clean depth.
-        spread = neighbourhood_max(depth) + neighbourhood_max(-depth)
-        keep &= spread <= d.edge_hole_jump * depth
+        # Relative depth range over each 3x3 neighbourhood of the clean depth: its maximum and
+        # the maximum of its negation, found together.
+        extremes = neighbourhood_max(torch.stack([depth, -depth]))
+        keep &= extremes[0] + extremes[1] <= d.edge_hole_jump * depth
     if d.random_holes > 0:
         keep &= torch.rand(z.shape, generator=gen, dtype=z.dtype) >= d.random_holes
-    return torch.where(keep, z, torch.zeros_like(z))
+    return torch.where(keep, z, 0.0)
 
 
 def degrade(scene: Scene, degradations: Degradations, seed: int) -> Scene:
@@ -111,7 +113,10 @@ def degrade(scene: Scene, degradations: Degradations, seed: int) -> Scene:
         out.depth = _degrade_depth(scene.depth, d, gen)
         out.normals = None
     if d.image_noise > 0 or d.shot_noise > 0:
-        sigma = (d.image_noise**2 + d.shot_noise**2 * scene.image).sqrt()
+        if d.shot_noise > 0:
+            sigma = (d.image_noise**2 + d.shot_noise**2 * scene.image).sqrt()
+        else:  # the same value everywhere: one number, as the array would hold it
+            sigma = torch.tensor(d.image_noise**2, dtype=scene.image.dtype).sqrt()
         out.image = (scene.image + sigma * torch.randn(scene.image.shape, generator=gen, dtype=scene.image.dtype)).clamp_min(0)
     if d.ambient == "unknown":
         out.ambient = None
