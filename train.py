@@ -16,13 +16,19 @@ import hydra
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import MissingMandatoryValue
 
 log = logging.getLogger(__name__)
 MODES = ("train", "eval", "generate", "estimate", "insert", "benchmark")
 
 
 def _plain(node) -> dict:
-    return OmegaConf.to_container(node, resolve=True, throw_on_missing=True)
+    try:
+        return OmegaConf.to_container(node, resolve=True, throw_on_missing=True)
+    except MissingMandatoryValue as error:  # a required setting (??? in configs/) left out
+        key = error.full_key or "a setting"
+        raise ValueError(f"{key} is required: add {key}=<value> to the command line (the head of train.py shows "
+                         "each mode's command)") from None
 
 
 def build_data(cfg: DictConfig):

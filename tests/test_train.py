@@ -37,3 +37,10 @@ def test_paper_table_names_an_unknown_row():
 def test_unknown_mode_is_a_clear_error():
     with pytest.raises(ValueError, match="unknown mode 'fly'"):
         run(_cfg("mode=fly"))
+
+
+@pytest.mark.parametrize("mode, key", [("estimate", "estimate.input"), ("generate", "generate.out"),
+                                       ("insert", "insert.scene")])
+def test_a_required_setting_left_out_is_named_with_how_to_give_it(mode, key):
+    with pytest.raises(ValueError, match=f"{key} is required: add {key}=<value>"):
+        run(_cfg(f"mode={mode}"))
