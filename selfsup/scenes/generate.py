@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import Tensor
-from torch.utils.data import DataLoader, Dataset, get_worker_info
+from torch.utils.data import DataLoader, Dataset
 
 from selfsup.scenes.dataset import protocol_specs, retain_freed_memory
 from selfsup.scenes.degrade import Degradations, degrade
@@ -72,8 +72,6 @@ class _SetParts(Dataset):
         return -(-self.total // _BATCH)
 
     def __getitem__(self, part: int) -> tuple[list[Path], list[list[np.ndarray]]]:
-        if get_worker_info() is not None:  # a DataLoader worker: a process of ours
-            retain_freed_memory()
         protocol = self.specs is not None
         indices = range(part * _BATCH, min((part + 1) * _BATCH, self.total))
         batch = [self.specs[i] if protocol else sample_scene(self.seed * 1_000_003 + i, self.sampler) for i in indices]
@@ -91,6 +89,10 @@ class _SetParts(Dataset):
 
 def _as_is(item):
     return item
+
+
+def _start_worker(worker_id: int) -> None:
+    retain_freed_memory()  # a process of ours that only renders
 
 
 def generate_set(out: str, count: int = 100, seed: int = 0, sampler: SamplerConfig | None = None,
@@ -122,7 +124,7 @@ def generate_set(out: str, count: int = 100, seed: int = 0, sampler: SamplerConf
     paths, rows = [], []
     # Batch None: each part comes back as it is, in order, from min(workers, parts) processes.
     for part_paths, part_rows in DataLoader(parts, batch_size=None, num_workers=min(workers, len(parts)),
-                                            collate_fn=_as_is):
+                                            collate_fn=_as_is, worker_init_fn=_start_worker):
         paths.extend(part_paths)
         rows.extend(part_rows)
     if rows:

@@ -220,9 +220,11 @@ def scene_gbuffer(depth: Tensor, K: Tensor, normals: Tensor | None, ids: list[st
     devset's and the Mitsuba files' own normals face away on at most 0.02% of pixels,
     where sensor noise tilts them past the view ray."""
     gbuffer = GBuffer.from_depth(depth, K, normals, missing_normals="from_depth")
+    if normals is None:  # all estimated from the depth: they face the camera
+        return gbuffer
     facing = (gbuffer.normals * -gbuffer.points).sum(-1) > 0
     away = (~facing & gbuffer.mask).flatten(1).sum(1) > 0.5 * gbuffer.mask.flatten(1).sum(1)
-    if normals is None or not bool(away.any()):
+    if not bool(away.any()):
         return gbuffer
     for scene_id, turned in zip(ids, away.tolist()):
         if turned:
