@@ -100,14 +100,11 @@ def run(cfg: DictConfig):
         sampler, degradations, samples = build_data(cfg)
         return generate_set(sampler=sampler, degradations=degradations, samples=samples, **_plain(cfg.generate))
     if cfg.mode == "estimate":
-        from selfsup.estimate import EstimateOptions, estimate_files
-        from selfsup.refine import RefineOptions
+        from selfsup.estimation import EstimateOptions, estimate_files
 
         est = _plain(cfg.estimate)
-        refine = RefineOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in est.pop("refine").items()})
         io = {k: est.pop(k) for k in ("input", "output", "progress", "batch", "device", "workers")}
-        return estimate_files(io["input"], io["output"], EstimateOptions(refine=refine, **est), progress=io["progress"],
-                              batch=io["batch"], device=io["device"], workers=io["workers"])
+        return estimate_files(options=EstimateOptions(**est), **io)
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")

@@ -34,7 +34,7 @@ COLUMNS = ["set", "scenes", "median_position_error", "median_angular_error", "me
 
 
 def _file_pool_rows(network, directory: str, device) -> list[dict]:
-    from selfsup.estimate import scene_files
+    from selfsup.estimation.files import scene_files
     from selfsup.scenes.io import read_scene
 
     rows = []

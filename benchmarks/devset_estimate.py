@@ -9,7 +9,7 @@ and the success rate.
     python -m benchmarks.devset_estimate --run ../shared/devset [--sets direct gi noisy]
 
 estimates every set (sub-folder) with the default ``mode=estimate`` settings
-(:func:`selfsup.estimate.estimate_files`, one scene at a time) and writes one row
+(:func:`selfsup.estimation.estimate_files`, one scene at a time) and writes one row
 per scene and a summary row per set to ``benchmarks/results/devset_estimate_<device>_<date>.*``.
 """
 
@@ -50,7 +50,7 @@ def score(scenes: str | Path, estimates: str | Path) -> list[dict]:
 
 def upper_median(values: list[float]) -> float:
     """The middle value, the upper of the two middle ones for an even count (what this
-    script has always printed, and the README's devset tables report)."""
+    script has always printed, and docs/estimation.md's devset tables report)."""
     return sorted(values)[len(values) // 2]
 
 
@@ -58,7 +58,8 @@ def run(devset: str | Path, sets: list[str], write: bool = True, name: str = "de
         options=None) -> tuple[list[dict], Path | None]:
     """Estimate each set (with the default options, or ``options``) and score it; one row
     per scene, then per set."""
-    from selfsup.estimate import EstimateOptions, estimate_files
+    from selfsup.estimation.options import EstimateOptions
+    from selfsup.estimation.files import estimate_files
 
     options = options or EstimateOptions()
 
@@ -83,7 +84,7 @@ def run(devset: str | Path, sets: list[str], write: bool = True, name: str = "de
         print(rows[-1], flush=True)
     path = None
     if write:
-        changed = {k: v for k, v in vars(options).items() if v != getattr(EstimateOptions(), k)}
+        changed = options.changed_settings()
         settings = "the default mode=estimate settings" + (f" but {changed}" if changed else "")
         header = (f"Scenes of {Path(devset).name}/<set> (an independent renderer), estimated one at a time with "
                   f"{settings} (estimate_files); position error: worst light of the scene, of "
@@ -112,9 +113,9 @@ if __name__ == "__main__":
     if args.run:
         torch.set_num_threads(args.threads)
         from benchmarks.estimate_procedural import parse_options
-        from selfsup.estimate import EstimateOptions
+        from selfsup.estimation.options import EstimateOptions
 
-        print(run(args.run, args.sets, name=args.name, options=EstimateOptions(**parse_options(args.option)))[1])
+        print(run(args.run, args.sets, name=args.name, options=EstimateOptions.from_settings(**parse_options(args.option)))[1])
     else:
         if not (args.scenes and args.estimates):
             parser.error("give --scenes and --estimates, or --run DEVSET")

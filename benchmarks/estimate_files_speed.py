@@ -2,7 +2,7 @@
 (issue 5: ``cnn+refine`` at most 0.25 s per scene on the 2-core CPU).
 
 Writes the fixed-seed procedural sets of ``benchmarks.estimate_procedural`` (160x120)
-as scene files into one directory, then times :func:`selfsup.estimate.estimate_files`,
+as scene files into one directory, then times :func:`selfsup.estimation.estimate_files`,
 the command's own code, over it: reading the files, the estimation, the covariances
 and the JSON lines, and the workers' start when there are several (``start``: a
 forked worker starts at once, a spawned one imports torch and loads the network).
@@ -29,7 +29,8 @@ import torch
 
 from benchmarks.common import write_results
 from benchmarks.estimate_procedural import SETS, score, set_scene
-from selfsup.estimate import EstimateOptions, estimate_files, usable_cores
+from selfsup.estimation.options import EstimateOptions
+from selfsup.estimation.files import estimate_files, usable_cores
 from selfsup.scenes.io import write_scene
 
 COLUMNS = ["workers", "start", "batch", "scenes", "rounds", "seconds_per_scene", "range_seconds_per_scene",
@@ -63,7 +64,7 @@ def measure(folder: Path, scenes: dict, workers: int, batch: int, options: Estim
     if summary["failed"]:
         raise RuntimeError(f"{summary['failed']} file(s) failed: {summary['failures']}")
     scored = [score(record, scenes[record["id"]]) for record in records]
-    # How the workers started (selfsup.estimate.start_method): a spawned one imports for seconds.
+    # How the workers started (selfsup.estimation.start_method): a spawned one imports for seconds.
     return {"workers": summary["workers"], "start": summary["start"] or "-", "batch": batch, "scenes": len(records), "seconds_per_scene": wall / len(records),
             "median_latency": statistics.median(r["seconds"] for r in records),
             "median_position_error": round(statistics.median(s[0] for s in scored), 4),
@@ -99,7 +100,7 @@ def run(scenes: int = 16, workers: tuple[int, ...] = (1, 2), batches: tuple[int,
     if write:
         header = (f"{scenes} scenes of each of {len(sets)} sets ({', '.join(sets)}; seeds {seed}*1000003+i as "
                   f"estimate_procedural), 160x120, written as scene files into one directory; "
-                  f"selfsup.estimate.estimate_files (mode=estimate) with estimate.method={options.method} and defaults "
+                  f"selfsup.estimation.estimate_files (mode=estimate) with estimate.method={options.method} and defaults "
                   f"otherwise, on {usable_cores()} usable cores. seconds_per_scene: the run's wall time (workers' start "
                   "included) over the scenes, median (and range) of `rounds` runs taken in turn with the other rows; median_latency: "
                   "median of the records' `seconds` (a scene's time in its process). Errors as in estimate_procedural "

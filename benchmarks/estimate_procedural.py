@@ -25,8 +25,8 @@ import time
 import torch
 
 from benchmarks.common import score_record, write_results
-from selfsup.estimate import EstimateOptions, estimate_scene
-from selfsup.refine import RefineOptions
+from selfsup.estimation.options import EstimateOptions, RefineOptions
+from selfsup.estimation.stages import estimate_scene
 from selfsup.metrics import CHI2_3D_2SIGMA
 from selfsup.scenes.dataset import render_item
 from selfsup.scenes.degrade import Degradations
@@ -104,7 +104,7 @@ def parse_options(pairs: list[str]) -> dict:
 def run(scenes: int = 20, method: str = "cnn+refine", seed: int = 9100, sets: list[str] | None = None,
         write: bool = True, shadows: str = "none", search_shadows: str = "none", normal_smoothing: str = "auto",
         reflectance_gains: int = 0, extra: dict | None = None):
-    options = EstimateOptions(method=method, shadows=shadows, search_shadows=search_shadows,
+    options = EstimateOptions.from_settings(method=method, shadows=shadows, search_shadows=search_shadows,
                               normal_smoothing=normal_smoothing, reflectance_gains=reflectance_gains, **(extra or {}))
     rows = []
     for name in SETS:

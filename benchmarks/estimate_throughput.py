@@ -2,7 +2,7 @@
 at least 500 scenes/s batched on one H100).
 
 The same fixed-seed procedural sets as ``benchmarks.estimate_procedural`` (160x120),
-estimated in batches by :func:`selfsup.estimate.estimate_batch`, the very pipeline of
+estimated in batches by :func:`selfsup.estimation.estimate_batch`, the very pipeline of
 ``mode=estimate`` (search, model selection, covariance) run on the whole batch at once.
 Seconds count everything from the scene files' tensors on the host to the records:
 moving to the device, preparing the inputs (normals, clipped pixels), the network, the
@@ -19,13 +19,16 @@ import argparse
 import multiprocessing
 import statistics
 import time
-from dataclasses import replace
+
 
 import torch
 
 from benchmarks.common import device_name, write_results
 from benchmarks.estimate_procedural import SETS, parse_options, score, set_scene
-from selfsup.estimate import EstimateOptions, estimate_batch, prepare, records
+from selfsup.estimation.options import EstimateOptions, Tuning
+from selfsup.estimation.stages import estimate_batch
+from selfsup.estimation.prepare import prepare
+from selfsup.estimation.records import records
 
 COLUMNS = ["set", "method", "batch", "scenes", "scenes_per_s", "inputs_share", "estimate_share", "records_share",
            "median_position_error", "success_rate", "count_accuracy"]
@@ -126,9 +129,9 @@ def run(scenes: int = 64, batches: tuple[int, ...] = (16, 64), device: str = "au
     if write:
         header = (f"Fixed-seed procedural sets (seeds {seed}*1000003+i, as estimate_procedural), 160x120, 2x2 AA; "
                   f"estimate.method={options.method}, estimate.shadows={options.shadows}, "
-                  f"estimate.min_light_share={options.min_light_share}, "
-                  f"estimate.search_shadows={options.search_shadows}, defaults otherwise; {device_name(device)}. "
-                  "scenes_per_s: all scenes through selfsup.estimate.estimate_batch in batches of `batch`, "
+                  f"estimate.min_light_share={options.tuning.min_light_share}, "
+                  f"estimate.search_shadows={options.tuning.search_shadows}, defaults otherwise; {device_name(device)}. "
+                  "scenes_per_s: all scenes through selfsup.estimation.estimate_batch in batches of `batch`, "
                   "inputs from host tensors to records (covariances included), after a warm-up batch; *_share: the part of "
                   "that time spent preparing inputs, estimating, and writing records. Errors as in "
                   "estimate_procedural (worst light per scene, of the scene size; success: every light < 0.05).")
@@ -145,7 +148,7 @@ def main() -> None:
     parser.add_argument("--sets", nargs="+", default=list(DEFAULT_SETS))
     parser.add_argument("--workers", type=int, default=0, help="processes rendering the scenes")
     parser.add_argument("--method", default="cnn+refine")
-    parser.add_argument("--min-light-share", type=float, default=EstimateOptions.min_light_share,
+    parser.add_argument("--min-light-share", type=float, default=Tuning.min_light_share,
                         help="estimate.min_light_share (what an added light must carry)")
     parser.add_argument("--threads", type=int, default=0, help=">0: torch.set_num_threads (CPU)")
     parser.add_argument("--no-write", action="store_true", help="print only")
@@ -154,8 +157,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.threads > 0:
         torch.set_num_threads(args.threads)
-    options = replace(EstimateOptions(), method=args.method, min_light_share=args.min_light_share,
-                      **parse_options(args.option))
+    options = EstimateOptions.from_settings(method=args.method, min_light_share=args.min_light_share,
+                                            **parse_options(args.option))
     print(run(args.scenes, tuple(args.batch), args.device, args.seed, tuple(args.sets), args.workers,
               not (args.no_write or args.option), options)[1])
 

@@ -28,8 +28,10 @@ from torch import Tensor
 
 from benchmarks.common import write_results
 from render import GBuffer
-from selfsup.estimate import EstimateOptions, block_px, estimate_scene
-from selfsup.refine import block_sums
+from selfsup.estimation.options import EstimateOptions
+from selfsup.estimation.criterion import block_px
+from selfsup.estimation.stages import estimate_scene
+from selfsup.estimation.uncertainty import block_sums
 from selfsup.scenes.io import read_scene
 
 COLUMNS = ["folder", "scenes", "median_relative_std", "range_relative_std", "median_ambient_share",

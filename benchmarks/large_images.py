@@ -26,7 +26,9 @@ import torch
 
 from benchmarks.common import score_record, write_results
 from benchmarks.estimate_procedural import SETS
-from selfsup.estimate import EstimateOptions, estimate_scene, pixel_stride
+from selfsup.estimation.options import EstimateOptions, Tuning
+from selfsup.estimation.stages import estimate_scene
+from selfsup.estimation.prepare import pixel_stride
 from selfsup.metrics import light_errors
 from selfsup.scenes.dataset import render_item
 from selfsup.scenes.degrade import Degradations
@@ -51,10 +53,10 @@ def _apart(a: dict, b: dict, scale: float) -> float:
     return max(light_errors(pa, None, pb, None, scale, pb.mean(0)).position)
 
 
-def run(scenes: int, height: int, width: int, seed: int, max_pixels: int | None = EstimateOptions.max_pixels
+def run(scenes: int, height: int, width: int, seed: int, max_pixels: int | None = Tuning.max_pixels
         ) -> list[dict]:
     sampler = SamplerConfig(height=height, width=width, n_lights_probs=(0.5, 0.5))
-    every, default = EstimateOptions(max_pixels=None), EstimateOptions(max_pixels=max_pixels)
+    every, default = EstimateOptions(tuning=Tuning(max_pixels=None)), EstimateOptions(tuning=Tuning(max_pixels=max_pixels))
     rows = []
     for name, degradations in VARIANTS.items():
         for index in range(scenes):
@@ -67,7 +69,7 @@ def run(scenes: int, height: int, width: int, seed: int, max_pixels: int | None 
                          "error_all": round(max(all_errors.position), 4), "error_default": round(max(sub_errors.position), 4),
                          "answers_apart": round(_apart(sub_record, all_record, float(scene.scene_scale)), 4),
                          "seconds_all": round(all_seconds, 3), "seconds_default": round(sub_seconds, 3),
-                         "stride": pixel_stride(height, width, default.max_pixels)})
+                         "stride": pixel_stride(height, width, default.tuning.max_pixels)})
             print(rows[-1], flush=True)
         part = [r for r in rows if r["set"] == name]
         rows.append({"set": name, "id": "all (median, count)", "true": len(part),

@@ -4,7 +4,7 @@
 
 Each folder holds ``noisy/`` and ``direct/`` variants of the same scenes (as
 ``benchmarks.mitsuba_scenes`` writes them); the noisy file's normals are refitted by
-:func:`selfsup.estimate.prepare` with ``estimate.plane_shifts`` empty (each pixel's
+:func:`selfsup.estimation.prepare` with ``estimate.plane_shifts`` empty (each pixel's
 own plane window) and with the default shifts, and compared, pixel by pixel over the
 valid ones, with the direct file's normals. Writes percentiles of the angle and the
 share over 10 degrees to ``benchmarks/results/noisy_normals_<device>_<date>.*``.
@@ -18,7 +18,8 @@ from pathlib import Path
 import torch
 
 from benchmarks.common import write_results
-from selfsup.estimate import EstimateOptions, prepare
+from selfsup.estimation.options import EstimateOptions, Tuning
+from selfsup.estimation.prepare import prepare
 from selfsup.scenes.io import read_scene
 
 PERCENTILES = (50, 75, 90, 95, 98)
@@ -44,10 +45,10 @@ def run(folders: list[str], every: int = 1, write: bool = True) -> list[dict]:
     if not pairs:
         raise ValueError(f"no noisy/*.npz files under {folders}")
     rows = []
-    for options in (EstimateOptions(plane_shifts=()), EstimateOptions()):
+    for options in (EstimateOptions(tuning=Tuning(plane_shifts=())), EstimateOptions()):
         angles = normal_errors(pairs, options)
         levels = torch.quantile(angles.double(), torch.tensor(PERCENTILES, dtype=torch.float64) / 100)
-        rows.append({"plane_shifts": str(list(options.plane_shifts)), "files": len(pairs), "pixels": angles.numel(),
+        rows.append({"plane_shifts": str(list(options.tuning.plane_shifts)), "files": len(pairs), "pixels": angles.numel(),
                      **{f"p{p}_deg": round(float(v), 2) for p, v in zip(PERCENTILES, levels)},
                      "over_10_deg": round(float((angles > 10).double().mean()), 3)})
         print(rows[-1])

@@ -47,9 +47,11 @@ import time
 import torch
 
 from benchmarks.common import RESULTS, device_name, write_results
-from selfsup.estimate import problem_of
+from selfsup.estimation.prepare import problem_of
 from selfsup.metrics import SUCCESS_THRESHOLD
-from selfsup.refine import FitProblem, RefineOptions, refine, search
+from selfsup.estimation.problem import FitProblem
+from selfsup.estimation.options import RefineOptions
+from selfsup.estimation.solvers import refine, search
 from selfsup.scenes.dataset import protocol_specs
 from selfsup.scenes.degrade import Degradations, degrade
 from selfsup.scenes.exact import render_spec

@@ -28,9 +28,11 @@ import torch
 
 from benchmarks.common import RESULTS, device_name, device_slug, write_results
 from render import GBuffer
-from selfsup.estimate import network_slots, problem_of
+from selfsup.estimation.network import network_slots
+from selfsup.estimation.prepare import problem_of
 from selfsup.metrics import SUCCESS_THRESHOLD, light_errors
-from selfsup.refine import RefineOptions, refine, search
+from selfsup.estimation.options import RefineOptions
+from selfsup.estimation.solvers import refine, search
 from selfsup.scenes.exact import render_spec
 from selfsup.scenes.sampler import SamplerConfig, sample_scene
 

@@ -25,9 +25,9 @@ import torch
 
 from benchmarks.common import write_results
 from render import GBuffer
-from selfsup.estimate import EstimateOptions, estimate_scene
+from selfsup.estimation.options import EstimateOptions, Tuning, RefineOptions
+from selfsup.estimation.stages import estimate_scene
 from selfsup.metrics import light_errors
-from selfsup.refine import RefineOptions
 from selfsup.scenes.degrade import Degradations, degrade
 from selfsup.scenes.exact import render_spec
 from selfsup.scenes.io import Scene
@@ -100,7 +100,7 @@ def evaluate_case(name: str, scene: Scene, options: EstimateOptions) -> dict:
 
 def run(method: str = "cnn+refine", height: int = 120, width: int = 160, write: bool = True,
         max_iters: tuple[int, int] = (30, 10), shadows: str = "none"):
-    options = EstimateOptions(method=method, shadows=shadows, refine=RefineOptions(max_iters=tuple(max_iters)))
+    options = EstimateOptions(method=method, shadows=shadows, tuning=Tuning(refine=RefineOptions(max_iters=tuple(max_iters))))
     rows = [evaluate_case(name, scene, options) for name, scene in cases(height, width)]
     path = None
     if write:

@@ -223,7 +223,7 @@ def light_transport_jacobian(
     """The transport maps of :func:`light_transport` and their Jacobian with respect to
     each light's position ``(B, L, 3)``, for Gauss-Newton solvers.
 
-    Shading is differentiated exactly (:func:`render.shading.shading_position_gradients`).
+    Shading is differentiated exactly (:func:`render.shading.shading_and_position_gradients`).
     Cast-shadow visibility ``S`` is differentiated by forward differences of step
     ``fd_step`` (metres, a float or ``(B,)``): three more visibility maps per light,
     the finite-difference shadow Jacobian of the paper; the attached shadow

@@ -15,7 +15,6 @@ from torch import Tensor
 from render.geometry import dot3, norm3
 
 __all__ = ["Falloff", "LightGeometry", "light_geometry", "falloff_factor", "blinn_phong_lobe",
-           "shading_position_gradients",
            "shading_and_position_gradients"]
 
 
@@ -119,10 +118,14 @@ def _half_vector(normals: Tensor, to_light: Tensor, to_viewer: Tensor) -> tuple[
     return half, length, torch.where(lit, n_dot_h, torch.ones_like(n_dot_h)), lit
 
 
-def shading_position_gradients(normals: Tensor, geometry: LightGeometry, shininess: Tensor, falloff: Falloff | str,
-                               with_specular: bool = True) -> tuple[Tensor, Tensor | None]:
-    """Exact derivatives, with respect to each light's position, of the unshadowed
-    diffuse ``f(d) max(0, n.l)`` and specular ``f(d) max(0, n.h)^alpha`` transport.
+def shading_and_position_gradients(normals: Tensor, geometry: LightGeometry, shininess: Tensor,
+                                   falloff: Falloff | str, with_specular: bool = True
+                                   ) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
+    """The unshadowed transport ``diffuse = f(d) max(0, n.l)`` and ``specular = f(d)
+    max(0, n.h)^alpha`` ``(B, L, H, W)`` and their exact derivatives with respect to each light's position
+    ``(B, L, H, W, 3)``, sharing every intermediate (a Gauss-Newton step needs all four;
+    computed apart, n.l, the falloff and the half vector are computed twice). Specular
+    terms are None without ``with_specular``.
 
     With ``o = p - X``, ``d = |o|``, ``l = o / d`` and ``h = (l + v) / |l + v|``:
     ``dl/dp = (I - l l^T) / d``, ``dh/dp = (I - h h^T) / |l + v| dl/dp`` and
@@ -131,22 +134,11 @@ def shading_position_gradients(normals: Tensor, geometry: LightGeometry, shinine
     Args:
         normals: ``(B, 1, H, W, 3)``; geometry: :func:`light_geometry` of the lights.
         shininess: alpha, broadcastable to ``(B, L, H, W)``.
-        with_specular: False skips the specular derivative (returned as None).
+        with_specular: False skips the specular terms (returned as None).
 
     Returns:
-        ``d diffuse_i / d p_i`` and ``d specular_i / d p_i``, ``(B, L, H, W, 3)`` each.
-    """
-    return shading_and_position_gradients(normals, geometry, shininess, falloff, with_specular)[2:]
-
-
-def shading_and_position_gradients(normals: Tensor, geometry: LightGeometry, shininess: Tensor,
-                                   falloff: Falloff | str, with_specular: bool = True
-                                   ) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
-    """The unshadowed transport ``diffuse = f(d) max(0, n.l)`` and ``specular = f(d)
-    max(0, n.h)^alpha`` ``(B, L, H, W)`` and their :func:`shading_position_gradients`
-    ``(B, L, H, W, 3)``, sharing every intermediate (a Gauss-Newton step needs all four;
-    computed apart, n.l, the falloff and the half vector are computed twice). Specular
-    terms are None without ``with_specular``.
+        ``diffuse``, ``specular`` ``(B, L, H, W)`` and ``d diffuse_i / d p_i``,
+        ``d specular_i / d p_i`` ``(B, L, H, W, 3)``.
     """
     to_light, distance, to_viewer = geometry
     f = falloff_factor(distance, falloff)

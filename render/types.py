@@ -94,11 +94,6 @@ class GBuffer:
     def batch_size(self) -> int:
         return self.points.shape[0]
 
-    @property
-    def image_size(self) -> tuple[int, int]:
-        """``(H, W)``."""
-        return self.points.shape[1], self.points.shape[2]
-
     def select(self, index: Tensor) -> "GBuffer":
         """The images ``index`` (a 1-D long tensor, repeats allowed) as a buffer of
         ``len(index)`` images.

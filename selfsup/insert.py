@@ -271,7 +271,8 @@ def insert_files(scene: str, output: str, estimates: str | None = None, size: fl
     ``object``: ``sphere``, ``cube``, or the path of a Wavefront OBJ file."""
     from skimage.io import imsave
 
-    from selfsup.estimate import EstimateOptions, estimate_scene
+    from selfsup.estimation.options import EstimateOptions
+    from selfsup.estimation.stages import estimate_scene
     from selfsup.model import scene_frame
     from selfsup.scenes.generate import to_rgb8
     from selfsup.scenes.io import read_scene

@@ -3,15 +3,14 @@
 import pytest
 
 from benchmarks.stability import cases, evaluate_case
-from selfsup.estimate import EstimateOptions
-from selfsup.refine import RefineOptions
+from selfsup.estimation.options import EstimateOptions, Tuning, RefineOptions
 
 CASES = list(cases(height=48, width=64))
 
 
 @pytest.mark.parametrize("name, scene", CASES, ids=[name for name, _ in CASES])
 def test_hard_case_gives_finite_lights_and_a_bounded_error(name, scene):
-    options = EstimateOptions(method="cnn+refine", max_lights=1, refine=RefineOptions(max_iters=(10, 3)))
+    options = EstimateOptions(method="cnn+refine", max_lights=1, tuning=Tuning(refine=RefineOptions(max_iters=(10, 3))))
     row = evaluate_case(name, scene, options)
     assert row["converged"], row["note"]
     assert row["finite"] and row["lights_found"] == 1
@@ -21,7 +20,7 @@ def test_hard_case_gives_finite_lights_and_a_bounded_error(name, scene):
 def test_clipped_pixels_are_found_and_left_out():
     import torch
 
-    from selfsup.estimate import saturated_pixels
+    from selfsup.estimation.prepare import saturated_pixels
 
     image = torch.rand(1, 3, 20, 30) + 0.1
     mask = torch.ones(1, 20, 30, dtype=torch.bool)

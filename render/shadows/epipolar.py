@@ -37,7 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from render.geometry import dot3, norm3
+from render.geometry import norm3
 
 __all__ = ["EpipolarShadowOptions", "epipolar_shadow_visibility"]
 
@@ -277,6 +277,46 @@ def _thickness(points: Tensor, mask: Tensor, options: EpipolarShadowOptions) -> 
     return options.scene_thickness * size
 
 
+def _band_gradient(visibility: Tensor, band: Tensor, pts: Tensor, weight: Tensor, light: Tensor, lines: _Lines,
+                   line_of_row: Tensor, running_flat: Tensor, argmin_flat: Tensor, kept: tuple[Tensor, Tensor] | None,
+                   focal: Tensor, u: Tensor, v: Tensor, H: int, W: int, options: EpipolarShadowOptions) -> Tensor:
+    """:func:`_sweep`'s visibility ``(N, H*W)`` with the smooth ``band``'s pixels computed again
+    so that autograd sees them; ``kept``: the thick sweep's node minima and occluder
+    columns of the band (None: read from the unbounded sweep's ``running_flat``, ``argmin_flat``)."""
+    # With a gradient, only where it is not zero: inside the smooth band (the
+    #    clamped smoothstep is flat, derivative 0, everywhere else). The same
+    #    computation as above for the band's pixels, the sweep's choices kept (which
+    #    nodes, which sample of each node's line is its occluder), but every angle and
+    #    position recomputed from the light and the points so that autograd sees how
+    #    they move.
+    ns = lines.num_samples
+    rows, cols = band.nonzero(as_tuple=True)
+    if rows.numel() == 0:
+        return visibility
+    band_lines = lines.select(rows)
+    node, fa, fs = _node_index(*_pixel_coords(band_lines, u[cols], v[cols], options.lookback), ns)  # (M, 4), (M,), (M,)
+    at = rows[:, None]
+    if kept is not None:
+        node_min, occluder_column = kept
+    else:
+        node_min, occluder_column = running_flat[at, node], argmin_flat[at, node]
+    seen = node_min < _NO_OCCLUDER
+    occluder_k = (occluder_column - 1).to(pts.dtype)  # column -> sample index
+    line = line_of_row[at, torch.div(node, ns + 1, rounding_mode="floor")]
+    theta = band_lines.theta0[:, None] + line * band_lines.dtheta[:, None]
+    direction = torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)
+    xy = band_lines.epipole[:, None] + band_lines.radius(occluder_k)[..., None] * direction  # (M, 4, 2)
+    angle, ok = _masked_angle_at(pts, weight, light, rows, xy, H, W)
+    band_min = _lerp_nodes(torch.where(seen & ok, angle, _NO_OCCLUDER), fa, fs)
+    band_points = pts[rows, cols]
+    band_light = light[rows]
+    band_visibility, _ = _smooth_visibility(
+        band_min, _angle_from_camera_ray(band_points, band_light), band_points[:, 2],
+        norm3(band_light - band_points), focal[rows], options,
+    )
+    return visibility.index_put((rows, cols), band_visibility)
+
+
 def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
            options: EpipolarShadowOptions, thickness: Tensor | None = None, lines: _Lines | None = None) -> Tensor:
     """Visibility ``(N, H*W)`` of ``pts (N, H*W, 3)`` from ``light (N, 3)``, see above;
@@ -368,37 +408,10 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     if not (torch.is_grad_enabled() and (light.requires_grad or pts.requires_grad)):
         return visibility
 
-    # 3) With a gradient, only where it is not zero: inside the smooth band (the
-    #    clamped smoothstep is flat, derivative 0, everywhere else). The same
-    #    computation as above for the band's pixels, the sweep's choices kept (which
-    #    nodes, which sample of each node's line is its occluder), but every angle and
-    #    position recomputed from the light and the points so that autograd sees how
-    #    they move.
-    rows, cols = band.nonzero(as_tuple=True)
-    if rows.numel() == 0:
-        return visibility
-    band_lines = lines.select(rows)
-    node, fa, fs = _node_index(*_pixel_coords(band_lines, u[cols], v[cols], options.lookback), ns)  # (M, 4), (M,), (M,)
-    at = rows[:, None]
-    if thick:
-        node_min, occluder_column = torch.cat(band_minima), torch.cat(band_columns)
-    else:
-        node_min, occluder_column = running_flat[at, node], argmin_flat[at, node]
-    seen = node_min < _NO_OCCLUDER
-    occluder_k = (occluder_column - 1).to(dtype)  # column -> sample index
-    line = line_of_row[at, torch.div(node, ns + 1, rounding_mode="floor")]
-    theta = band_lines.theta0[:, None] + line * band_lines.dtheta[:, None]
-    direction = torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)
-    xy = band_lines.epipole[:, None] + band_lines.radius(occluder_k)[..., None] * direction  # (M, 4, 2)
-    angle, ok = _masked_angle_at(pts, weight, light, rows, xy, H, W)
-    band_min = _lerp_nodes(torch.where(seen & ok, angle, _NO_OCCLUDER), fa, fs)
-    band_points = pts[rows, cols]
-    band_light = light[rows]
-    band_visibility, _ = _smooth_visibility(
-        band_min, _angle_from_camera_ray(band_points, band_light), band_points[:, 2],
-        norm3(band_light - band_points), focal[rows], options,
-    )
-    return visibility.index_put((rows, cols), band_visibility)
+    # 3) With a gradient, only where it is not zero: _band_gradient.
+    kept = (torch.cat(band_minima), torch.cat(band_columns)) if thick else None
+    return _band_gradient(visibility, band, pts, weight, light, lines, line_of_row, running_flat, argmin_flat, kept,
+                          focal, u, v, H, W, options)
 
 
 def _line_of_row(lines: _Lines, nl: int) -> Tensor:

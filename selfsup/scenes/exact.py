@@ -352,6 +352,60 @@ def render_spec(spec: SceneSpec, samples: int = 2, falloff: str = "inverse_squar
     return render_specs([spec], samples, falloff)[0]
 
 
+def _supersample(specs: list[SceneSpec], batch: "_Batch", centre: "_Rays", centre_dirs: Tensor, inverse_K: Tensor,
+                 order: Tensor, radiance: Tensor, kd: Tensor, pattern: Tensor, samples: int, falloff: str) -> list[int]:
+    """Adaptive ``samples x samples`` supersampling of :func:`render_specs` (its docstring says
+    where): ``radiance`` and ``kd`` ``(3, B * H * W)`` averaged in place over each chosen
+    pixel's samples; returns each scene's count of supersampled pixels."""
+    B, H, W = len(specs), specs[0].height, specs[0].width
+    # Albedo jumps only where the pattern is discontinuous (checker, stripes): there the
+    # pattern is 0 or 1, the class 1 or 2; elsewhere, and off the surfaces, class 0.
+    kind = batch.materials.texture.index_select(0, centre.primitive)
+    patterned = centre.valid & ((kind == Texture.CHECKER) | (kind == Texture.STRIPES))
+    albedo_class = (patterned * (1 + pattern)).to(torch.uint8)
+    # A pixel's primitive as its index within its scene, so that scenes compare alike.
+    local = batch.prims.local.index_select(0, centre.primitive)
+    # Pixels without a surface count as their scene's first primitive (as in local), so
+    # they take its jumps: global index of (scene, local).
+    width = int(batch.prims.local.max()) + 1
+    global_of = torch.zeros(B * width, dtype=torch.long)
+    global_of[batch.prims.scene * width + batch.prims.local] = torch.arange(batch.prims.local.shape[0])
+    jumps = _albedo_jumps(batch.material_rows).index_select(0, global_of.index_select(0, centre.scene * width + local))
+    geometry, albedo = _edges(local.view(B, H, W), centre.visibility.view(-1, B, H, W), albedo_class.view(B, H, W),
+                              jumps.view(B, H, W))
+    # Sub-pixel offsets on a regular grid, as camera-ray direction shifts (3, S) per scene.
+    offsets = (torch.arange(samples, dtype=torch.float32) + 0.5) / samples - 0.5
+    oy, ox = torch.meshgrid(offsets, offsets, indexing="ij")
+    grid = torch.stack([ox.reshape(-1), oy.reshape(-1), torch.zeros(samples * samples)])
+    shift = inverse_K @ grid  # (B, 3, S)
+    all_dirs = centre_dirs.transpose(0, 1).reshape(3, B * H * W)
+
+    def sub_dirs(at: Tensor) -> Tensor:  # (3, E, S) of pixels at (E,) (global)
+        return all_dirs.index_select(1, at)[:, :, None] + shift.index_select(0, at // (H * W)).permute(1, 0, 2)
+
+    def average(at: Tensor, sub: _Rays, sub_batch: _Batch) -> None:  # the S samples of pixels at (E,)
+        sub_radiance, sub_kd, _ = _shade(sub_batch, sub, falloff)
+        radiance.index_copy_(1, at, sub_radiance.unflatten(1, (-1, samples * samples)).mean(2))
+        kd.index_copy_(1, at, sub_kd.unflatten(1, (-1, samples * samples)).mean(2) * centre.valid.index_select(0, at))
+
+    at = albedo.view(-1).nonzero(as_tuple=True)[0]
+    if at.numel():
+        sub, missed = _same_primitive(batch, centre.take(at), sub_dirs(at))
+        average(at, sub, batch)
+        del sub  # freed for the arrays that follow
+        geometry.view(-1)[at[missed]] = True  # traced in full below, which overwrites them
+    full = geometry.view(B, -1)
+    pixels = [order[full[b].index_select(0, order)] for b in range(B)]  # in tile order
+    supersampled = [int(x) for x in (full | albedo.view(B, -1)).sum(1)]
+    todo = [b for b in range(B) if pixels[b].numel()]
+    if todo:
+        at = torch.cat([b * H * W + pixels[b] for b in todo])
+        sizes = [pixels[b].numel() * samples * samples for b in todo]
+        sub_batch = _Batch([specs[b] for b in todo])
+        average(at, _trace(sub_batch, list(sub_dirs(at).reshape(3, -1).split(sizes, 1))), sub_batch)
+    return supersampled
+
+
 def render_specs(specs: list[SceneSpec], samples: int = 2, falloff: str = "inverse_square") -> list[RenderedScene]:
     """Render specs of one image size exactly, ray cast together; each result is the
     one :func:`render_spec` gives alone (casting several at once only saves time).
@@ -404,51 +458,8 @@ def render_specs(specs: list[SceneSpec], samples: int = 2, falloff: str = "inver
     radiance, kd, pattern = _shade(batch, centre, falloff)
     supersampled = [0] * B
     if samples > 1:
-        # Albedo jumps only where the pattern is discontinuous (checker, stripes): there the
-        # pattern is 0 or 1, the class 1 or 2; elsewhere, and off the surfaces, class 0.
-        kind = batch.materials.texture.index_select(0, centre.primitive)
-        patterned = centre.valid & ((kind == Texture.CHECKER) | (kind == Texture.STRIPES))
-        albedo_class = (patterned * (1 + pattern)).to(torch.uint8)
-        # A pixel's primitive as its index within its scene, so that scenes compare alike.
-        local = batch.prims.local.index_select(0, centre.primitive)
-        # Pixels without a surface count as their scene's first primitive (as in local), so
-        # they take its jumps: global index of (scene, local).
-        width = int(batch.prims.local.max()) + 1
-        global_of = torch.zeros(B * width, dtype=torch.long)
-        global_of[batch.prims.scene * width + batch.prims.local] = torch.arange(batch.prims.local.shape[0])
-        jumps = _albedo_jumps(batch.material_rows).index_select(0, global_of.index_select(0, centre.scene * width + local))
-        geometry, albedo = _edges(local.view(B, H, W), centre.visibility.view(-1, B, H, W), albedo_class.view(B, H, W),
-                                  jumps.view(B, H, W))
-        # Sub-pixel offsets on a regular grid, as camera-ray direction shifts (3, S) per scene.
-        offsets = (torch.arange(samples, dtype=torch.float32) + 0.5) / samples - 0.5
-        oy, ox = torch.meshgrid(offsets, offsets, indexing="ij")
-        grid = torch.stack([ox.reshape(-1), oy.reshape(-1), torch.zeros(samples * samples)])
-        shift = inverse_K @ grid  # (B, 3, S)
-        all_dirs = centre_dirs.transpose(0, 1).reshape(3, B * H * W)
-
-        def sub_dirs(at: Tensor) -> Tensor:  # (3, E, S) of pixels at (E,) (global)
-            return all_dirs.index_select(1, at)[:, :, None] + shift.index_select(0, at // (H * W)).permute(1, 0, 2)
-
-        def average(at: Tensor, sub: _Rays, sub_batch: _Batch) -> None:  # the S samples of pixels at (E,)
-            sub_radiance, sub_kd, _ = _shade(sub_batch, sub, falloff)
-            radiance.index_copy_(1, at, sub_radiance.unflatten(1, (-1, samples * samples)).mean(2))
-            kd.index_copy_(1, at, sub_kd.unflatten(1, (-1, samples * samples)).mean(2) * centre.valid.index_select(0, at))
-
-        at = albedo.view(-1).nonzero(as_tuple=True)[0]
-        if at.numel():
-            sub, missed = _same_primitive(batch, centre.take(at), sub_dirs(at))
-            average(at, sub, batch)
-            del sub  # freed for the arrays that follow
-            geometry.view(-1)[at[missed]] = True  # traced in full below, which overwrites them
-        full = geometry.view(B, -1)
-        pixels = [order[full[b].index_select(0, order)] for b in range(B)]  # in tile order
-        supersampled = [int(x) for x in (full | albedo.view(B, -1)).sum(1)]
-        todo = [b for b in range(B) if pixels[b].numel()]
-        if todo:
-            at = torch.cat([b * H * W + pixels[b] for b in todo])
-            sizes = [pixels[b].numel() * samples * samples for b in todo]
-            sub_batch = _Batch([specs[b] for b in todo])
-            average(at, _trace(sub_batch, list(sub_dirs(at).reshape(3, -1).split(sizes, 1))), sub_batch)
+        supersampled = _supersample(specs, batch, centre, centre_dirs, inverse_K, order, radiance, kd, pattern, samples,
+                                    falloff)
     # Each scene's image at unit exposure, ambient included, (3, B, H * W), and the 99th
     # percentile of its brightest channel on valid pixels, which fixes its exposure.
     ambient = torch.stack([spec.ambient_relative for spec in specs]).T[:, :, None]

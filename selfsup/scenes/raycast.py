@@ -1,13 +1,11 @@
 """Exact ray casting against analytic primitives, batched over rays, in torch.
 
-This is the ground truth the project measures itself against: it shares no
-code with ``render/`` (no shadow maps, no depth-map heightfields): shadows come
-from exact shadow rays against the primitives.
+The ground truth the project measures itself against: it shares no code with
+``render/``; shadows come from exact shadow rays against the primitives.
 
 Primitives of one scene, camera frame (x right, y down, z forward), metres:
 
-- planes ``(P, 6)``: a point and a unit normal (infinite, one-sided normals are
-  flipped towards the ray at shading time);
+- planes ``(P, 6)``: a point and a unit normal (infinite; flipped towards the ray when shaded);
 - spheres ``(S, 4)``: centre, radius;
 - boxes ``(X, 15)``: centre, half extents, rotation ``R`` (box-to-camera) row-major;
 - cylinders ``(C, 8)``: centre, unit axis, radius, half height (capped).

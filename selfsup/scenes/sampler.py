@@ -289,6 +289,31 @@ def _material(gen: torch.Generator, n: int, config: SamplerConfig, room_planes: 
     return base, alt, texture, scale, direction, ks, shininess
 
 
+def _sample_lights(gen: torch.Generator, config: SamplerConfig, world: Primitives, n_lights: int | None,
+                   light_position_world: Tensor | None, scale: float, room: tuple[float, float, float]) -> Tensor:
+    """Room-frame light positions ``(L, 3)``: inside the room, ``light_margin`` from every
+    surface, never inside an object; ``n_lights`` drawn from ``n_lights_probs`` when None."""
+    room_w, room_d, room_h = room
+    if n_lights is None:
+        probs = torch.tensor(config.n_lights_probs, dtype=torch.float64)
+        n_lights = int(torch.multinomial(probs / probs.sum(), 1, generator=gen)) + 1
+    margin = config.light_margin / scale  # the margin is in final metres; the room is scaled below
+    lo = torch.tensor([-room_w / 2 + margin, margin + 0.5, margin], dtype=torch.float64)
+    hi = torch.tensor([room_w / 2 - margin, room_h - margin, room_d - margin], dtype=torch.float64)
+    if light_position_world is not None:
+        lights = lo + light_position_world.to(torch.float64) * (hi - lo)
+        lights = lights[signed_distance(world, lights) > margin]
+        if lights.shape[0] != light_position_world.shape[0]:
+            raise ValueError("a requested light position falls inside or too close to an object")
+        return lights
+    chosen = []
+    while len(chosen) < n_lights:
+        candidates = lo + torch.rand(64, 3, generator=gen, dtype=torch.float64) * (hi - lo)
+        ok = signed_distance(world, candidates) > margin
+        chosen.extend(candidates[ok][: n_lights - len(chosen)])
+    return torch.stack(chosen)
+
+
 def sample_scene(seed: int, config: SamplerConfig | None = None, n_lights: int | None = None,
                  light_position_world: Tensor | None = None) -> SceneSpec:
     """Draw one scene from ``seed`` (same seed, same scene).
@@ -328,25 +353,8 @@ def sample_scene(seed: int, config: SamplerConfig | None = None, n_lights: int |
         cylinders=torch.tensor(objs.cylinders, dtype=torch.float64).reshape(-1, 8),
     )
 
-    # Lights: inside the room, `light_margin` from every surface, never inside an object.
-    if n_lights is None:
-        probs = torch.tensor(config.n_lights_probs, dtype=torch.float64)
-        n_lights = int(torch.multinomial(probs / probs.sum(), 1, generator=gen)) + 1
-    margin = config.light_margin / scale  # the margin is in final metres; the room is scaled below
-    lo = torch.tensor([-room_w / 2 + margin, margin + 0.5, margin], dtype=torch.float64)
-    hi = torch.tensor([room_w / 2 - margin, room_h - margin, room_d - margin], dtype=torch.float64)
-    if light_position_world is not None:
-        lights = lo + light_position_world.to(torch.float64) * (hi - lo)
-        lights = lights[signed_distance(world, lights) > margin]
-        if lights.shape[0] != light_position_world.shape[0]:
-            raise ValueError("a requested light position falls inside or too close to an object")
-    else:
-        chosen = []
-        while len(chosen) < n_lights:
-            candidates = lo + torch.rand(64, 3, generator=gen, dtype=torch.float64) * (hi - lo)
-            ok = signed_distance(world, candidates) > margin
-            chosen.extend(candidates[ok][: n_lights - len(chosen)])
-        lights = torch.stack(chosen)
+    lights = _sample_lights(gen, config, world, n_lights, light_position_world, scale, (room_w, room_d, room_h))
+    n_lights = lights.shape[0]
 
     # Camera at the open side, looking in, slightly down.
     cx, cy, cz, tx, ty, tz, fov = _us(gen, (-0.3, 0.3), (1.0, 1.8), (-0.6, 0.3), (-0.2, 0.2), (0.2, 0.8), (0.55, 0.85),

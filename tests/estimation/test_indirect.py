@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from render import GBuffer
-from selfsup.estimate import EstimateOptions, estimate_scene
-from selfsup.indirect import bounce_gain, indirect_columns, one_bounce
+from selfsup.estimation.options import EstimateOptions, Tuning
+from selfsup.estimation.stages import estimate_scene
+from selfsup.estimation.indirect import bounce_gain, indirect_columns, one_bounce
 from selfsup.scenes.exact import render_spec
 from selfsup.scenes.sampler import SamplerConfig, sample_scene
 
@@ -83,18 +84,18 @@ def test_indirect_judges_only_files_without_ambient():
     scene = render_spec(sample_scene(3, config, n_lights=1), samples=1).scene
 
     def criteria(s, indirect):
-        return [c["criterion"] for c in estimate_scene(s, EstimateOptions(indirect=indirect))["candidates"]]
+        return [c["criterion"] for c in estimate_scene(s, EstimateOptions(tuning=Tuning(indirect=indirect)))["candidates"]]
 
     assert criteria(scene, "auto") == criteria(scene, "never")  # the ambient is given: nothing unaccounted for
     unknown = dataclasses.replace(scene, ambient=None)
     assert criteria(unknown, "auto") != criteria(unknown, "never")
     with pytest.raises(ValueError, match="indirect"):
-        EstimateOptions(indirect="sometimes")
+        EstimateOptions(tuning=Tuning(indirect="sometimes"))
 
 
 def test_a_problem_keeps_its_indirect_switch_and_medians_through_selections():
-    from selfsup.estimate import prepare
-    from selfsup.refine import FitProblem
+    from selfsup.estimation.prepare import prepare
+    from selfsup.estimation.problem import FitProblem
 
     config = SamplerConfig(height=24, width=32, specular_prob=0.0, ambient_zero_prob=1.0)
     scenes = [dataclasses.replace(render_spec(sample_scene(s, config), samples=1).scene, ambient=None) for s in (1, 2)]

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from render.geometry import surface_segments
+from selfsup.estimation.normals import surface_segments
 
 
 def _two_walls_and_a_box():

@@ -17,7 +17,7 @@ channels of ``image / kd`` (the grey shading, exact for white lights).
 
 On clean procedural scenes with kd = ks = 0.5, 22 of 24 lights came within 0.05
 of the scene size this way (Cauchy scale 0.02), against 6 of 24 for the fit of
-the image itself (README). It is no substitute where kd is right: pixel-to-pixel differences are
+the image itself (docs/estimation.md). It is no substitute where kd is right: pixel-to-pixel differences are
 small beside a sensor's depth and image noise, and fitting them put the light
 0.08-0.36 off on the sensor-noise scenes that the image fit gets right.
 """
@@ -33,7 +33,9 @@ from torch import Tensor
 
 from render import GBuffer, Material
 from render.functional import light_transport, light_transport_jacobian
-from selfsup.refine import FitProblem, grid_candidates, position_blocks, scene_frame, spread_best, subsample
+from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
+from selfsup.estimation.solvers import grid_candidates, spread_best
+from selfsup.estimation.uncertainty import position_blocks
 
 __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "shading_loss", "search", "refine_positions",
            "light_shares", "position_covariance"]
@@ -256,7 +258,7 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     """Fit ``n_lights`` lights to the log shading of ``problem``, every image at once.
 
     The last light is searched, the others (``fixed``, the fit of ``n_lights - 1``)
-    start where they are: every grid candidate (:func:`selfsup.refine.grid_candidates`)
+    start where they are: every grid candidate (:func:`selfsup.estimation.solvers.grid_candidates`)
     with a few contrast steps is scored at every ``rank_stride``-th pixel, the
     ``starts`` best well-spread ones run ``iterations[0]`` LM steps at
     ``start_stride``, and the best of those ``iterations[1]`` at full resolution.
@@ -269,7 +271,7 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     cands = grid_candidates(coarsest, per_axis)
     with torch.no_grad():
         losses, weights = _grid_losses(ranked, fixed, cands)
-    size = scene_frame(problem)[1]
+    size = centre_and_size(problem)[1]
     index, _ = spread_best(cands, losses, size, starts, 0.15)  # (B, S)
     S = index.shape[1]
     rows = torch.arange(B, device=index.device)[:, None]

@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from render import GBuffer
-from render.geometry import normal_noise, plane_fit, plane_normals, smallest_eigenvector, smooth_normals
+from render.geometry import smallest_eigenvector
+from selfsup.estimation.normals import normal_noise, plane_fit, plane_normals, smooth_normals
 
 K = torch.tensor([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]], dtype=torch.float64)
 TILT = torch.tensor([0.0, 0.5, -1.0], dtype=torch.float64) / math.sqrt(1.25)  # plane z = 2 + 0.5 y, facing the camera

@@ -5,8 +5,11 @@ import dataclasses
 import pytest
 import torch
 
-from selfsup import albedo_free
-from selfsup.estimate import EstimateOptions, estimate_scene, problem_of, reflectance_unknown
+from selfsup.estimation import albedo_free
+from selfsup.estimation.options import EstimateOptions, Tuning
+from selfsup.estimation.stages import estimate_scene
+from selfsup.estimation.prepare import problem_of
+from selfsup.estimation.reflectance import reflectance_unknown
 from selfsup.metrics import light_errors
 from selfsup.scenes.exact import render_spec
 from selfsup.scenes.sampler import SamplerConfig, sample_scene
@@ -66,7 +69,7 @@ def test_the_fit_ignores_an_albedo_wrong_by_a_factor_per_patch():
     fit = albedo_free.search(problem_of(painted, shadows="none"), 1)
     assert _rel_error(fit.position[0], scene) < 0.01  # 3e-6 (2026-11-23)
     # The image fit takes the squares for shading (0.24 off, 2026-11-23).
-    given = estimate_scene(painted, EstimateOptions(reflectance="given", max_lights=1))
+    given = estimate_scene(painted, EstimateOptions(max_lights=1, tuning=Tuning(reflectance="given")))
     assert _rel_error(torch.tensor(given["lights"][0]["position"]), scene) > 0.05
 
 
@@ -81,7 +84,7 @@ def test_a_constant_kd_is_unknown_reflectance_and_is_fitted_albedo_free():
     light = record["lights"][0]
     assert all(s > 0 for s in light["position_std"]) and min(light["intensity"]) > 0
     assert estimate_scene(scene, EstimateOptions())["reflectance"] == "given"
-    forced = estimate_scene(unknown, EstimateOptions(reflectance="given"))
+    forced = estimate_scene(unknown, EstimateOptions(tuning=Tuning(reflectance="given")))
     assert forced["reflectance"] == "given"
 
 
@@ -96,17 +99,17 @@ def test_two_lights_are_told_from_one_without_the_albedo():
 
 
 @pytest.mark.parametrize("options, word", [
-    (dict(reflectance="textured"), "estimate.reflectance"),
+    (dict(reflectance="textured"), "estimate.tuning.reflectance"),
     (dict(albedo_free_scale=0.0), "albedo_free_scale"),
     (dict(albedo_free_block_width=0.0), "albedo_free_block_width"),
 ])
 def test_bad_reflectance_settings_are_named(options, word):
     with pytest.raises(ValueError, match=word):
-        EstimateOptions(**options)
+        EstimateOptions.from_settings(**options)
 
 
 def test_a_kd_of_zero_everywhere_is_named_not_a_crash(tmp_path):
-    from selfsup.estimate import estimate_files
+    from selfsup.estimation.files import estimate_files
     from selfsup.scenes.io import write_scene
 
     scene = _scene(3)
@@ -121,7 +124,9 @@ def test_a_kd_of_zero_everywhere_is_named_not_a_crash(tmp_path):
 
 
 def test_a_batch_mixing_both_reflectances_answers_each_as_alone():
-    from selfsup.estimate import estimate_batch, prepare, records
+    from selfsup.estimation.stages import estimate_batch
+    from selfsup.estimation.prepare import prepare
+    from selfsup.estimation.records import records
 
     scenes = [_unknown_albedo(_scene(3)), _scene(5), _unknown_albedo(_scene(5))]
     options = EstimateOptions(max_lights=1)

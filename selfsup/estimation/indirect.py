@@ -17,7 +17,7 @@ path-traced Mitsuba scenes the first bounce was 0.53-0.70 of the indirect light
 (correlation 0.72-0.93 with it over the pixels). :func:`bounce_gain` adds the
 later bounces as a geometric series of the scene's mean albedo.
 
-Model selection uses it (:mod:`selfsup.estimate`, ``estimate.indirect``): a light
+Model selection uses it (:mod:`selfsup.estimation`, ``estimate.indirect``): a light
 explains the image with its bounce, so a stand-in light for the bounce no longer
 pays for itself.
 """

@@ -1,0 +1,263 @@
+"""Scene files in, JSON Lines out: reading, batching by size, the worker pool, failures kept per file.
+
+:func:`estimate_files` is ``mode=estimate``: every file is read, files that can share
+a batch are estimated together (:func:`selfsup.estimation.stages.estimate_batch`),
+batches are spread over worker processes, and a file that fails is named with its
+reason while the others are written.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
+
+import torch
+
+from selfsup.estimation.network import cached_network
+from selfsup.estimation.options import EstimateOptions
+from selfsup.estimation.prepare import in_file_units, prepare, within_pixels, working_range
+from selfsup.estimation.records import records
+from selfsup.estimation.stages import estimate_batch
+from selfsup.scenes.io import Scene, SceneFileError, read_scene
+
+__all__ = ["estimate_files", "scene_files", "worker_count", "usable_cores", "start_method", "worker_threads"]
+
+log = logging.getLogger(__name__)
+
+
+def scene_files(path: str | Path) -> list[Path]:
+    """The ``.npz`` files of a directory (sorted), or the one file given."""
+    path = Path(path)
+    if path.is_dir():
+        return sorted(p for p in path.glob("*.npz"))
+    if path.exists():
+        return [path]
+    raise FileNotFoundError(f"estimate.input {path} does not exist")
+
+
+def _signature(scene: Scene) -> tuple:
+    # Scenes that can share a batch: one image size, the same optional fields, one falloff.
+    return (tuple(scene.image.shape), scene.ks is None, scene.normals is None, scene.ambient is None,
+            tuple(scene.shininess.shape), scene.falloff)
+
+
+def _estimate_group(group: list[tuple[Path, Scene]], options: EstimateOptions, device: torch.device
+                    ) -> tuple[dict[Path, dict], dict[Path, str]]:
+    # Records (with ``seconds``: the scene's share of the batch's time) and failure reasons
+    # of scenes that can share a batch. A batch that fails is retried scene by scene, so
+    # one bad scene never costs the others.
+    started = time.perf_counter()
+    try:
+        with torch.no_grad():
+            scaled = [working_range(scene) for _, scene in group]
+            problem = prepare([scene for scene, _ in scaled], options, device)
+            out = [in_file_units(record, factor) for record, (_, factor) in
+                   zip(records([scene.id for scene, _ in scaled], problem, estimate_batch(problem, options), options),
+                       scaled)]
+    except (SceneFileError, ValueError, RuntimeError) as error:
+        if len(group) > 1:
+            done: dict[Path, dict] = {}
+            failed: dict[Path, str] = {}
+            for item in group:
+                one_done, one_failed = _estimate_group([item], options, device)
+                done.update(one_done)
+                failed.update(one_failed)
+            return done, failed
+        reason = error.reason if isinstance(error, SceneFileError) else f"{type(error).__name__}: {error}"
+        return {}, {group[0][0]: reason}
+    seconds = round((time.perf_counter() - started) / len(group), 4)
+    return {path: {**record, "seconds": seconds} for (path, _), record in zip(group, out)}, {}
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise RuntimeError(f"estimate.device={name} but no CUDA device is available")
+    return torch.device(name)
+
+
+# A spawned worker takes 3-4 s to start (imports, the network): on 18 devset files two
+# spawned workers were slower than one process (6.5 against 5.2 s, 2-core CPU); from
+# about 30 files a core they win. A forked one starts at once (start_method).
+FILES_PER_SPAWNED_WORKER = 32
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity where the OS says)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def worker_count(workers: int | str, files: int, device: torch.device) -> int:
+    """Processes ``estimate_files`` spreads ``files`` over: ``workers`` as given (at least
+    1), or for ``"auto"``: on the CPU one per usable core, but no more than ``files``
+    where one-thread workers are forked (:func:`start_method`; they start at once) and
+    one per :data:`FILES_PER_SPAWNED_WORKER` files where they are spawned (a start of
+    3-4 s of imports and the network must pay for itself); 1 on an accelerator (one
+    process fills it)."""
+    if workers == "auto":
+        if device.type != "cpu":
+            return 1
+        per_worker = 1 if start_method(1, device) == "fork" else FILES_PER_SPAWNED_WORKER
+        return max(1, min(usable_cores(), files // per_worker))
+    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
+        raise ValueError(f"estimate.workers must be 'auto' or an integer >= 1, got {workers!r}")
+    return workers
+
+
+def _estimate_chunk(chunk: list[Path], options: EstimateOptions, device: torch.device
+                    ) -> tuple[dict[Path, dict], dict[Path, str]]:
+    # Records and failure reasons of consecutive files: read, grouped by what can share a
+    # batch, estimated group by group. Runs in this process or in a worker.
+    groups: dict[tuple, list[tuple[Path, Scene]]] = {}
+    done: dict[Path, dict] = {}
+    reasons: dict[Path, str] = {}
+    for path in chunk:
+        try:
+            scene = within_pixels(read_scene(path), options)
+        except (SceneFileError, ValueError, RuntimeError) as error:
+            reasons[path] = error.reason if isinstance(error, SceneFileError) else f"{type(error).__name__}: {error}"
+            continue
+        groups.setdefault(_signature(scene), []).append((path, scene))
+    for group in groups.values():
+        group_done, group_failed = _estimate_group(group, options, device)
+        done.update(group_done)
+        reasons.update(group_failed)
+    return done, reasons
+
+
+def _worker_start(threads: int) -> None:
+    # Each worker process computes on its share of the cores.
+    torch.set_num_threads(threads)
+
+
+def start_method(threads: int, device: torch.device) -> str:
+    """How ``estimate_files`` starts its workers of ``threads`` torch threads each.
+
+    ``fork`` on Linux for one-thread CPU workers: a worker then starts at once with
+    the modules and the network this process has loaded (a spawned one spends 3-4 s
+    importing them). A forked child that stays on one thread never enters the OpenMP
+    pool it inherited, the pattern of torch's DataLoader workers. ``spawn`` otherwise:
+    a forked child cannot use CUDA, may hang in an inherited multi-thread pool, and
+    macOS frameworks are not fork-safe.
+    """
+    if threads == 1 and device.type == "cpu" and sys.platform.startswith("linux") \
+            and "fork" in multiprocessing.get_all_start_methods():
+        return "fork"
+    return "spawn"
+
+
+def worker_threads(workers: int) -> int:
+    """Torch threads of each of ``workers`` processes: their share of the usable cores."""
+    return max(1, usable_cores() // workers)
+
+
+def _chunk_results(chunks: list[list[Path]], options: EstimateOptions, device: torch.device, workers: int):
+    # (chunk, done, reasons) of every chunk, in the chunks' order. With workers > 1 the
+    # chunks run in that many processes (forked or spawned: start_method); a chunk whose worker died (out of
+    # memory, killed) is estimated again in this process, so no file is lost with it.
+    if workers == 1:
+        for chunk in chunks:
+            yield (chunk, *_estimate_chunk(chunk, options, device))
+        return
+    threads = worker_threads(workers)
+    context = multiprocessing.get_context(start_method(threads, device))
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start, initargs=(threads,)) as pool:
+        futures = [pool.submit(_estimate_chunk, chunk, options, device) for chunk in chunks]
+        try:
+            for chunk, future in zip(chunks, futures):
+                try:
+                    done, reasons = future.result()
+                except BrokenProcessPool as error:
+                    log.warning("a worker stopped (%s); estimating %s here", error, ", ".join(map(str, chunk)))
+                    done, reasons = _estimate_chunk(chunk, options, device)
+                yield chunk, done, reasons
+        finally:
+            # Stopped early (Ctrl-C, a failed write): the pool's exit would otherwise
+            # wait for every queued chunk to be estimated.
+            for future in futures:
+                future.cancel()
+
+
+def estimate_files(input: str | Path, output: str | Path, options: EstimateOptions, progress: bool = True,
+                   batch: int = 1, device: str = "cpu", workers: int | str = 1) -> dict:
+    """Estimate every scene under ``input``; one JSON line per good one in ``output``.
+
+    A bad file is logged with its name and reason and skipped; the summary returned
+    counts ``done``, ``failed`` (with reasons), the median seconds per scene, the wall
+    time of the whole run, the workers used and how they started (``start``:
+    :func:`start_method`, None for this process alone). ``batch`` > 1 estimates up to that
+    many consecutive files together (:func:`estimate_batch`; files of one size and
+    the same fields share a batch), each record's ``seconds`` being its share of the
+    batch's time; a failing batch is retried file by file. ``device``: ``cpu``,
+    ``cuda`` or ``auto``. ``workers``: processes the batches are spread over
+    (:func:`worker_count`; ``auto``: one per core on the CPU, started as
+    :func:`start_method` says); a record's ``seconds`` is then the time in its
+    worker, and the run's time per scene is ``wall_seconds / done``. Records are
+    written in the files' order whatever the workers.
+    """
+    if batch < 1:
+        raise ValueError(f"estimate.batch must be >= 1, got {batch}")
+    started = time.perf_counter()
+    where = _device(device)
+    files = scene_files(input)
+    if not files:
+        folders = sorted(p.name for p in Path(input).iterdir() if p.is_dir() and any(p.glob("*.npz")))
+        raise FileNotFoundError(f"no .npz scene files in {input}" + (
+            f" (its sub-folders {', '.join(folders)} hold some: give one of them)" if folders else ""))
+    chunks = [files[first : first + batch] for first in range(0, len(files), batch)]
+    workers = min(worker_count(workers, len(files), where), len(chunks))
+    if options.method in ("cnn", "cnn+refine"):
+        cached_network(options.checkpoint, str(where))  # a missing or bad checkpoint stops here, before any file
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    failed: dict[str, str] = {}
+    seconds: list[float] = []
+    try:
+        from tqdm import tqdm
+        bar = tqdm(total=len(files), desc="estimate", unit="scene", disable=not progress)
+    except ImportError:  # tqdm is optional: no progress bar then
+        bar = None
+    with output.open("w") as out:
+        for chunk, done, reasons in _chunk_results(chunks, options, where, workers):
+            for path in chunk:  # in the files' order
+                if path in reasons:
+                    failed[str(path)] = reasons[path]
+                    log.error("skipped %s: %s", path, reasons[path])
+                elif path in done:
+                    try:  # strict JSON: one NaN would break a strict reader on every line
+                        line = json.dumps(done[path], allow_nan=False)
+                    except ValueError:
+                        failed[str(path)] = ("its estimate holds a non-finite number (NaN or inf), "
+                                             "which JSON cannot carry")
+                        log.error("skipped %s: %s", path, failed[str(path)])
+                        continue
+                    seconds.append(done[path]["seconds"])
+                    out.write(line + "\n")
+            out.flush()
+            if bar is not None:
+                bar.update(len(chunk))
+    if bar is not None:
+        bar.close()
+    if not seconds:  # every file failed: no empty output left behind to be taken for a result
+        output.unlink(missing_ok=True)
+    wall = time.perf_counter() - started
+    summary = {"done": len(seconds), "failed": len(failed), "failures": failed,
+               "median_seconds": sorted(seconds)[len(seconds) // 2] if seconds else None,
+               "wall_seconds": round(wall, 3), "workers": workers,
+               "start": start_method(worker_threads(workers), where) if workers > 1 else None,
+               "output": str(output) if seconds else None}
+    log.info("estimated %d scene(s), %d failed, in %.1f s (%d worker(s), %.3f s per file; median %.3f s each); "
+             "wrote %s", summary["done"], summary["failed"], wall, workers, wall / max(len(files), 1),
+             summary["median_seconds"] or 0.0, output if seconds else "nothing")
+    return summary

@@ -1,0 +1,51 @@
+"""The network's part in an estimate: its light slots as starts, or as the answer (``method=cnn``)."""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import replace
+
+import torch
+from torch import Tensor
+
+from selfsup.estimation.criterion import Candidate, candidates
+from selfsup.estimation.options import EstimateOptions
+from selfsup.estimation.problem import FitProblem
+from selfsup.estimation.solvers import refine
+
+__all__ = ["cached_network", "network_slots", "network_candidates"]
+
+
+@functools.lru_cache(maxsize=4)
+def cached_network(checkpoint: str | None, device: str = "cpu"):
+    from selfsup.checkpoint import load_network
+
+    return load_network(checkpoint, map_location=device)[0].to(device)
+
+
+@torch.no_grad()
+def network_slots(problem: FitProblem, checkpoint: str | None = None) -> tuple[Tensor, Tensor]:
+    """The network's light slots: positions ``(B, K, 3)`` and presence ``(B, K)``,
+    each image's most present first."""
+    network = cached_network(checkpoint, str(problem.image.device))
+    prediction = network(problem.image.float(), problem.gbuffer, problem.material.kd.float())
+    order = prediction.presence.argsort(dim=1, descending=True)
+    position = prediction.position.gather(1, order[..., None].expand(-1, -1, 3))
+    return position.to(problem.image.dtype), prediction.presence.gather(1, order)
+
+
+def network_candidates(problem: FitProblem, slots: Tensor, presence: Tensor, specular_of: list[bool],
+                        options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
+    # The network's present slots (at least one); refine with no iterations solves
+    # their intensities and ambient and evaluates the fit.
+    keep = (presence > 0.5).sum(1).clamp(1, options.max_lights).tolist()
+    chosen: list[Candidate | None] = [None] * problem.batch
+    for n_lights in sorted(set(keep)):
+        group = [i for i, k in enumerate(keep) if k == n_lights]
+        at = torch.tensor(group, dtype=torch.long, device=slots.device)
+        labels = [specular_of[i] for i in group]
+        sub = problem.select(at)
+        fit = refine(sub, slots[at, :n_lights], replace(options.tuning.refine, specular=any(labels), max_iters=(0,), strides=(1,)))
+        for i, c in zip(group, candidates(sub, fit, n_lights, labels, options)):
+            chosen[i] = c
+    return [(c, [c]) for c in chosen]

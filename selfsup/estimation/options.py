@@ -1,0 +1,267 @@
+"""The estimator's settings: what a user chooses, and the tuned constants.
+
+:class:`EstimateOptions` holds the user's choices (``configs/estimate/default.yaml``
+shows them with the file and process settings of ``mode=estimate``); everything
+measured and tuned lives in the frozen :class:`Tuning` (its optimiser part in
+:class:`RefineOptions`), whose defaults are written here alone. What each constant
+does, and the measurements behind it: ``docs/estimation.md``, "Tuning".
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, replace
+
+from render.shadows import ShadowMethod
+
+__all__ = ["EstimateOptions", "Tuning", "RefineOptions", "METHODS", "SHADOW_METHODS"]
+
+METHODS = ("cnn+refine", "cnn", "refine")
+SHADOW_METHODS = tuple(m.value for m in ShadowMethod)
+NORMAL_SMOOTHING = ("auto", "always", "never")
+REFLECTANCE = ("auto", "given", "albedo_free")
+INDIRECT = ("auto", "never")
+COAT = ("auto", "never", "always")
+REFINE_METHODS = ("lm", "adam", "gd")
+
+
+@dataclass(frozen=True)
+class RefineOptions:
+    """Optimiser settings of the light refinement (:func:`selfsup.estimation.solvers.refine`).
+
+    ``method``: ``lm`` | ``adam`` | ``gd`` (the paper's: rate 0.02, stop at a relative
+    change of 1e-4). ``max_iters`` per pyramid level, ``strides``: coarse-to-fine pixel
+    strides. ``tol``: stop when the relative cost decrease of an accepted step falls
+    below it; ``step_tol`` (``lm``): or when a step moves every light less than this, in
+    scene sizes. ``robust``: Cauchy IRLS with scale ``robust_scale`` x the median observed
+    value, at least ``robust_noise_floor`` x the image's noise level
+    (:meth:`~selfsup.estimation.problem.FitProblem.noise_level`); ``irls_passes``:
+    reweighting passes solving the intensities and ambient at fixed positions.
+    ``fd_step``: forward-difference step of the shadow Jacobian, in scene sizes.
+    ``learning_rate``: adam / gd. ``specular``: whether the specular term is computed.
+    """
+
+    method: str = "lm"
+    max_iters: tuple[int, ...] = (30, 10)
+    strides: tuple[int, ...] = (4, 1)
+    tol: float = 1e-4
+    step_tol: float = 1e-4
+    robust: bool = True
+    robust_scale: float = 0.2
+    robust_noise_floor: float = 1.0
+    irls_passes: int = 4
+    fd_step: float = 1e-3
+    learning_rate: float = 0.02
+    specular: bool = True
+
+    def __post_init__(self):
+        object.__setattr__(self, "max_iters", tuple(self.max_iters))
+        object.__setattr__(self, "strides", tuple(self.strides))
+        if self.method not in REFINE_METHODS:
+            raise ValueError(f"method must be lm, adam or gd, got {self.method!r}")
+        if len(self.max_iters) != len(self.strides):
+            raise ValueError(f"max_iters {self.max_iters} and strides {self.strides} must have the same length")
+        if not self.strides or any(s < 1 for s in self.strides) or any(i < 0 for i in self.max_iters):
+            raise ValueError(f"strides need one level or more, each >= 1, and max_iters >= 0, got strides "
+                             f"{self.strides} and max_iters {self.max_iters}")
+        if not (self.fd_step > 0 and self.learning_rate > 0):  # 0: no shadow derivative, no first-order step
+            raise ValueError(f"fd_step and learning_rate must be > 0, got {self.fd_step}, {self.learning_rate}")
+        if not (self.tol >= 0 and self.step_tol >= 0):
+            raise ValueError(f"tol and step_tol must be >= 0, got {self.tol}, {self.step_tol}")
+        if self.irls_passes < 1:
+            raise ValueError(f"irls_passes must be >= 1, got {self.irls_passes}")
+        if not (self.robust_scale > 0 and self.robust_noise_floor >= 0):
+            raise ValueError(f"robust_scale must be > 0 and robust_noise_floor >= 0, got {self.robust_scale}, "
+                             f"{self.robust_noise_floor}")
+
+
+@dataclass(frozen=True)
+class Tuning:
+    """The estimator's tuned constants, one place for their defaults.
+
+    Each is described in one line here; ``docs/estimation.md`` ("Tuning") gives what
+    it does in full and the measurements it was chosen by. Change them from Python
+    (``EstimateOptions(tuning=Tuning(coat="never"))``) or from the command line
+    (``+estimate.tuning.coat=never``).
+
+    Starts and model selection:
+        cnn_grid, cnn_starts: ``cnn+refine`` searches this grid beside the network's
+            slots and starts from this many of its best.
+        min_light_share: an added light must carry this share of the rendered direct
+            light, or, weaker but at least ``weak_light_min_share``, show its own cast
+            shadows (``weak_light_shadow_gain``, 0: off) or pay for its parameters
+            ``weak_light_penalty`` times in the criterion (0: off).
+        block_width: one independent residual per square block of this x the image
+            width (criterion and uncertainty).
+        criterion_shadows, criterion_stride, criterion_thickness: every candidate is
+            judged under this shadow method, on every that-many-th pixel, with the
+            solid behind each pixel this share of the scene size deep (None: unbounded).
+        indirect: ``auto`` judges files without ambient with each light's indirect
+            light (:mod:`selfsup.estimation.indirect`) | ``never``.
+        coat: ``auto`` | ``never`` | ``always``: the specular pixels' diffuse light
+            through a rough clear coat (:mod:`render.coat`).
+        search_shadows: shadow method of the global search.
+        final_robust_scale: Cauchy scale (x median observed) of the chosen model's
+            full-resolution refinement.
+    Inputs:
+        normal_smoothing, normal_noise_threshold: ``auto`` refits normals noisier than
+            this many degrees (``always`` | ``never``) as planes of the depth over a
+            window of ``plane_window`` x the focal length, each pixel free to take a
+            window ``plane_shifts`` of the half-size beside its own.
+        mask_saturated: leave out clipped pixels.
+        max_pixels: a larger image is estimated on every k-th pixel (None: all).
+    Reflectance:
+        reflectance: ``auto`` fits a file whose kd is one constant albedo-free
+            (:mod:`selfsup.estimation.albedo_free`) | ``given`` | ``albedo_free``;
+            ``albedo_free_scale``, ``albedo_free_block_width``: that fit's Cauchy
+            scale and block.
+        reflectance_gains: rounds re-estimating with each smooth surface's albedo
+            rescaled by the last fit.
+    Uncertainty:
+        albedo_error: std of the file's kd error (0: exact).
+        indirect_variation, indirect_length: files without ambient add a smooth field
+            of unaccounted light, this std x the fitted ambient, this correlation
+            length (of the scene size); 0: off.
+        normal_error: refitted normals add their plane fits' tilt error.
+    refine: the optimiser (:class:`RefineOptions`).
+    """
+
+    cnn_grid: tuple[int, int, int] = (7, 6, 7)
+    cnn_starts: int = 4
+    block_width: float = 0.1
+    min_light_share: float = 0.1
+    weak_light_shadow_gain: float = 0.01
+    weak_light_min_share: float = 0.01
+    weak_light_penalty: float = 2.0
+    search_shadows: str = "none"
+    normal_smoothing: str = "auto"
+    normal_noise_threshold: float = 0.5
+    plane_window: float = 0.06
+    plane_shifts: tuple[float, ...] = (1.0, 0.5, 0.25)
+    mask_saturated: bool = True
+    final_robust_scale: float = 0.05
+    reflectance_gains: int = 0
+    reflectance: str = "auto"
+    indirect: str = "auto"
+    criterion_shadows: str = "epipolar"
+    criterion_stride: int = 2
+    criterion_thickness: float | None = 0.03
+    albedo_free_scale: float = 0.02
+    albedo_free_block_width: float = 0.05
+    albedo_error: float = 0.0
+    indirect_variation: float = 0.7
+    indirect_length: float = 0.15
+    normal_error: bool = True
+    coat: str = "auto"
+    max_pixels: int | None = 76800
+    refine: RefineOptions = field(default_factory=RefineOptions)
+
+    def __post_init__(self):
+        object.__setattr__(self, "cnn_grid", tuple(self.cnn_grid))
+        object.__setattr__(self, "plane_shifts", tuple(self.plane_shifts))
+        if isinstance(self.refine, dict):  # from a config
+            object.__setattr__(self, "refine", RefineOptions(**self.refine))
+        _check_tuning(self)
+
+    @classmethod
+    def names(cls) -> tuple[str, ...]:
+        """The constants' names (``refine`` included)."""
+        return tuple(f.name for f in fields(cls))
+
+
+def _check_choice(name: str, value, choices: tuple) -> None:
+    if value not in choices:
+        raise ValueError(f"estimate.{name} must be one of {choices}, got {value!r}")
+
+
+def _check_tuning(t: Tuning) -> None:
+    # One clear error per constant out of its range, named as on the command line.
+    def need(ok: bool, name: str, what: str) -> None:
+        if not ok:
+            raise ValueError(f"estimate.tuning.{name} must be {what}, got {getattr(t, name)!r}")
+
+    need(len(t.cnn_grid) == 3 and min(t.cnn_grid) >= 2, "cnn_grid", "3 grid sizes >= 2")
+    need(t.cnn_starts >= 1, "cnn_starts", ">= 1")
+    need(t.weak_light_shadow_gain >= 0, "weak_light_shadow_gain", ">= 0")
+    need(t.weak_light_penalty == 0 or t.weak_light_penalty >= 1, "weak_light_penalty", "0 (off) or >= 1")
+    need(t.weak_light_min_share >= 0, "weak_light_min_share", ">= 0")
+    need(0 <= t.min_light_share <= 1, "min_light_share", "a share in [0, 1]")
+    for name in ("block_width", "albedo_free_block_width"):
+        need(0 < getattr(t, name) <= 1, name, "in (0, 1] (of the image width)")
+    need(t.final_robust_scale > 0, "final_robust_scale", "> 0")
+    need(t.reflectance_gains >= 0, "reflectance_gains", ">= 0 rounds")
+    need(t.albedo_error >= 0 and math.isfinite(t.albedo_error), "albedo_error",
+         "a finite standard deviation >= 0 (albedo units)")
+    need(t.indirect_variation >= 0 and math.isfinite(t.indirect_variation), "indirect_variation",
+         "a finite standard deviation >= 0 (of the ambient)")
+    need(t.indirect_length > 0 and math.isfinite(t.indirect_length), "indirect_length",
+         "a finite length > 0 (of the scene size)")
+    need(t.albedo_free_scale > 0, "albedo_free_scale", "> 0")
+    need(t.normal_noise_threshold >= 0, "normal_noise_threshold", ">= 0 degrees")
+    need(0 < t.plane_window < 1, "plane_window", "in (0, 1) (of the focal length)")
+    need(all(0 < f <= 1 for f in t.plane_shifts), "plane_shifts", "fractions in (0, 1] of the plane window")
+    need(t.criterion_thickness is None or 0 < t.criterion_thickness < math.inf, "criterion_thickness",
+         "null or a share of the scene size > 0")
+    need(t.max_pixels is None or (isinstance(t.max_pixels, int) and t.max_pixels >= 1), "max_pixels",
+         "null or an integer >= 1")
+    need(t.criterion_stride >= 1, "criterion_stride", ">= 1 pixel")
+    for name, choices in (("reflectance", REFLECTANCE), ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT),
+                          ("indirect", INDIRECT), ("search_shadows", SHADOW_METHODS),
+                          ("criterion_shadows", SHADOW_METHODS)):
+        _check_choice(f"tuning.{name}", getattr(t, name), choices)
+
+
+@dataclass(frozen=True)
+class EstimateOptions:
+    """What ``mode=estimate`` estimates, as the user chooses it.
+
+    ``method``: ``cnn+refine`` (the network's light slots start the refinement),
+    ``cnn`` (the network alone, intensities solved at its positions) or ``refine``
+    (a grid search starts it). ``checkpoint``: the network of the ``cnn`` methods
+    (None: the shipped one). ``max_lights``: model selection tries 1 .. this many
+    lights. ``shadows``: the shadow model of the final refinement (``none`` |
+    ``epipolar`` | ``paper``; the criterion judges every model with cast shadows
+    whatever this says, :attr:`Tuning.criterion_shadows`). ``tuning``: the tuned
+    constants (:class:`Tuning`).
+    """
+
+    method: str = "cnn+refine"
+    checkpoint: str | None = None
+    max_lights: int = 2
+    shadows: str = "none"
+    tuning: Tuning = field(default_factory=Tuning)
+
+    def __post_init__(self):
+        if isinstance(self.tuning, dict):  # from a config
+            object.__setattr__(self, "tuning", Tuning(**self.tuning))
+        _check_choice("method", self.method, METHODS)
+        _check_choice("shadows", self.shadows, SHADOW_METHODS)
+        if isinstance(self.max_lights, bool) or not isinstance(self.max_lights, int) or self.max_lights < 1:
+            raise ValueError(f"estimate.max_lights must be an integer >= 1, got {self.max_lights!r}")
+
+    def tuned(self, **changes) -> "EstimateOptions":
+        """These options with some tuned constants changed: ``options.tuned(coat="never")``."""
+        return replace(self, tuning=replace(self.tuning, **changes))
+
+    @classmethod
+    def from_settings(cls, **settings) -> "EstimateOptions":
+        """Options from one flat dict of user settings and tuned constants (scripts and
+        sweeps): ``EstimateOptions.from_settings(method="refine", coat="never")``. An
+        unknown name is an error that lists the known ones."""
+        user = {f.name for f in fields(cls)} - {"tuning"}
+        unknown = set(settings) - user - set(Tuning.names())
+        if unknown:
+            raise ValueError(f"unknown estimate setting(s) {sorted(unknown)}; known: {sorted(user)} and the tuning's "
+                             f"{sorted(Tuning.names())}")
+        tuning = {k: v for k, v in settings.items() if k not in user}
+        return cls(**{k: v for k, v in settings.items() if k in user}, tuning=Tuning(**tuning))
+
+    def changed_settings(self) -> dict:
+        """The settings and tuned constants that differ from the defaults, as one flat dict
+        (what a results file names)."""
+        default, tuning = EstimateOptions(), Tuning()
+        changed = {f.name: getattr(self, f.name) for f in fields(self)
+                   if f.name != "tuning" and getattr(self, f.name) != getattr(default, f.name)}
+        changed.update({name: getattr(self.tuning, name) for name in Tuning.names()
+                        if getattr(self.tuning, name) != getattr(tuning, name)})
+        return changed

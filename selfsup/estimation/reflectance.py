@@ -1,0 +1,133 @@
+"""Reflectance the file does not give: the albedo-free fit's driver and per-surface albedo gains.
+
+A file whose kd is one constant says nothing of the albedo (:func:`reflectance_unknown`);
+its lights are fitted to the shading's log-differences between neighbours
+(:mod:`selfsup.estimation.albedo_free`) by :func:`estimate_albedo_free`.
+:func:`segment_gains` rescales each smooth surface's albedo by what a fit says it is
+(``tuning.reflectance_gains``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import torch
+from torch import Tensor
+
+from selfsup.estimation import albedo_free
+from selfsup.estimation.criterion import Candidate, bic, block_px, fit_row
+from selfsup.estimation.options import EstimateOptions
+from selfsup.estimation.problem import FitProblem
+from selfsup.estimation.solvers import refine
+
+__all__ = ["reflectance_unknown", "albedo_free_images", "estimate_albedo_free", "segment_gains"]
+
+
+def reflectance_unknown(problem: FitProblem, rel_tol: float = 1e-6) -> Tensor:
+    """``(B,)``: the image's kd is one constant on its valid pixels (every channel within
+    ``rel_tol`` of its maximum), so it says nothing of the surfaces' albedo."""
+    kd = problem.material.kd
+    mask = problem.gbuffer.mask[..., None].expand_as(kd)
+    hi = torch.where(mask, kd, torch.full_like(kd, -math.inf)).flatten(1, 2).amax(1)  # (B, 3)
+    lo = torch.where(mask, kd, torch.full_like(kd, math.inf)).flatten(1, 2).amin(1)
+    return ((hi - lo) <= rel_tol * hi.abs().clamp_min(1e-30)).all(1)
+
+
+def albedo_free_images(problem: FitProblem, options: EstimateOptions) -> list[bool]:
+    if options.method == "cnn" or options.tuning.reflectance == "given":
+        return [False] * problem.batch
+    if options.tuning.reflectance == "albedo_free":
+        return [True] * problem.batch
+    return reflectance_unknown(problem).tolist()
+
+
+def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
+    """Lights fitted to the log shading's neighbour differences (:mod:`selfsup.estimation.albedo_free`),
+    1 .. ``max_lights`` while :func:`bic` of their Cauchy loss falls and each light
+    carries ``min_light_share`` of the fitted shading; intensities and ambient then
+    solved against the image with the file's kd (diffuse only: a constant ks says
+    nothing of the highlights either)."""
+    B, device = problem.batch, problem.image.device
+    block = block_px(options, problem.image.shape[-1], albedo_free=True)
+    found = albedo_free.search(problem, 1, robust_scale=options.tuning.albedo_free_scale)
+    pairs = found.pairs.tolist()
+    if min(pairs) < 100:
+        raise ValueError(f"kd is one constant, so the lights are fitted albedo-free, but image {pairs.index(min(pairs))} "
+                         f"has {min(pairs)} pairs of neighbouring pixels with kd > 0 and light (at least 100 needed)")
+
+    def criterion(fit: albedo_free.AlbedoFreeFit) -> list[float]:
+        n_params = 4 * fit.position.shape[1]  # position, and a contrast per light (the ambient's for the first)
+        return [bic(loss, int(pairs), n_params, block) for loss, pairs in zip(fit.loss.tolist(), fit.pairs.tolist())]
+
+    best = [(found, i, c) for i, c in enumerate(criterion(found))]  # (fit, row, criterion) per image
+    tried = [[(1, c)] for _, _, c in best]
+    growing = list(range(B))
+    for n_lights in range(2, options.max_lights + 1):
+        if not growing:
+            break
+        at = torch.tensor(growing, dtype=torch.long, device=device)
+        before = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in growing])
+        sub = problem.select(at)
+        more = albedo_free.search(sub, n_lights, fixed=before, robust_scale=options.tuning.albedo_free_scale)
+        shares = albedo_free.light_shares(sub, more).amin(1).tolist()
+        still = []
+        for j, (i, c, share) in enumerate(zip(growing, criterion(more), shares)):
+            tried[i].append((n_lights, c))
+            if c < best[i][2] and share >= options.tuning.min_light_share:
+                best[i] = (more, j, c)
+                still.append(i)
+        growing = still
+    results: list = [None] * B
+    # No iterations: the intensities and ambient solved and the fit evaluated at the positions.
+    solve = replace(options.tuning.refine, specular=False, max_iters=(0,), strides=(1,))
+    counts = [best[i][0].position.shape[1] for i in range(B)]
+    for n_lights in sorted(set(counts)):  # one batched solve and covariance per light count
+        group = [i for i in range(B) if counts[i] == n_lights]
+        chosen = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in group])
+        sub = problem.select(torch.tensor(group, dtype=torch.long, device=device))
+        fit = refine(sub, chosen.position, solve)
+        cov = albedo_free.position_covariance(albedo_free.observe(sub, options.tuning.albedo_free_scale), chosen,
+                                              correlation_px=float(block**2)).cpu()
+        for j, i in enumerate(group):
+            candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free")
+            # The records keep the tried models' counts and criteria only.
+            others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
+            results[i] = (candidate, others)
+    return results
+
+
+def segment_gains(image: Tensor, model: Tensor, segments: Tensor, min_pixels: int = 30, lit_share: float = 0.2,
+                  limits: tuple[float, float] = (0.2, 5.0)) -> Tensor:
+    """Per-surface albedo factors ``(B, H, W, 3)``: on each segment and channel, the
+    median of ``image / model`` over its pixels lit to at least ``lit_share`` of the
+    segment's brightest model value (shadows and dark sides say little), clamped to
+    ``limits``; 1 on segments with fewer than ``min_pixels`` such pixels and outside.
+
+    Args:
+        image, model: ``(B, 3, H, W)``; segments: ``(B, H, W)`` labels (-1: none),
+        e.g. :func:`selfsup.estimation.normals.surface_segments`.
+    """
+    B, C, H, W = image.shape
+    label = segments.reshape(B, 1, H * W).expand(B, C, H * W)
+    inside = label >= 0
+    # One group per (image, segment, channel): segment labels are flat pixel indices.
+    group = ((torch.arange(B, device=image.device)[:, None, None] * (H * W) + label.clamp_min(0)) * C
+             + torch.arange(C, device=image.device)[None, :, None]).reshape(-1)
+    model = model.reshape(B, C, H * W)
+    groups = B * H * W * C
+    # Outside pixels share group 0's index (label clamped): their model values must not count there.
+    brightest = model.new_zeros(groups).scatter_reduce_(0, group, (model * inside).reshape(-1), "amax")
+    ratio = (image.reshape(B, C, H * W) / model.clamp_min(1e-12)).reshape(-1)
+    use = (inside & (model > lit_share * brightest[group].view_as(model))).reshape(-1) & torch.isfinite(ratio)
+    values, owner = ratio[use], group[use]
+    if not values.numel():
+        return torch.ones_like(image).permute(0, 2, 3, 1)
+    # Each group's median: sort by value, then stably by group, and take each run's middle.
+    by_value = values.argsort()
+    ordered = values[by_value][owner[by_value].argsort(stable=True)]
+    counts = torch.bincount(owner, minlength=groups)
+    middle = (counts.cumsum(0) - counts + (counts - 1).clamp_min(0) // 2).clamp_max(values.numel() - 1)
+    factor = torch.where(counts >= min_pixels, ordered[middle].clamp(*limits), torch.ones_like(ordered[middle]))
+    factor = torch.where(inside.reshape(-1), factor[group], torch.ones_like(ratio))
+    return factor.view(B, C, H, W).permute(0, 2, 3, 1)

@@ -1,0 +1,71 @@
+"""One source of defaults: every config node that mirrors a dataclass holds that dataclass's defaults.
+
+The YAML shows the settings a user chooses; the dataclasses are what the code runs
+with when called from Python. A value changed in one place and not the other fails here.
+"""
+
+import dataclasses
+import inspect
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from pathlib import Path
+
+from selfsup.engine import LoggerOptions, OptimOptions, TrainerOptions
+from selfsup.estimation import EstimateOptions, estimate_files
+from selfsup.losses import LossOptions
+
+CONFIGS = Path(__file__).parents[1] / "configs"
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose(config_name="train")
+
+
+def _plain(value):
+    return tuple(_plain(v) for v in value) if isinstance(value, list) else value
+
+
+def _defaults(cls) -> dict:
+    out = {}
+    for f in dataclasses.fields(cls):
+        if f.default is not dataclasses.MISSING:
+            out[f.name] = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            out[f.name] = f.default_factory()
+    return out
+
+
+@pytest.mark.parametrize("path, node, cls", [
+    ("experiment/default.yaml", "loss", LossOptions),  # the loss node lives in the embedded experiment
+    ("optim/adamw.yaml", None, OptimOptions),
+    ("logger/tensorboard.yaml", None, LoggerOptions),
+    ("trainer/default.yaml", None, TrainerOptions),  # an experiment may change them: it lists what it changes
+])
+def test_a_config_group_holds_its_dataclass_defaults(path, node, cls):
+    values = OmegaConf.to_container(OmegaConf.load(CONFIGS / path), resolve=False)
+    values = values[node] if node else values
+    defaults = _defaults(cls)
+    assert set(values) <= set(defaults), f"{path}: keys the dataclass lacks: {set(values) - set(defaults)}"
+    for key, value in values.items():
+        if isinstance(value, str) and value.startswith("${"):
+            continue  # an interpolation (the run folder): no default to compare
+        assert _plain(value) == defaults[key], f"{path} {key}: YAML {value!r}, {cls.__name__} {defaults[key]!r}"
+
+
+def test_the_estimate_group_is_the_users_dozen_settings_with_the_codes_defaults(cfg):
+    values = OmegaConf.to_container(cfg.estimate, resolve=False)
+    assert len(values) <= 15, sorted(values)
+    options = _defaults(EstimateOptions)
+    files = {name: p.default for name, p in inspect.signature(estimate_files).parameters.items()
+             if p.default is not inspect.Parameter.empty}
+    command = {"input", "output", "batch", "device", "workers", "progress"}
+    assert set(values) == (set(options) - {"tuning"}) | command
+    for key in set(options) - {"tuning"}:
+        assert _plain(values[key]) == options[key], f"estimate.{key}: YAML {values[key]!r}, EstimateOptions {options[key]!r}"
+    for key in ("progress", "device"):  # batch and workers: the command's
+        assert values[key] == files[key], f"estimate.{key}: YAML {values[key]!r}, estimate_files {files[key]!r}"
