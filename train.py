@@ -103,7 +103,8 @@ def run(cfg: DictConfig):
         from selfsup.estimation import EstimateOptions, estimate_files
 
         est = _plain(cfg.estimate)
-        io = {k: est.pop(k) for k in ("input", "output", "progress", "batch", "device", "workers")}
+        io = {k: est.pop(k) for k in ("input", "output", "progress", "batch", "device", "workers", "depth",
+                                      "depth_scale", "intrinsics")}
         return estimate_files(options=EstimateOptions(**est), **io)
 
 

@@ -63,9 +63,9 @@ def test_the_estimate_group_is_the_users_dozen_settings_with_the_codes_defaults(
     options = _defaults(EstimateOptions)
     files = {name: p.default for name, p in inspect.signature(estimate_files).parameters.items()
              if p.default is not inspect.Parameter.empty}
-    command = {"input", "output", "batch", "device", "workers", "progress"}
+    command = {"input", "output", "batch", "device", "workers", "progress", "depth", "depth_scale", "intrinsics"}
     assert set(values) == (set(options) - {"tuning"}) | command
     for key in set(options) - {"tuning"}:
         assert _plain(values[key]) == options[key], f"estimate.{key}: YAML {values[key]!r}, EstimateOptions {options[key]!r}"
-    for key in ("progress", "device"):  # batch and workers: the command's
+    for key in ("progress", "device", "depth", "depth_scale", "intrinsics"):  # batch and workers: the command's
         assert values[key] == files[key], f"estimate.{key}: YAML {values[key]!r}, estimate_files {files[key]!r}"

@@ -25,9 +25,11 @@ from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.prepare import in_file_units, prepare, within_pixels, working_range
 from selfsup.estimation.records import records
 from selfsup.estimation.stages import estimate_batch
+from selfsup.scenes.capture import (COLOR_SUFFIXES, CaptureFrame, capture_frames, is_capture_folder,
+                                    read_color_and_depth)
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
-__all__ = ["estimate_files", "scene_files", "worker_count", "usable_cores", "start_method", "worker_threads"]
+__all__ = ["estimate_files", "estimate_inputs", "scene_files", "worker_count", "usable_cores", "start_method", "worker_threads"]
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +42,51 @@ def scene_files(path: str | Path) -> list[Path]:
     if path.exists():
         return [path]
     raise FileNotFoundError(f"estimate.input {path} does not exist")
+
+
+Input = Path | CaptureFrame  # a scene file, or a capture frame (str() of either names it)
+
+
+def estimate_inputs(input: str | Path, depth: str | Path | None = None, depth_scale: float = 1000.0,
+                    intrinsics: tuple[float, float, float, float] | None = None) -> list[Input]:
+    """What ``estimate.input`` names, in order: the frames of a capture folder
+    (:func:`selfsup.scenes.capture.capture_frames`), one colour file with its ``depth``,
+    the ``.npz`` scene files of a directory, or one scene file.
+
+    Raises:
+        FileNotFoundError: nothing there, or nothing estimable in the directory (its
+            sub-folders that hold scene files or captures are named).
+        ValueError: a file that is neither a scene file nor a colour image with its depth.
+    """
+    path = Path(input)
+    if not path.exists():
+        raise FileNotFoundError(f"estimate.input {path} does not exist")
+    if depth is not None and not Path(depth).is_file():
+        raise FileNotFoundError(f"estimate.depth {depth} does not exist")
+    if is_capture_folder(path):
+        frames = capture_frames(path, depth_scale, intrinsics)
+        if not frames:
+            raise FileNotFoundError(f"no colour images ({', '.join(COLOR_SUFFIXES)}) in {path / 'color'}")
+        return frames
+    if path.is_file() and path.suffix.lower() in COLOR_SUFFIXES:
+        if depth is None:
+            raise ValueError(f"estimate.input {path} is a colour image: give its depth with estimate.depth=<file> "
+                             "(16-bit millimetres, or .npy / .tif metres), or give the capture folder")
+        return [read_color_and_depth(path, depth, depth_scale, intrinsics)]
+    if path.is_file() and path.suffix.lower() != ".npz":
+        raise ValueError(f"estimate.input {path} is not a .npz scene file, a colour image ({', '.join(COLOR_SUFFIXES)}) "
+                         "or a capture folder (color/ and depth/)")
+    files = scene_files(path)
+    if not files:
+        folders = sorted(p.name for p in path.iterdir()
+                         if p.is_dir() and (any(p.glob("*.npz")) or is_capture_folder(p)))
+        raise FileNotFoundError(f"no .npz scene files or capture folder (color/ and depth/) in {path}" + (
+            f" (its sub-folders {', '.join(folders)} hold some: give one of them)" if folders else ""))
+    return files
+
+
+def _read(item: Input) -> Scene:
+    return item.read() if isinstance(item, CaptureFrame) else read_scene(item)
 
 
 def _signature(scene: Scene) -> tuple:
@@ -124,7 +171,7 @@ def _estimate_chunk(chunk: list[Path], options: EstimateOptions, device: torch.d
     reasons: dict[Path, str] = {}
     for path in chunk:
         try:
-            scene = within_pixels(read_scene(path), options)
+            scene = within_pixels(_read(path), options)
         except (SceneFileError, ValueError, RuntimeError) as error:
             reasons[path] = error.reason if isinstance(error, SceneFileError) else f"{type(error).__name__}: {error}"
             continue
@@ -190,10 +237,14 @@ def _chunk_results(chunks: list[list[Path]], options: EstimateOptions, device: t
 
 
 def estimate_files(input: str | Path, output: str | Path, options: EstimateOptions, progress: bool = True,
-                   batch: int = 1, device: str = "cpu", workers: int | str = 1) -> dict:
+                   batch: int = 1, device: str = "cpu", workers: int | str = 1, depth: str | Path | None = None,
+                   depth_scale: float = 1000.0, intrinsics: tuple[float, float, float, float] | None = None) -> dict:
     """Estimate every scene under ``input``; one JSON line per good one in ``output``.
 
-    A bad file is logged with its name and reason and skipped; the summary returned
+    ``input``: a capture folder, a colour image with its ``depth`` file, a directory
+    of ``.npz`` scene files or one (:func:`estimate_inputs`); ``depth_scale``: a
+    16-bit depth image's units per metre; ``intrinsics``: ``(fx, fy, cx, cy)``
+    overriding a capture's files. A bad file is logged with its name and reason and skipped; the summary returned
     counts ``done``, ``failed`` (with reasons), the median seconds per scene, the wall
     time of the whole run, the workers used and how they started (``start``:
     :func:`start_method`, None for this process alone). ``batch`` > 1 estimates up to that
@@ -210,11 +261,7 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
         raise ValueError(f"estimate.batch must be >= 1, got {batch}")
     started = time.perf_counter()
     where = _device(device)
-    files = scene_files(input)
-    if not files:
-        folders = sorted(p.name for p in Path(input).iterdir() if p.is_dir() and any(p.glob("*.npz")))
-        raise FileNotFoundError(f"no .npz scene files in {input}" + (
-            f" (its sub-folders {', '.join(folders)} hold some: give one of them)" if folders else ""))
+    files = estimate_inputs(input, depth, depth_scale, intrinsics)
     chunks = [files[first : first + batch] for first in range(0, len(files), batch)]
     workers = min(worker_count(workers, len(files), where), len(chunks))
     if options.method in ("cnn", "cnn+refine"):

@@ -1,0 +1,269 @@
+"""Camera captures in: colour and depth images of an RGB-D camera, read as scenes.
+
+The capture-folder layout (``docs/scene-format.md``, "Capture folders"; other tools write it)::
+
+    DIR/color/<id>.png|.jpg        colour, 8- or 16-bit sRGB (decoded to linear RGB here)
+    DIR/depth/<id>.png             16-bit depth, metres = value / depth_scale (default 1000: millimetres); 0 = missing
+                                   (.npy / .tif float depth in metres accepted too)
+    DIR/intrinsics.json            {"fx", "fy", "cx", "cy"} (pixels, OpenCV camera) for every frame, or {"K": 3x3}
+    DIR/intrinsics/<id>.json       the same for one frame; takes precedence
+
+A frame is a colour file and a depth file of the same stem; its scene's id is that
+stem. Other files and folders are ignored. A capture knows no albedo, materials,
+normals or ambient: the scene gets ``kd`` 0.5 everywhere (the estimator fits such a
+scene albedo-free, and its intensities are those that light an albedo of 0.5 to the
+image's values), normals from the depth and an unknown ambient.
+
+Colour and depth of different sizes (a phone's 1920x1440 colour beside 256x192 depth):
+where the aspects agree the colour is area-averaged in linear light onto the depth's
+grid, and the intrinsics are those of the depth image.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from selfsup.scenes.io import Scene, SceneFileError
+
+__all__ = ["CaptureFrame", "capture_frames", "is_capture_folder", "read_capture", "srgb_to_linear", "linear_to_srgb",
+           "COLOR_SUFFIXES", "DEPTH_SUFFIXES", "ASSUMED_ALBEDO"]
+
+COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
+DEPTH_SUFFIXES = (".png", ".npy", ".tif", ".tiff")
+ASSUMED_ALBEDO = 0.5  # a capture's kd: the intensities are those lighting this albedo to the image's values
+ASPECT_TOLERANCE = 0.01  # relative difference of the aspects of colour and depth still taken as one
+
+
+@dataclass(frozen=True)
+class CaptureFrame:
+    """One frame of a capture: its files and how to read them (picklable: it travels to
+    worker processes). ``intrinsics``: ``(fx, fy, cx, cy)`` overriding the files, or None.
+    ``str(frame)`` is its colour file, the name errors and summaries use."""
+
+    color: Path
+    depth: Path | None
+    intrinsics_file: Path | None
+    depth_scale: float = 1000.0
+    intrinsics: tuple[float, float, float, float] | None = None
+
+    @property
+    def id(self) -> str:
+        return self.color.stem
+
+    def __str__(self) -> str:
+        return str(self.color)
+
+    def read(self) -> Scene:
+        return read_capture(self)
+
+
+def is_capture_folder(path: str | Path) -> bool:
+    """Whether ``path`` is a directory in the capture layout (``color/`` beside ``depth/``)."""
+    path = Path(path)
+    return path.is_dir() and (path / "color").is_dir() and (path / "depth").is_dir()
+
+
+def _by_stem(folder: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
+    if not folder.is_dir():
+        return {}
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in suffixes)
+    out: dict[str, Path] = {}
+    for p in files:  # one file a stem: the first suffix in the list's order wins
+        if p.stem not in out or suffixes.index(p.suffix.lower()) < suffixes.index(out[p.stem].suffix.lower()):
+            out[p.stem] = p
+    return out
+
+
+def capture_frames(folder: str | Path, depth_scale: float = 1000.0,
+                   intrinsics: tuple[float, float, float, float] | None = None) -> list[CaptureFrame]:
+    """The frames of a capture folder, in the order of their stems.
+
+    A colour file without a depth file of its stem is a frame too, with ``depth`` None:
+    reading it fails with a message naming the missing file, so that the other frames
+    are still estimated. Depth files without colour are ignored.
+    """
+    folder = Path(folder)
+    _check_depth_scale(depth_scale)
+    colors = _by_stem(folder / "color", COLOR_SUFFIXES)
+    depths = _by_stem(folder / "depth", DEPTH_SUFFIXES)
+    shared = folder / "intrinsics.json"
+    frames = []
+    for stem in sorted(colors):
+        own = folder / "intrinsics" / f"{stem}.json"
+        frames.append(CaptureFrame(colors[stem], depths.get(stem), own if own.is_file() else
+                                   (shared if shared.is_file() else None), float(depth_scale),
+                                   None if intrinsics is None else tuple(float(x) for x in intrinsics)))
+    return frames
+
+
+def _check_depth_scale(depth_scale: float) -> None:
+    if not (isinstance(depth_scale, (int, float)) and math.isfinite(depth_scale) and depth_scale > 0):
+        raise ValueError(f"estimate.depth_scale must be a number > 0 (depth units per metre: 1000 for millimetres), "
+                         f"got {depth_scale!r}")
+
+
+def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
+    """The sRGB transfer function undone: ``encoded`` in [0, 1] -> linear light in [0, 1]."""
+    encoded = np.clip(encoded, 0.0, 1.0)
+    return np.where(encoded <= 0.04045, encoded / 12.92, ((encoded + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
+    """The sRGB transfer function: linear light in [0, 1] -> encoded in [0, 1] (clipped)."""
+    linear = np.clip(linear, 0.0, 1.0)
+    return np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+
+
+def _read_image(path: Path) -> np.ndarray:
+    # PNG and JPEG through Pillow (a 16-bit RGB PNG comes back at 8 bits of precision, at
+    # the right scale; 16-bit grey keeps its 16), TIFF through tifffile (float depth).
+    import imageio.v3 as iio
+
+    try:
+        return np.asarray(iio.imread(path, plugin="tifffile" if path.suffix.lower() in (".tif", ".tiff") else "pillow"))
+    except Exception as error:  # imageio raises many kinds for a bad file
+        first_line = str(error).strip().splitlines()[0] if str(error).strip() else ""
+        raise SceneFileError(path, f"cannot read the image ({type(error).__name__}: {first_line}); is it a valid "
+                                   f"{path.suffix.lstrip('.').upper()} file?") from None
+
+
+def _color(path: Path) -> np.ndarray:
+    # Linear RGB (H, W, 3) float64 in [0, 1] of an 8- or 16-bit sRGB colour file.
+    pixels = _read_image(path)
+    if pixels.ndim == 2:  # grey: the same value in each channel
+        pixels = np.repeat(pixels[..., None], 3, axis=2)
+    if pixels.ndim != 3 or pixels.shape[2] not in (3, 4):
+        raise SceneFileError(path, f"colour must be an RGB image (H, W, 3), got shape {pixels.shape}")
+    if pixels.dtype not in (np.uint8, np.uint16):
+        raise SceneFileError(path, f"colour must be 8- or 16-bit sRGB, got {pixels.dtype}: save it as an 8- or "
+                                   f"16-bit PNG or a JPEG")
+    full_scale = float(np.iinfo(pixels.dtype).max)
+    return srgb_to_linear(pixels[..., :3].astype(np.float64) / full_scale)
+
+
+def _depth(path: Path | None, color: Path, depth_scale: float) -> np.ndarray:
+    # Depth in metres (H, W) float64, 0 where missing.
+    if path is None:
+        raise SceneFileError(color, f"no depth file of stem {color.stem!r} in {color.parent.parent / 'depth'} "
+                                    f"(expected depth/{color.stem}.png, 16-bit millimetres, or .npy / .tif metres)")
+    if path.suffix.lower() == ".npy":
+        try:
+            raw = np.load(path, allow_pickle=False)
+        except Exception as error:
+            raise SceneFileError(path, f"cannot read as .npy ({type(error).__name__}: {error})") from None
+    else:
+        raw = _read_image(path)
+    if raw.ndim == 3 and raw.shape[2] == 1:
+        raw = raw[..., 0]
+    if raw.ndim != 2:
+        raise SceneFileError(path, f"depth must be one channel (H, W), got shape {raw.shape}")
+    if raw.dtype == np.uint8:
+        raise SceneFileError(path, "depth is 8-bit, which cannot hold a depth map (256 steps): save it as a 16-bit "
+                                   "PNG of millimetres (estimate.depth_scale=1000) or as .npy / .tif float metres")
+    if raw.dtype.kind in "iu":
+        depth = raw.astype(np.float64) / depth_scale
+    elif raw.dtype.kind == "f":
+        depth = raw.astype(np.float64)  # float depth is in metres
+    else:
+        raise SceneFileError(path, f"depth must be 16-bit integers or floats, got {raw.dtype}")
+    depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
+    if not (depth > 0).any():
+        raise SceneFileError(path, "depth is zero (missing) on every pixel: no geometry to light")
+    return depth
+
+
+def _intrinsics(frame: CaptureFrame) -> np.ndarray:
+    # K (3, 3) of the frame's files, or of the override.
+    if frame.intrinsics is not None:
+        values = frame.intrinsics
+        if len(values) != 4:
+            raise ValueError(f"estimate.intrinsics must be [fx, fy, cx, cy], got {list(values)}")
+        fx, fy, cx, cy = values
+    else:
+        path = frame.intrinsics_file
+        if path is None:
+            root = frame.color.parent.parent
+            raise SceneFileError(frame.color, f"no intrinsics: write {root / 'intrinsics.json'} (every frame) or "
+                                              f"{root / 'intrinsics' / (frame.id + '.json')} as "
+                                              '{"fx": ..., "fy": ..., "cx": ..., "cy": ...} (pixels), or give '
+                                              "estimate.intrinsics=[fx,fy,cx,cy]")
+        try:
+            data = json.loads(path.read_text())
+            if "K" in data:
+                K = np.asarray(data["K"], dtype=np.float64)
+                if K.shape != (3, 3):
+                    raise ValueError(f"K must be 3x3, got shape {K.shape}")
+                fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+            else:
+                fx, fy, cx, cy = (float(data[key]) for key in ("fx", "fy", "cx", "cy"))
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            raise SceneFileError(path, f"intrinsics must be JSON {{\"fx\", \"fy\", \"cx\", \"cy\"}} (pixels) or "
+                                       f"{{\"K\": 3x3}} ({type(error).__name__}: {error})") from None
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    if not (np.isfinite(K).all() and fx > 0 and fy > 0):
+        raise SceneFileError(frame.intrinsics_file or frame.color, f"intrinsics need finite fx, fy > 0, got "
+                                                                   f"fx={fx}, fy={fy}, cx={cx}, cy={cy}")
+    return K
+
+
+def _area_resample(linear: np.ndarray, height: int, width: int) -> np.ndarray:
+    # linear (h, w, 3) area-averaged onto a (height, width) grid of the same extent: each
+    # target pixel the mean of the source area it covers, partial source pixels weighted.
+    def weights(source: int, target: int) -> np.ndarray:  # (target, source): overlap of target and source pixels
+        edges = np.arange(target + 1) * (source / target)
+        lo, hi = edges[:-1, None], edges[1:, None]
+        pixel = np.arange(source)[None]
+        overlap = np.clip(np.minimum(hi, pixel + 1) - np.maximum(lo, pixel), 0, None)
+        return overlap / overlap.sum(1, keepdims=True)
+
+    rows, cols = weights(linear.shape[0], height), weights(linear.shape[1], width)
+    return np.einsum("ih,hwc,jw->ijc", rows, linear, cols, optimize=True)
+
+
+def read_capture(frame: CaptureFrame) -> Scene:
+    """The scene of one capture frame: linear image, depth in metres, K of the depth
+    image, kd :data:`ASSUMED_ALBEDO` everywhere, no normals (from the depth), no ambient.
+
+    Raises:
+        SceneFileError: naming the file and the fix (unreadable image, 8-bit or empty
+            depth, no depth of the stem, no intrinsics, sizes whose aspects differ).
+    """
+    image = _color(frame.color)
+    depth = _depth(frame.depth, frame.color, frame.depth_scale)
+    K = _intrinsics(frame)
+    (h, w), (H, W) = image.shape[:2], depth.shape
+    if (h, w) != (H, W):
+        if abs((w / h) / (W / H) - 1) > ASPECT_TOLERANCE:
+            raise SceneFileError(frame.color, f"colour {w}x{h} and depth {W}x{H} differ in aspect "
+                                              f"({w / h:.4f} against {W / H:.4f}): crop or register them to one "
+                                              "field of view")
+        image = _area_resample(image, H, W)  # the intrinsics are the depth image's
+    meta = {"id": frame.id, "generator": "capture", "falloff": "inverse_square",
+            "albedo": f"unknown: kd {ASSUMED_ALBEDO} assumed everywhere", "color": str(frame.color),
+            "depth": str(frame.depth), "color_size": [w, h]}
+
+    def tensor(array: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
+
+    return Scene(image=tensor(image), depth=tensor(depth), K=tensor(K),
+                 kd=torch.full((H, W, 3), ASSUMED_ALBEDO), meta=meta)
+
+
+def read_color_and_depth(color: str | Path, depth: str | Path, depth_scale: float = 1000.0,
+                         intrinsics: tuple[float, float, float, float] | None = None) -> CaptureFrame:
+    """The frame of a single colour file and its depth file (``estimate.depth``);
+    intrinsics from ``intrinsics``, else ``intrinsics/<stem>.json`` or ``intrinsics.json``
+    beside the colour file's folder or in it."""
+    color, depth = Path(color), Path(depth)
+    _check_depth_scale(depth_scale)
+    candidates = [color.parent.parent / "intrinsics" / f"{color.stem}.json", color.parent.parent / "intrinsics.json",
+                  color.parent / "intrinsics" / f"{color.stem}.json", color.parent / "intrinsics.json"]
+    found = next((p for p in candidates if p.is_file()), None)
+    return CaptureFrame(color, depth if depth.exists() else None, found, float(depth_scale),
+                        None if intrinsics is None else tuple(float(x) for x in intrinsics))

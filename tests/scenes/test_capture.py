@@ -1,0 +1,161 @@
+"""Capture folders (colour, depth, intrinsics) read as scenes, and estimated by mode=estimate."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+
+from benchmarks.captures import make_capture, read_truth
+from selfsup.estimation import EstimateOptions, RefineOptions, Tuning, estimate_files
+from selfsup.estimation.files import estimate_inputs
+from selfsup.scenes.capture import (ASSUMED_ALBEDO, capture_frames, linear_to_srgb, read_capture,
+                                    read_color_and_depth, srgb_to_linear)
+from selfsup.scenes.exact import render_spec
+from selfsup.scenes.io import SceneFileError, write_scene
+from selfsup.scenes.sampler import SamplerConfig, sample_scene
+
+ROOT = Path(__file__).parents[2]
+SMALL = SamplerConfig(height=48, width=64, specular_prob=0.0, n_lights_probs=(1.0,))
+FAST = EstimateOptions(max_lights=1, tuning=Tuning(refine=RefineOptions(max_iters=(10, 3))))
+
+
+def _capture(folder: Path, seeds=(3, 4)) -> list:
+    """A capture folder of procedural scenes, by the benchmark's recipe (8-bit sRGB, mm depth)."""
+    scenes = []
+    for seed in seeds:
+        scene = render_spec(sample_scene(seed, SMALL), samples=1).scene
+        (folder / "scenes").mkdir(parents=True, exist_ok=True)
+        write_scene(folder / "scenes" / f"{seed}.npz", scene)
+        make_capture(folder / "scenes" / f"{seed}.npz", folder / "cap", f"frame_{seed:03d}")
+        scenes.append(scene)
+    return scenes
+
+
+def test_srgb_decoding_inverts_the_encoding_and_matches_the_standard():
+    x = np.linspace(0, 1, 1001)
+    np.testing.assert_allclose(srgb_to_linear(linear_to_srgb(x)), x, atol=1e-12)
+    assert srgb_to_linear(np.array(0.5)) == pytest.approx(0.21404, abs=1e-5)  # the sRGB curve's mid grey
+    assert srgb_to_linear(np.array(0.04045)) == pytest.approx(0.04045 / 12.92)
+
+
+def test_a_capture_frame_reads_as_the_scene_it_was_made_from(tmp_path):
+    (scene,) = _capture(tmp_path, seeds=(3,))
+    (frame,) = capture_frames(tmp_path / "cap")
+    read = read_capture(frame)
+    truth = read_truth(tmp_path / "cap" / "truth" / "frame_003.npz")
+    assert read.id == "frame_003" and read.normals is None and read.ambient is None and read.ks is None
+    assert torch.equal(read.kd, torch.full_like(read.kd, ASSUMED_ALBEDO))
+    valid = scene.depth > 0
+    assert (read.depth[valid] - scene.depth[valid]).abs().max() <= 0.0005 + 1e-6  # millimetres, rounded
+    torch.testing.assert_close(read.K, scene.K)
+    # 8 bits of sRGB: the linear image times the exposure, within half a code step (clipped pixels aside).
+    exposed = (scene.image * truth.meta["exposure"]).clamp(0, 1)
+    step = torch.from_numpy(srgb_to_linear(np.clip(linear_to_srgb(exposed.double().numpy()) + 0.5 / 255, 0, 1))).float()
+    assert bool(((read.image - exposed).abs() <= (step - exposed).abs() + 1e-6).all())
+
+
+def test_intrinsics_per_frame_win_over_the_folder_and_the_override_over_both(tmp_path):
+    _capture(tmp_path, seeds=(3,))
+    cap = tmp_path / "cap"
+    (cap / "intrinsics.json").write_text(json.dumps({"K": [[50, 0, 30], [0, 51, 20], [0, 0, 1]]}))
+    assert read_capture(capture_frames(cap)[0]).K[0, 0] != 50  # the frame's own file
+    (cap / "intrinsics" / "frame_003.json").unlink()
+    K = read_capture(capture_frames(cap)[0]).K
+    assert K[0, 0] == 50 and K[1, 1] == 51 and K[0, 2] == 30 and K[1, 2] == 20
+    K = read_capture(capture_frames(cap, intrinsics=(60, 61, 31, 21))[0]).K
+    assert K[0, 0] == 60 and K[1, 1] == 61 and K[0, 2] == 31 and K[1, 2] == 21
+
+
+def test_float_depth_is_metres_and_16_bit_depth_follows_the_depth_scale(tmp_path):
+    _capture(tmp_path, seeds=(3,))
+    cap = tmp_path / "cap"
+    millimetres = read_capture(capture_frames(cap)[0]).depth
+    assert read_capture(capture_frames(cap, depth_scale=2000)[0]).depth.max() == pytest.approx(
+        float(millimetres.max()) / 2, rel=1e-6)
+    np.save(cap / "depth" / "frame_003.npy", millimetres.numpy())
+    (cap / "depth" / "frame_003.png").unlink()
+    torch.testing.assert_close(read_capture(capture_frames(cap)[0]).depth, millimetres)
+
+
+def test_colour_larger_than_the_depth_is_area_averaged_onto_its_grid(tmp_path):
+    _capture(tmp_path, seeds=(3,))
+    cap = tmp_path / "cap"
+    small = read_capture(capture_frames(cap)[0])
+    color = iio.imread(cap / "color" / "frame_003.png")
+    iio.imwrite(cap / "color" / "frame_003.png", np.repeat(np.repeat(color, 3, axis=0), 3, axis=1))  # 3x each way
+    large = read_capture(capture_frames(cap)[0])
+    assert large.image.shape == small.image.shape and large.meta["color_size"] == [192, 144]
+    torch.testing.assert_close(large.image, small.image, atol=1e-6, rtol=1e-6)  # 3x3 equal pixels average to one
+    torch.testing.assert_close(large.K, small.K)  # the depth image's intrinsics
+    iio.imwrite(cap / "color" / "frame_003.png", np.repeat(color, 2, axis=0))  # 2:1 stretched: another aspect
+    with pytest.raises(SceneFileError, match="differ in aspect"):
+        read_capture(capture_frames(cap)[0])
+
+
+@pytest.mark.parametrize("damage, words", [
+    ("depth_8_bit", "depth is 8-bit"),
+    ("depth_zero", "zero (missing) on every pixel"),
+    ("no_depth", "no depth file of stem 'frame_004'"),
+    ("no_intrinsics", "no intrinsics: write"),
+    ("unreadable", "cannot read the image"),
+])
+def test_a_bad_frame_is_named_with_its_fix_and_the_others_are_estimated(tmp_path, damage, words):
+    _capture(tmp_path)
+    cap = tmp_path / "cap"
+    if damage == "depth_8_bit":
+        iio.imwrite(cap / "depth" / "frame_004.png", np.full((48, 64), 200, np.uint8))
+    elif damage == "depth_zero":
+        iio.imwrite(cap / "depth" / "frame_004.png", np.zeros((48, 64), np.uint16))
+    elif damage == "no_depth":
+        (cap / "depth" / "frame_004.png").unlink()
+    elif damage == "no_intrinsics":
+        (cap / "intrinsics" / "frame_004.json").unlink()
+    else:
+        (cap / "color" / "frame_004.png").write_bytes(b"not a png")
+    summary = estimate_files(cap, tmp_path / "lights.jsonl", FAST, progress=False)
+    assert summary["done"] == 1 and summary["failed"] == 1
+    (reason,) = summary["failures"].values()
+    assert words in reason and "\n" not in reason
+    records = [json.loads(line) for line in (tmp_path / "lights.jsonl").read_text().splitlines()]
+    assert [r["id"] for r in records] == ["frame_003"]
+
+
+def test_the_command_estimates_a_capture_folder_and_exits_non_zero_when_a_frame_fails(tmp_path):
+    _capture(tmp_path)
+    cap = tmp_path / "cap"
+    (cap / "notes.txt").write_text("other files are ignored")
+    (cap / "depth" / "frame_004.png").unlink()
+    result = subprocess.run([sys.executable, "train.py", "mode=estimate", f"estimate.input={cap}",
+                             f"estimate.output={tmp_path}/o.jsonl", "estimate.max_lights=1", "estimate.progress=false",
+                             "+estimate.tuning.refine.max_iters=[10,3]", f"hydra.run.dir={tmp_path}/run"],
+                            capture_output=True, text=True, cwd=str(ROOT))
+    assert result.returncode == 1, result.stderr[-2000:]
+    assert "frame_004" in result.stdout + result.stderr
+    (record,) = [json.loads(line) for line in (tmp_path / "o.jsonl").read_text().splitlines()]
+    assert record["id"] == "frame_003" and len(record["lights"]) == 1  # accuracy: benchmarks/captures.py
+
+
+def test_a_single_colour_file_takes_its_depth_from_estimate_depth(tmp_path):
+    _capture(tmp_path, seeds=(3,))
+    cap = tmp_path / "cap"
+    color, depth = cap / "color" / "frame_003.png", cap / "depth" / "frame_003.png"
+    (frame,) = estimate_inputs(color, depth)
+    assert frame == read_color_and_depth(color, depth) and frame.intrinsics_file == cap / "intrinsics" / "frame_003.json"
+    with pytest.raises(ValueError, match="give its depth with estimate.depth"):
+        estimate_inputs(color)
+    with pytest.raises(FileNotFoundError, match="estimate.depth .* does not exist"):
+        estimate_inputs(color, tmp_path / "none.png")
+    (tmp_path / "notes.txt").write_text("x")
+    with pytest.raises(ValueError, match="is not a .npz scene file"):
+        estimate_inputs(tmp_path / "notes.txt")
+
+
+def test_a_folder_of_capture_folders_names_them(tmp_path):
+    _capture(tmp_path, seeds=(3,))
+    with pytest.raises(FileNotFoundError, match="its sub-folders cap"):
+        estimate_inputs(tmp_path)
