@@ -87,7 +87,7 @@ def test_a_folder_of_folders_names_the_ones_with_scenes(tmp_path):
     for folder in ("gi", "empty"):
         (tmp_path / folder).mkdir()
     write_scene(tmp_path / "gi" / "a.npz", _scene(6))
-    with pytest.raises(FileNotFoundError, match=r"no \.npz scene files in .* \(its sub-folders gi hold some"):
+    with pytest.raises(FileNotFoundError, match=r"no \.npz scene files or capture folder .* in .* \(its sub-folders gi hold some"):
         estimate_files(tmp_path, tmp_path / "o.jsonl", EstimateOptions(), progress=False)
 
 
