@@ -65,6 +65,21 @@ class LogShading:
     material: Material
     falloff: str
     scale: Tensor
+    segments: Tensor | None = None  # (B, H*W) albedo segment of each pixel (H*W: none): segment-centred residuals
+    counts: Tensor | None = None  # (B, H*W + 1) valid pixels of each segment
+
+    def differences(self, x: Tensor) -> Tensor:
+        """The albedo-free view of log images ``x (B, [k,] H, W)`` -> ``(B, [k,] P)``: pair
+        differences of neighbours, or each pixel minus its segment's mean."""
+        if self.segments is None:
+            return pair_differences(x)
+        flat = x.flatten(-2)
+        index = self.segments if flat.dim() == 2 else self.segments[:, None].expand(-1, flat.shape[1], -1)
+        valid = self.pairs if flat.dim() == 2 else self.pairs[:, None].expand_as(flat)
+        sums = flat.new_zeros(*flat.shape[:-1], flat.shape[-1] + 1).scatter_add_(-1, index, flat * valid)
+        counts = self.counts if flat.dim() == 2 else self.counts[:, None]
+        mean = sums / counts.clamp_min(1)
+        return (flat - mean.gather(-1, index)) * valid
 
 
 @dataclass
@@ -97,13 +112,57 @@ def _pair_mask(mask: Tensor) -> Tensor:
                       (mask[..., 1:, :] & mask[..., :-1, :]).flatten(-2)], -1)
 
 
-def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float = 1.0) -> LogShading:
+RESIDUALS = ("segments", "pairs")
+# Felzenszwalb's graph segmentation of the sRGB-encoded image (skimage): its scale (larger:
+# fewer, larger segments), smoothing and smallest segment; a segment of fewer valid pixels
+# than MIN_SEGMENT_PIXELS is left out (its mean would be most of its pixels' values).
+SEGMENT_SIGMA = 0.5
+SEGMENT_MIN_SIZE = 15
+MIN_SEGMENT_PIXELS = 8
+
+
+def albedo_segments(problem: FitProblem, valid: Tensor, scale: float = 50.0) -> Tensor:
+    """Regions of one albedo ``(B, H*W)`` long (``H*W``: none): the smooth surfaces of the
+    geometry (:func:`selfsup.estimation.normals.surface_segments`) cut by the image's edges
+    (Felzenszwalb's segmentation of the sRGB-encoded image at ``scale``), so that both an
+    object's outline and a texture's edges bound them; pixels outside ``valid (B, H, W)``
+    and segments of fewer than :data:`MIN_SEGMENT_PIXELS` valid pixels get none."""
+    import numpy as np
+    from skimage.segmentation import felzenszwalb
+
+    from selfsup.estimation.normals import surface_segments
+    from selfsup.scenes.capture import linear_to_srgb
+
+    g = problem.gbuffer
+    B, H, W = valid.shape
+    geometry = surface_segments(g.points, g.normals, g.mask).flatten(1).cpu().numpy()
+    image = problem.image.detach().double().cpu().numpy()
+    keep = valid.flatten(1).cpu().numpy()
+    out = np.full((B, H * W), H * W, dtype=np.int64)
+    for b in range(B):
+        level = np.percentile(image[b][:, keep[b].reshape(H, W)], 99) if keep[b].any() else 1.0
+        encoded = linear_to_srgb(image[b].transpose(1, 2, 0) / max(level, 1e-30))  # edges as an eye (and a camera) sees them
+        colour = felzenszwalb(encoded, scale=scale, sigma=SEGMENT_SIGMA, min_size=SEGMENT_MIN_SIZE).ravel()
+        key = np.where(keep[b], geometry[b] * (int(colour.max()) + 1) + colour, -1)
+        _, label = np.unique(key, return_inverse=True)
+        label = label.reshape(-1) - int((~keep[b]).any())  # the invalid key (-1) sorts first
+        sizes = np.bincount(np.where(keep[b], label, 0), weights=keep[b].astype(np.float64))
+        usable = keep[b] & (sizes[np.maximum(label, 0)] >= MIN_SEGMENT_PIXELS)
+        out[b] = np.where(usable, label, H * W)
+    return torch.from_numpy(out).to(valid.device)
+
+
+def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float = 1.0, residuals: str = "segments",
+            segment_scale: float = 50.0) -> LogShading:
     """The observed log shading of ``problem``; pixels with kd or the image at zero left out.
 
-    The Cauchy scale is ``robust_scale`` (a relative change between neighbours), at
-    least ``noise_floor`` x the image's noise level relative to its median (the
-    pair difference of a log carries about that noise).
+    ``residuals``: ``segments`` (each pixel's log shading minus its albedo segment's mean,
+    :func:`albedo_segments` at ``segment_scale``) or ``pairs`` (differences of
+    neighbours). The Cauchy scale is ``robust_scale`` (a relative change), at least
+    ``noise_floor`` x the image's noise level relative to its median.
     """
+    if residuals not in RESIDUALS:
+        raise ValueError(f"residuals must be one of {RESIDUALS}, got {residuals!r}")
     kd = problem.material.kd.permute(0, 3, 1, 2)  # (B, 3, H, W)
     lit = (kd > 0).all(1) & problem.gbuffer.mask
     grey = torch.where(lit[:, None], problem.image / kd.clamp_min(1e-12), torch.zeros_like(problem.image)).mean(1)
@@ -113,6 +172,16 @@ def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float 
     log_shading = torch.log(torch.where(valid, grey, median[:, None, None]))
     relative_noise = problem.noise_level() / problem.median_observed().clamp_min(1e-30)
     scale = torch.clamp_min(noise_floor * relative_noise, robust_scale)
+    if residuals == "segments":
+        segments = albedo_segments(problem, valid, segment_scale)
+        B, N = segments.shape
+        pairs = segments < N
+        counts = torch.zeros(B, N + 1, dtype=grey.dtype, device=grey.device).scatter_add_(
+            1, segments, pairs.to(grey.dtype))
+        obs = LogShading(log_shading, pairs, log_shading.flatten(1), problem.gbuffer,
+                         Material(kd=problem.material.kd), problem.falloff, scale.to(grey.dtype), segments, counts)
+        obs.observed = obs.differences(log_shading)
+        return obs
     pairs = _pair_mask(valid)
     return LogShading(log_shading, pairs, pair_differences(log_shading), problem.gbuffer,
                       Material(kd=problem.material.kd), problem.falloff, scale.to(grey.dtype))
@@ -123,7 +192,8 @@ def _tiled(obs: LogShading, count: int) -> LogShading:
     rep = lambda x: None if x is None else x.repeat_interleave(count, 0)  # noqa: E731
     rows = torch.arange(obs.gbuffer.batch_size, device=obs.gbuffer.points.device).repeat_interleave(count)
     return LogShading(rep(obs.log_shading), rep(obs.pairs), rep(obs.observed), obs.gbuffer.select(rows),
-                      Material(kd=rep(obs.material.kd)), obs.falloff, rep(obs.scale))
+                      Material(kd=rep(obs.material.kd)), obs.falloff, rep(obs.scale), rep(obs.segments),
+                      rep(obs.counts))
 
 
 def _transport(obs: LogShading, position: Tensor) -> Tensor:
@@ -153,7 +223,7 @@ def _cauchy_weights(obs: LogShading, residual: Tensor) -> Tensor:
 
 
 def _residual(obs: LogShading, log_model: Tensor) -> Tensor:
-    return torch.where(obs.pairs, obs.observed - pair_differences(log_model), torch.zeros_like(obs.observed))
+    return torch.where(obs.pairs, obs.observed - obs.differences(log_model), torch.zeros_like(obs.observed))
 
 
 def _evaluate(obs: LogShading, position: Tensor, log_weight: Tensor) -> Tensor:
@@ -176,7 +246,7 @@ def _jacobian(obs: LogShading, position: Tensor, log_weight: Tensor) -> tuple[Te
     d_ambient = w[:, :1, None, None].expand(B, 1, *diffuse.shape[-2:])
     d_lights = w[:, 2:, None, None] * diffuse[:, 1:]
     d_log = torch.cat([d_pos, d_ambient, d_lights], 1) / shading[:, None]
-    return _residual(obs, log_model), -pair_differences(d_log) * obs.pairs[:, None]
+    return _residual(obs, log_model), -obs.differences(d_log) * obs.pairs[:, None]
 
 
 def _unpack(step: Tensor, L: int) -> tuple[Tensor, Tensor]:
@@ -254,20 +324,22 @@ def _grid_losses(obs: LogShading, fixed: AlbedoFreeFit | None, cands: Tensor) ->
 
 def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None = None, robust_scale: float = 0.02,
            per_axis: tuple[int, int, int] = (7, 7, 7), starts: int = 4, rank_stride: int = 4, start_stride: int = 2,
-           iterations: tuple[int, int] = (15, 15)) -> AlbedoFreeFit:
+           iterations: tuple[int, int] = (15, 15), residuals: str = "segments",
+           segment_scale: float = 50.0) -> AlbedoFreeFit:
     """Fit ``n_lights`` lights to the log shading of ``problem``, every image at once.
 
     The last light is searched, the others (``fixed``, the fit of ``n_lights - 1``)
     start where they are: every grid candidate (:func:`selfsup.estimation.solvers.grid_candidates`)
     with a few contrast steps is scored at every ``rank_stride``-th pixel, the
     ``starts`` best well-spread ones run ``iterations[0]`` LM steps at
-    ``start_stride``, and the best of those ``iterations[1]`` at full resolution.
+    ``start_stride``, and the best of those ``iterations[1]`` at full resolution;
+    ``residuals``, ``segment_scale``: as :func:`observe`.
     """
     B = problem.batch
     if (fixed is None) != (n_lights == 1) or (fixed is not None and fixed.position.shape[1] != n_lights - 1):
         raise ValueError(f"searching light {n_lights} needs the fit of the {n_lights - 1} before it")
     coarsest = subsample(problem, rank_stride)
-    ranked = observe(coarsest, robust_scale)
+    ranked = observe(coarsest, robust_scale, residuals=residuals, segment_scale=segment_scale)
     cands = grid_candidates(coarsest, per_axis)
     with torch.no_grad():
         losses, weights = _grid_losses(ranked, fixed, cands)
@@ -277,11 +349,12 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     rows = torch.arange(B, device=index.device)[:, None]
     base = cands.new_zeros(B, 0, 3) if fixed is None else fixed.position
     position = torch.cat([base[:, None].expand(B, S, -1, -1), cands[rows, index][:, :, None]], 2)
-    coarse = _tiled(observe(subsample(problem, start_stride), robust_scale), S)
+    coarse = _tiled(observe(subsample(problem, start_stride), robust_scale, residuals=residuals,
+                            segment_scale=segment_scale), S)
     fit = refine_positions(coarse, position.flatten(0, 1), weights[rows, index].flatten(0, 1), iterations[0])
     best = fit.loss.reshape(B, S).argmin(1)
     pick = torch.arange(B, device=best.device) * S + best
-    full = observe(problem, robust_scale)
+    full = observe(problem, robust_scale, residuals=residuals, segment_scale=segment_scale)
     return refine_positions(full, fit.position[pick], fit.log_weight[pick], iterations[1])
 
 

@@ -114,7 +114,9 @@ class Tuning:
         reflectance: ``auto`` fits a file whose kd is one constant albedo-free
             (:mod:`selfsup.estimation.albedo_free`) | ``given`` | ``albedo_free``;
             ``albedo_free_scale``, ``albedo_free_block_width``: that fit's Cauchy
-            scale and block.
+            scale and block; ``albedo_free_residuals``: ``segments`` (each pixel's log
+            shading against its albedo segment's mean; segments cut at the image's
+            edges, Felzenszwalb scale ``albedo_segment_scale``) | ``pairs`` (neighbours).
         reflectance_gains: rounds re-estimating with each smooth surface's albedo
             rescaled by the last fit.
     Uncertainty:
@@ -148,6 +150,8 @@ class Tuning:
     criterion_thickness: float | None = 0.03
     albedo_free_scale: float = 0.02
     albedo_free_block_width: float = 0.05
+    albedo_free_residuals: str = "segments"
+    albedo_segment_scale: float = 50.0
     albedo_error: float = 0.0
     indirect_variation: float = 0.7
     indirect_length: float = 0.15
@@ -197,6 +201,7 @@ def _check_tuning(t: Tuning) -> None:
     need(t.indirect_length > 0 and math.isfinite(t.indirect_length), "indirect_length",
          "a finite length > 0 (of the scene size)")
     need(t.albedo_free_scale > 0, "albedo_free_scale", "> 0")
+    need(t.albedo_segment_scale > 0, "albedo_segment_scale", "> 0")
     need(t.normal_noise_threshold >= 0, "normal_noise_threshold", ">= 0 degrees")
     need(0 < t.plane_window < 1, "plane_window", "in (0, 1) (of the focal length)")
     need(all(0 < f <= 1 for f in t.plane_shifts), "plane_shifts", "fractions in (0, 1] of the plane window")
@@ -205,7 +210,7 @@ def _check_tuning(t: Tuning) -> None:
     need(t.max_pixels is None or (isinstance(t.max_pixels, int) and t.max_pixels >= 1), "max_pixels",
          "null or an integer >= 1")
     need(t.criterion_stride >= 1, "criterion_stride", ">= 1 pixel")
-    for name, choices in (("reflectance", REFLECTANCE), ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT),
+    for name, choices in (("reflectance", REFLECTANCE), ("albedo_free_residuals", ("segments", "pairs")), ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT),
                           ("indirect", INDIRECT), ("search_shadows", SHADOW_METHODS),
                           ("criterion_shadows", SHADOW_METHODS)):
         _check_choice(f"tuning.{name}", getattr(t, name), choices)

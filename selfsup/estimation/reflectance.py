@@ -42,6 +42,11 @@ def albedo_free_images(problem: FitProblem, options: EstimateOptions) -> list[bo
     return reflectance_unknown(problem).tolist()
 
 
+def _residuals(options: EstimateOptions) -> dict:
+    # The albedo-free fit's residuals, as the tuning says.
+    return dict(residuals=options.tuning.albedo_free_residuals, segment_scale=options.tuning.albedo_segment_scale)
+
+
 def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
     """Lights fitted to the log shading's neighbour differences (:mod:`selfsup.estimation.albedo_free`),
     1 .. ``max_lights`` while :func:`bic` of their Cauchy loss falls and each light
@@ -50,7 +55,7 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
     nothing of the highlights either)."""
     B, device = problem.batch, problem.image.device
     block = block_px(options, problem.image.shape[-1], albedo_free=True)
-    found = albedo_free.search(problem, 1, robust_scale=options.tuning.albedo_free_scale)
+    found = albedo_free.search(problem, 1, robust_scale=options.tuning.albedo_free_scale, **_residuals(options))
     pairs = found.pairs.tolist()
     if min(pairs) < 100:
         raise ValueError(f"kd is one constant, so the lights are fitted albedo-free, but image {pairs.index(min(pairs))} "
@@ -69,7 +74,8 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         at = torch.tensor(growing, dtype=torch.long, device=device)
         before = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in growing])
         sub = problem.select(at)
-        more = albedo_free.search(sub, n_lights, fixed=before, robust_scale=options.tuning.albedo_free_scale)
+        more = albedo_free.search(sub, n_lights, fixed=before, robust_scale=options.tuning.albedo_free_scale,
+                                  **_residuals(options))
         shares = albedo_free.light_shares(sub, more).amin(1).tolist()
         still = []
         for j, (i, c, share) in enumerate(zip(growing, criterion(more), shares)):
@@ -87,7 +93,8 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         chosen = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in group])
         sub = problem.select(torch.tensor(group, dtype=torch.long, device=device))
         fit = refine(sub, chosen.position, solve)
-        cov = albedo_free.position_covariance(albedo_free.observe(sub, options.tuning.albedo_free_scale), chosen,
+        cov = albedo_free.position_covariance(albedo_free.observe(sub, options.tuning.albedo_free_scale,
+                                                                                    **_residuals(options)), chosen,
                                               correlation_px=float(block**2)).cpu()
         for j, i in enumerate(group):
             candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free")
