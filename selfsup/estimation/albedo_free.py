@@ -121,12 +121,12 @@ SEGMENT_MIN_SIZE = 15
 MIN_SEGMENT_PIXELS = 8
 
 
-def albedo_segments(problem: FitProblem, valid: Tensor, scale: float = 50.0) -> Tensor:
-    """Regions of one albedo ``(B, H*W)`` long (``H*W``: none): the smooth surfaces of the
+def albedo_segments(problem: FitProblem, scale: float = 50.0) -> Tensor:
+    """Regions of one albedo ``(B, H, W)`` long (-1: none): the smooth surfaces of the
     geometry (:func:`selfsup.estimation.normals.surface_segments`) cut by the image's edges
     (Felzenszwalb's segmentation of the sRGB-encoded image at ``scale``), so that both an
-    object's outline and a texture's edges bound them; pixels outside ``valid (B, H, W)``
-    and segments of fewer than :data:`MIN_SEGMENT_PIXELS` valid pixels get none."""
+    object's outline and a texture's edges bound them. Found once per image: a subsample's
+    are every stride-th label (:func:`search`)."""
     import numpy as np
     from skimage.segmentation import felzenszwalb
 
@@ -134,31 +134,37 @@ def albedo_segments(problem: FitProblem, valid: Tensor, scale: float = 50.0) -> 
     from selfsup.scenes.capture import linear_to_srgb
 
     g = problem.gbuffer
-    B, H, W = valid.shape
+    B, H, W = g.mask.shape
     geometry = surface_segments(g.points, g.normals, g.mask).flatten(1).cpu().numpy()
     image = problem.image.detach().double().cpu().numpy()
-    keep = valid.flatten(1).cpu().numpy()
-    out = np.full((B, H * W), H * W, dtype=np.int64)
+    keep = g.mask.flatten(1).cpu().numpy()
+    out = np.full((B, H * W), -1, dtype=np.int64)
     for b in range(B):
         level = np.percentile(image[b][:, keep[b].reshape(H, W)], 99) if keep[b].any() else 1.0
         encoded = linear_to_srgb(image[b].transpose(1, 2, 0) / max(level, 1e-30))  # edges as an eye (and a camera) sees them
         colour = felzenszwalb(encoded, scale=scale, sigma=SEGMENT_SIGMA, min_size=SEGMENT_MIN_SIZE).ravel()
         key = np.where(keep[b], geometry[b] * (int(colour.max()) + 1) + colour, -1)
         _, label = np.unique(key, return_inverse=True)
-        label = label.reshape(-1) - int((~keep[b]).any())  # the invalid key (-1) sorts first
-        sizes = np.bincount(np.where(keep[b], label, 0), weights=keep[b].astype(np.float64))
-        usable = keep[b] & (sizes[np.maximum(label, 0)] >= MIN_SEGMENT_PIXELS)
-        out[b] = np.where(usable, label, H * W)
-    return torch.from_numpy(out).to(valid.device)
+        out[b] = np.where(keep[b], label.reshape(-1) - int((~keep[b]).any()), -1)  # the invalid key (-1) sorts first
+    return torch.from_numpy(out).to(g.mask.device).view(B, H, W)
+
+
+def _usable(labels: Tensor, valid: Tensor) -> Tensor:
+    # (B, H, W) labels -> (B, H*W) segment of each valid pixel of a segment of at least
+    # MIN_SEGMENT_PIXELS valid ones; H*W (none) elsewhere.
+    B, N = valid.shape[0], valid[0].numel()
+    flat = torch.where(valid & (labels >= 0), labels, N).flatten(1).clamp_max(N)
+    counts = torch.zeros(B, N + 1, dtype=torch.long, device=flat.device).scatter_add_(1, flat, torch.ones_like(flat))
+    return torch.where((flat < N) & (counts.gather(1, flat) >= MIN_SEGMENT_PIXELS), flat, N)
 
 
 def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float = 1.0, residuals: str = "segments",
-            segment_scale: float = 50.0) -> LogShading:
+            segment_scale: float = 50.0, labels: Tensor | None = None) -> LogShading:
     """The observed log shading of ``problem``; pixels with kd or the image at zero left out.
 
     ``residuals``: ``segments`` (each pixel's log shading minus its albedo segment's mean,
-    :func:`albedo_segments` at ``segment_scale``) or ``pairs`` (differences of
-    neighbours). The Cauchy scale is ``robust_scale`` (a relative change), at least
+    :func:`albedo_segments` at ``segment_scale``, or ``labels (B, H, W)`` when found
+    already) or ``pairs`` (differences of neighbours). The Cauchy scale is ``robust_scale`` (a relative change), at least
     ``noise_floor`` x the image's noise level relative to its median.
     """
     if residuals not in RESIDUALS:
@@ -173,7 +179,7 @@ def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float 
     relative_noise = problem.noise_level() / problem.median_observed().clamp_min(1e-30)
     scale = torch.clamp_min(noise_floor * relative_noise, robust_scale)
     if residuals == "segments":
-        segments = albedo_segments(problem, valid, segment_scale)
+        segments = _usable(albedo_segments(problem, segment_scale) if labels is None else labels, valid)
         B, N = segments.shape
         pairs = segments < N
         counts = torch.zeros(B, N + 1, dtype=grey.dtype, device=grey.device).scatter_add_(
@@ -325,7 +331,7 @@ def _grid_losses(obs: LogShading, fixed: AlbedoFreeFit | None, cands: Tensor) ->
 def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None = None, robust_scale: float = 0.02,
            per_axis: tuple[int, int, int] = (7, 7, 7), starts: int = 4, rank_stride: int = 4, start_stride: int = 2,
            iterations: tuple[int, int] = (15, 15), residuals: str = "segments",
-           segment_scale: float = 50.0) -> AlbedoFreeFit:
+           segment_scale: float = 50.0, labels: Tensor | None = None) -> AlbedoFreeFit:
     """Fit ``n_lights`` lights to the log shading of ``problem``, every image at once.
 
     The last light is searched, the others (``fixed``, the fit of ``n_lights - 1``)
@@ -333,13 +339,17 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     with a few contrast steps is scored at every ``rank_stride``-th pixel, the
     ``starts`` best well-spread ones run ``iterations[0]`` LM steps at
     ``start_stride``, and the best of those ``iterations[1]`` at full resolution;
-    ``residuals``, ``segment_scale``: as :func:`observe`.
+    ``residuals``, ``segment_scale``, ``labels``: as :func:`observe` (the segments are
+    found once, at full resolution).
     """
     B = problem.batch
     if (fixed is None) != (n_lights == 1) or (fixed is not None and fixed.position.shape[1] != n_lights - 1):
         raise ValueError(f"searching light {n_lights} needs the fit of the {n_lights - 1} before it")
+    if residuals == "segments" and labels is None:
+        labels = albedo_segments(problem, segment_scale)
+    at = (lambda s: None) if labels is None else (lambda s: labels[:, ::s, ::s])  # noqa: E731  a subsample's labels
     coarsest = subsample(problem, rank_stride)
-    ranked = observe(coarsest, robust_scale, residuals=residuals, segment_scale=segment_scale)
+    ranked = observe(coarsest, robust_scale, residuals=residuals, labels=at(rank_stride))
     cands = grid_candidates(coarsest, per_axis)
     with torch.no_grad():
         losses, weights = _grid_losses(ranked, fixed, cands)
@@ -350,11 +360,11 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     base = cands.new_zeros(B, 0, 3) if fixed is None else fixed.position
     position = torch.cat([base[:, None].expand(B, S, -1, -1), cands[rows, index][:, :, None]], 2)
     coarse = _tiled(observe(subsample(problem, start_stride), robust_scale, residuals=residuals,
-                            segment_scale=segment_scale), S)
+                            labels=at(start_stride)), S)
     fit = refine_positions(coarse, position.flatten(0, 1), weights[rows, index].flatten(0, 1), iterations[0])
     best = fit.loss.reshape(B, S).argmin(1)
     pick = torch.arange(B, device=best.device) * S + best
-    full = observe(problem, robust_scale, residuals=residuals, segment_scale=segment_scale)
+    full = observe(problem, robust_scale, residuals=residuals, labels=at(1))
     return refine_positions(full, fit.position[pick], fit.log_weight[pick], iterations[1])
 
 

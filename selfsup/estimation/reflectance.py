@@ -48,14 +48,18 @@ def _residuals(options: EstimateOptions) -> dict:
 
 
 def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
-    """Lights fitted to the log shading's neighbour differences (:mod:`selfsup.estimation.albedo_free`),
-    1 .. ``max_lights`` while :func:`bic` of their Cauchy loss falls and each light
+    """Lights fitted to the log shading with each albedo segment's mean taken out (or its
+    neighbour differences; :mod:`selfsup.estimation.albedo_free`), 1 .. ``max_lights`` while :func:`bic` of their Cauchy loss falls and each light
     carries ``min_light_share`` of the fitted shading; intensities and ambient then
     solved against the image with the file's kd (diffuse only: a constant ks says
     nothing of the highlights either)."""
     B, device = problem.batch, problem.image.device
     block = block_px(options, problem.image.shape[-1], albedo_free=True)
-    found = albedo_free.search(problem, 1, robust_scale=options.tuning.albedo_free_scale, **_residuals(options))
+    labels = None  # every image's albedo segments, found once
+    if options.tuning.albedo_free_residuals == "segments":
+        labels = albedo_free.albedo_segments(problem, options.tuning.albedo_segment_scale)
+    found = albedo_free.search(problem, 1, robust_scale=options.tuning.albedo_free_scale, labels=labels,
+                               **_residuals(options))
     pairs = found.pairs.tolist()
     if min(pairs) < 100:
         raise ValueError(f"kd is one constant, so the lights are fitted albedo-free, but image {pairs.index(min(pairs))} "
@@ -75,7 +79,7 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         before = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in growing])
         sub = problem.select(at)
         more = albedo_free.search(sub, n_lights, fixed=before, robust_scale=options.tuning.albedo_free_scale,
-                                  **_residuals(options))
+                                  labels=None if labels is None else labels[at], **_residuals(options))
         shares = albedo_free.light_shares(sub, more).amin(1).tolist()
         still = []
         for j, (i, c, share) in enumerate(zip(growing, criterion(more), shares)):
@@ -91,11 +95,12 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
     for n_lights in sorted(set(counts)):  # one batched solve and covariance per light count
         group = [i for i in range(B) if counts[i] == n_lights]
         chosen = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in group])
-        sub = problem.select(torch.tensor(group, dtype=torch.long, device=device))
+        rows = torch.tensor(group, dtype=torch.long, device=device)
+        sub = problem.select(rows)
         fit = refine(sub, chosen.position, solve)
-        cov = albedo_free.position_covariance(albedo_free.observe(sub, options.tuning.albedo_free_scale,
-                                                                                    **_residuals(options)), chosen,
-                                              correlation_px=float(block**2)).cpu()
+        observed = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=None if labels is None else
+                                       labels[rows], **_residuals(options))
+        cov = albedo_free.position_covariance(observed, chosen, correlation_px=float(block**2)).cpu()
         for j, i in enumerate(group):
             candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free")
             # The records keep the tried models' counts and criteria only.
