@@ -15,7 +15,7 @@ import torch
 
 from selfsup.model import LightNet
 
-__all__ = ["DEFAULT_CHECKPOINT", "save_network", "load_network"]
+__all__ = ["DEFAULT_CHECKPOINT", "save_network", "load_network", "load_checkpoint"]
 
 DEFAULT_CHECKPOINT = Path(__file__).parent / "checkpoints" / "lightnet.pt"
 CHECKPOINT_FORMAT = 1
@@ -34,13 +34,33 @@ def save_network(path: str | Path, network: LightNet, model_config: dict, metric
     return path
 
 
+def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
+    """A checkpoint's contents, read with ``weights_only=True``: tensors, numbers, strings
+    and containers of them, never arbitrary objects, so that a checkpoint from someone
+    else cannot run code here. A file that needs more is refused with the reason.
+
+    Raises:
+        ValueError: the file needs arbitrary unpickling, or is no torch checkpoint.
+    """
+    import pickle
+
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as error:
+        reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise ValueError(f"{path}: refused: it holds objects other than tensors, numbers, strings and containers "
+                         f"of them, and unpickling them could run code from the file ({reason})") from None
+    except (RuntimeError, EOFError, OSError) as error:
+        raise ValueError(f"{path} is not a readable torch checkpoint ({type(error).__name__}: {error})") from None
+
+
 def load_network(path: str | Path | None = None, map_location="cpu") -> tuple[LightNet, dict]:
     """``(network in eval mode, checkpoint dict)``; ``path`` None: the shipped checkpoint."""
     path = Path(path) if path is not None else DEFAULT_CHECKPOINT
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}" + (
             " (the shipped one: train it with `python train.py`, see README)" if path == DEFAULT_CHECKPOINT else ""))
-    state = torch.load(path, map_location=map_location, weights_only=False)
+    state = load_checkpoint(path, map_location)
     if not isinstance(state, dict) or "model" not in state or "model_config" not in state:
         raise ValueError(f"{path} is not a LightNet checkpoint (needs 'model' and 'model_config')")
     config = dict(state["model_config"])

@@ -38,7 +38,7 @@ import torch.distributed as dist
 from torch import Tensor
 
 from render import ShadowedBlinnPhong
-from selfsup.checkpoint import save_network
+from selfsup.checkpoint import load_checkpoint, save_network
 from selfsup.evaluate import evaluate_network, summarise
 from selfsup.losses import LossOptions, reconstruction_loss, scene_batch
 from selfsup.model import LightNet, LightPrediction, scene_frame
@@ -259,7 +259,7 @@ class Trainer:
         step, best = 0, math.inf
         resume = self._resume_path()
         if resume is not None:
-            state = torch.load(resume, map_location=ctx.device, weights_only=False)
+            state = load_checkpoint(resume, map_location=ctx.device)
             network.load_state_dict(state["model"])
             optimiser.load_state_dict(state["optimizer"])
             schedule.load_state_dict(state["scheduler"])
