@@ -1,7 +1,9 @@
 """Camera captures made from scene files, and the estimator scored on them.
 
     python -m benchmarks.captures make --scenes data/mitsuba --out data/captures/mitsuba
-    python -m benchmarks.captures run --captures data/captures/mitsuba data/captures/mitsuba_closed
+    python -m benchmarks.captures procedural --out data/procedural     # our own scenes: direct/ and noisy/ files
+    python -m benchmarks.captures make --scenes data/procedural --out data/captures/procedural --sets direct noisy
+    python -m benchmarks.captures run --captures data/captures/mitsuba data/captures/mitsuba_closed data/captures/procedural
 
 ``make`` turns each set (``direct``, ``gi``, ``noisy``) of scene files into a capture
 folder of the layout ``mode=estimate`` reads (``docs/scene-format.md``, "Capture
@@ -41,7 +43,24 @@ from selfsup.scenes.io import read_scene
 SETS = ("direct", "gi", "noisy")
 EXPOSURE_RANGE = (0.5, 2.0)  # the 99th percentile of the valid values lands in this share of full scale
 COLUMNS = ["root", "set", "scenes", "success", "one_light_success", "two_light_right_count", "median_worst_error",
-           "seconds_per_frame"]
+           "seconds_per_frame", "command_seconds_per_frame"]
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def command_seconds(folder: Path) -> float:
+    """Wall time of ``python train.py mode=estimate`` on ``folder``, Python's start-up and
+    the network's load included, over its frames (the defaults: 2 workers on 2 cores)."""
+    import subprocess
+    import sys
+
+    from selfsup.scenes.capture import capture_frames
+
+    with tempfile.TemporaryDirectory() as tmp:
+        started = time.perf_counter()
+        subprocess.run([sys.executable, "train.py", "mode=estimate", f"estimate.input={folder.resolve()}",
+                        f"estimate.output={tmp}/o.jsonl", "estimate.progress=false", f"hydra.run.dir={tmp}/run"],
+                       cwd=ROOT, check=False, capture_output=True)
+        return round((time.perf_counter() - started) / max(len(capture_frames(folder)), 1), 3)
 
 
 def _exposure_draw(name: str) -> float:
@@ -90,6 +109,30 @@ def make(scenes: Path, out: Path, sets=SETS) -> list[Path]:
     return made
 
 
+# The sensor set of configs/eval and benchmarks/estimate_procedural: depth noise and
+# quantisation growing with z^2, holes, image noise.
+SENSOR = dict(depth_noise=0.003, depth_quantisation=0.001, edge_hole_jump=0.05, random_holes=0.01, image_noise=0.005)
+
+
+def procedural(out: Path, count: int = 48, seed: int = 7000) -> None:
+    """Scene files of our generator (160x120, 2x2 AA) in ``out/direct`` (exact) and
+    ``out/noisy`` (the sensor degradations): the first half of the scenes with one light,
+    the rest with two, as the Mitsuba sets."""
+    from selfsup.scenes.dataset import render_items
+    from selfsup.scenes.degrade import Degradations
+    from selfsup.scenes.io import write_scene
+    from selfsup.scenes.sampler import SamplerConfig
+
+    for set_name, degradations in (("direct", Degradations()), ("noisy", Degradations(**SENSOR))):
+        (out / set_name).mkdir(parents=True, exist_ok=True)
+        for lights, first in ((1, 0), (2, count // 2)):
+            sampler = SamplerConfig(height=120, width=160, n_lights_probs=(1.0,) if lights == 1 else (0.0, 1.0))
+            seeds = [seed + i for i in range(first, first + count // 2)]
+            for i, (_, scene) in zip(range(first, first + count // 2), render_items(seeds, sampler, degradations, 2)):
+                write_scene(out / set_name / f"scene_{i:03d}.npz", scene)
+        print(f"{out / set_name}: {count} scene files", flush=True)
+
+
 def read_truth(path: Path) -> SimpleNamespace:
     """A capture's truth file as the fields :func:`benchmarks.common.score_record` reads."""
     data = np.load(path, allow_pickle=False)
@@ -125,7 +168,8 @@ def summary(root: str, set_name: str, rows: list[dict], frames: int, wall: float
             "seconds_per_frame": round(wall / max(frames, 1), 3)}
 
 
-def run(roots: list[Path], sets=SETS, write: bool = True, options=None) -> tuple[list[dict], Path | None]:
+def run(roots: list[Path], sets=SETS, write: bool = True, options=None, name: str = "capture_estimate",
+        command_time: bool = False) -> tuple[list[dict], Path | None]:
     """Estimate every set of each captures root (``mode=estimate``'s defaults, or
     ``options``) and score it; one row per set."""
     from selfsup.estimation import EstimateOptions, estimate_files
@@ -145,6 +189,7 @@ def run(roots: list[Path], sets=SETS, write: bool = True, options=None) -> tuple
                 wall = time.perf_counter() - started
                 scored = score(folder, output) if output.exists() else []
             rows.append(summary(root.name, set_name, scored, len(capture_frames(folder)), wall))
+            rows[-1]["command_seconds_per_frame"] = command_seconds(folder) if command_time else ""
             print(rows[-1], flush=True)
     path = None
     if write:
@@ -153,9 +198,11 @@ def run(roots: list[Path], sets=SETS, write: bool = True, options=None) -> tuple
                   "files, estimated by `mode=estimate` with the default settings (batch 4, workers auto) and scored "
                   "against truth/: success = every light within 0.05 of the scene size; one-light success; two-light "
                   "right count = two lights found in the two-light scenes; median worst position error (of the scene "
-                  "size); seconds per frame = the command's wall time over the frames (the network's load included, "
-                  "Python's start not).")
-        path = write_results("capture_estimate", torch.device("cpu"), rows, header, COLUMNS)
+                  "size); seconds per frame = estimate_files' wall time over the frames (the network's load included, "
+                  "Python's start not); command seconds per frame (with --command-time) = `python train.py "
+                  "mode=estimate` on the folder, start-up included, over its frames." + (f" Settings changed: {options.changed_settings()}."
+                                             if options.changed_settings() else ""))
+        path = write_results(name, torch.device("cpu"), rows, header, COLUMNS)
     return rows, path
 
 
@@ -166,21 +213,30 @@ def main() -> None:
     m.add_argument("--scenes", type=Path, required=True, help="a folder with direct/ gi/ noisy/ scene files")
     m.add_argument("--out", type=Path, required=True)
     m.add_argument("--sets", nargs="+", default=list(SETS))
+    g = sub.add_parser("procedural", help="scene files of our generator, exact and with sensor noise")
+    g.add_argument("--out", type=Path, required=True)
+    g.add_argument("--count", type=int, default=48)
+    g.add_argument("--seed", type=int, default=7000)
     r = sub.add_parser("run", help="estimate and score capture folders")
     r.add_argument("--captures", type=Path, nargs="+", required=True, help="roots with direct/ gi/ noisy/ captures")
     r.add_argument("--sets", nargs="+", default=list(SETS))
     r.add_argument("--no-write", action="store_true")
+    r.add_argument("--name", default="capture_estimate", help="the results file's name")
+    r.add_argument("--command-time", action="store_true", help="also time the command itself on each folder")
     r.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="an estimate setting or tuned constant, e.g. coat='never' (repeatable)")
     args = parser.parse_args()
     if args.command == "make":
         make(args.scenes, args.out, args.sets)
+    elif args.command == "procedural":
+        procedural(args.out, args.count, args.seed)
     else:
         from benchmarks.estimate_procedural import parse_options
         from selfsup.estimation import EstimateOptions
 
         options = EstimateOptions.from_settings(**parse_options(args.option))
-        print(run(args.captures, args.sets, write=not args.no_write, options=options)[1])
+        print(run(args.captures, args.sets, write=not args.no_write, options=options, name=args.name,
+                  command_time=args.command_time)[1])
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ Our sampler draws the rooms, objects, materials, camera and lights
 (:func:`selfsup.scenes.sampler.sample_scene`, the first half of the scenes with one
 light, the rest with two); Mitsuba 3 (``scalar_rgb``) renders them, so that none of
 our own shading, shadow or anti-aliasing code makes the images. The files follow
-``../shared/scene-format.md`` and come in the three variants of the devset
+``docs/scene-format.md`` and come in the three variants of the devset
 (``../shared/devset/README.md``), each in its folder under ``--out``:
 
 - ``direct``: the point lights' direct light only (``direct`` integrator, 16 samples

@@ -1,6 +1,6 @@
 """Functional form of the shadowed Blinn-Phong renderer.
 
-Image model (``../shared/scene-format.md``), per pixel point ``X`` and light ``i``::
+Image model (``docs/scene-format.md``), per pixel point ``X`` and light ``i``::
 
     I = kd * L_a + sum_i S_i * I_i * f(d_i) * (kd * max(0, n.l_i) + ks * max(0, n.h_i)^alpha)
 

@@ -1,7 +1,7 @@
 """Ground-truth metrics of a light-estimation network on a pool of scenes.
 
 Training never sees these numbers through its loss; validation and ``mode=eval``
-report them (definitions in :mod:`selfsup.metrics` and ``../shared/scene-format.md``).
+report them (definitions in :mod:`selfsup.metrics` and ``docs/scene-format.md``).
 """
 
 from __future__ import annotations

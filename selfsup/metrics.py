@@ -1,4 +1,4 @@
-"""Errors of estimated lights against ground truth, as ``../shared/scene-format.md`` defines them.
+"""Errors of estimated lights against ground truth, as ``docs/scene-format.md`` defines them.
 
 - position error ``|L_est - L_true| / scene_scale``, estimates and truths paired by
   minimum total distance; an unpaired true or estimated light counts 1.0;

@@ -1,7 +1,7 @@
 """Exact ground-truth rendering of a sampled scene by batched ray casting.
 
 Primary rays through pixels, exact shadow rays against the primitives (never the
-shadow maps of ``render/``), the Blinn-Phong model of ``../shared/scene-format.md``
+shadow maps of ``render/``), the Blinn-Phong model of ``docs/scene-format.md``
 with inverse-square falloff by default, and ``samples x samples`` supersampled
 anti-aliasing of the image. The stored G-buffer is that of the pixel centre ray
 (depth, normals, ks, shininess) and the pixel-averaged albedo, as an RGB-D

@@ -100,7 +100,7 @@ def generate_set(out: str, count: int = 100, seed: int = 0, sampler: SamplerConf
                  contact_sheet_rows: int = 6, workers: int = 0) -> list[Path]:
     """Write ``count`` scene files (or the 9 x 6 protocol set) into ``out``.
 
-    Files are ``<out>/scene_<index>.npz`` in the format of ``../shared/scene-format.md``
+    Files are ``<out>/scene_<index>.npz`` in the format of ``docs/scene-format.md``
     with ground truth; the inputs carry the chosen degradations. With
     ``contact_sheet_rows > 0`` also writes ``<out>/contact_sheet.png``. ``workers``:
     processes that render and write parts of 16 scenes each (0: this process); the

@@ -1,4 +1,4 @@
-"""Reading and writing scene files (``../shared/scene-format.md``), in one place.
+"""Reading and writing scene files (``docs/scene-format.md``), in one place.
 
 Every reader of the project goes through :func:`read_scene`; every writer through
 :func:`write_scene`. A bad file raises :class:`SceneFileError` naming the file and
