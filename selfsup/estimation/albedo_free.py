@@ -34,7 +34,7 @@ from torch import Tensor
 from render import GBuffer, Material
 from render.functional import light_transport, light_transport_jacobian
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
-from selfsup.estimation.solvers import grid_candidates, spread_best
+from selfsup.estimation.solvers import RUNAWAY_SIZES, grid_candidates, spread_best
 from selfsup.estimation.uncertainty import position_blocks
 
 __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "shading_loss", "search", "refine_positions",
@@ -270,6 +270,8 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
     (relative loss decrease below ``tol``, or damping run out)."""
     position, log_weight = position.detach().clone(), log_weight.detach().clone()
     B, L, _ = position.shape
+    centre, lo, hi = obs.gbuffer.extent()
+    reach = RUNAWAY_SIZES * (hi - lo).norm(dim=-1).clamp_min(1e-6)  # (B,)
     loss = _evaluate(obs, position, log_weight)
     damping = torch.full((B,), 1e-3, dtype=position.dtype, device=position.device)
     active = torch.ones(B, dtype=torch.bool, device=position.device)
@@ -292,7 +294,10 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
         d_pos, d_u = _unpack(step, L)
         trial_pos, trial_u = position + d_pos, log_weight + d_u
         trial = _evaluate(obs, trial_pos, trial_u)
-        better = finite & (trial < loss)
+        # A step that takes a light beyond RUNAWAY_SIZES scene sizes fits a direction, not a
+        # point (the log shading of a far light flattens towards it): it is not taken.
+        inside = (trial_pos - centre[:, None]).norm(dim=-1).amax(-1) <= reach
+        better = finite & inside & (trial < loss)
         rel = (loss - trial) / loss.clamp_min(1e-30)
         position = torch.where(better[:, None, None], trial_pos, position)
         log_weight = torch.where(better[:, None], trial_u, log_weight)

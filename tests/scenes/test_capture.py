@@ -159,3 +159,21 @@ def test_a_folder_of_capture_folders_names_them(tmp_path):
     _capture(tmp_path, seeds=(3,))
     with pytest.raises(FileNotFoundError, match="its sub-folders cap"):
         estimate_inputs(tmp_path)
+
+
+def test_a_light_the_albedo_free_fit_pushes_towards_infinity_stays_within_reach(tmp_path):
+    # This small capture's log shading is nearly that of a light at infinity: its fit crept
+    # off to 1,800 scene sizes with an infinite uncertainty, which JSON cannot carry, and the
+    # frame failed. Steps beyond RUNAWAY_SIZES scene sizes are not taken.
+    from selfsup.estimation.solvers import RUNAWAY_SIZES
+
+    _capture(tmp_path, seeds=(3,))
+    summary = estimate_files(tmp_path / "cap", tmp_path / "o.jsonl", FAST, progress=False)
+    assert summary["done"] == 1, summary["failures"]
+    (record,) = [json.loads(line) for line in (tmp_path / "o.jsonl").read_text().splitlines()]
+    truth = read_truth(tmp_path / "cap" / "truth" / "frame_003.npz")
+    scene = read_capture(capture_frames(tmp_path / "cap")[0])
+    points = scene.depth[scene.depth > 0]
+    position = torch.tensor(record["lights"][0]["position"])
+    assert float(position.norm()) < 2 * RUNAWAY_SIZES * float(truth.scene_scale) + float(points.max())
+    assert all(np.isfinite(record["lights"][0]["position_std"]))
