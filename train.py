@@ -11,6 +11,8 @@
 from __future__ import annotations
 
 import logging
+import os
+import sys
 
 import hydra
 import torch
@@ -20,6 +22,7 @@ from omegaconf.errors import MissingMandatoryValue
 
 log = logging.getLogger(__name__)
 MODES = ("train", "eval", "generate", "estimate", "insert", "benchmark")
+FULL_ERROR = os.environ.get("HYDRA_FULL_ERROR") == "1"  # the user's: a traceback instead of one line
 
 
 def _plain(node) -> dict:
@@ -113,10 +116,55 @@ def main(cfg: DictConfig) -> None:
     from selfsup.scenes.dataset import retain_freed_memory
 
     retain_freed_memory()  # our own process: rendering and estimation free large arrays by the hundred
-    result = run(cfg)
+    try:
+        result = run(cfg)
+    except USER_ERRORS as error:
+        _report(error)
     if cfg.mode == "estimate" and result["failed"]:
         raise SystemExit(1)  # some files failed: each is named in the log above
 
 
+def _one_line(error: BaseException) -> str:
+    # An error and its cause as one line: Hydra's messages span lines ("Could not override
+    # 'x'. / To append ..."), omegaconf's carry their full key on further lines.
+    parts = []
+    while error is not None and len(parts) < 3:
+        text = " ".join(line.strip() for line in str(error).strip().splitlines() if line.strip()
+                        and not line.strip().startswith(("full_key:", "object_type=", "reference_type=")))
+        if text and text not in parts:
+            parts.append(text)
+        error = error.__cause__ or (None if error.__suppress_context__ else error.__context__)
+    return ": ".join(parts)
+
+
+USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError)  # raised with a message that names the fix
+
+
+def _report(error: BaseException) -> None:
+    # One line on stderr and exit status 2, unless the user's HYDRA_FULL_ERROR=1 asks for the traceback.
+    if FULL_ERROR:
+        raise error
+    print(f"train.py: error: {_one_line(error) or type(error).__name__} (HYDRA_FULL_ERROR=1 shows where)",
+          file=sys.stderr)
+    raise SystemExit(2) from None
+
+
+def cli() -> None:
+    """``main`` for the command line: a user's mistake (a misspelled or missing setting, a
+    path that does not exist, a bad value) is one line on stderr and exit status 2, no
+    traceback; ``HYDRA_FULL_ERROR=1`` shows the traceback instead. Exit status 1 stays
+    ``mode=estimate``'s "some files failed"."""
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    if FULL_ERROR:
+        return main()
+    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra raises what it would print (a bad override): reported here
+    try:
+        main()
+    except (HydraException, OmegaConfBaseException, *USER_ERRORS) as error:
+        _report(error)
+
+
 if __name__ == "__main__":
-    main()
+    cli()

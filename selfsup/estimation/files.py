@@ -8,6 +8,7 @@ reason while the others are written.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import multiprocessing
@@ -272,10 +273,13 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
     seconds: list[float] = []
     try:
         from tqdm import tqdm
+        from tqdm.contrib.logging import logging_redirect_tqdm
         bar = tqdm(total=len(files), desc="estimate", unit="scene", disable=not progress)
+        # A file's error is printed above the bar, not into its line.
+        printing = logging_redirect_tqdm() if progress else contextlib.nullcontext()
     except ImportError:  # tqdm is optional: no progress bar then
-        bar = None
-    with output.open("w") as out:
+        bar, printing = None, contextlib.nullcontext()
+    with printing, output.open("w") as out:
         for chunk, done, reasons in _chunk_results(chunks, options, where, workers):
             for path in chunk:  # in the files' order
                 if path in reasons:
