@@ -31,7 +31,8 @@ import torch
 
 from selfsup.scenes.io import Scene, SceneFileError
 
-__all__ = ["CaptureFrame", "capture_frames", "is_capture_folder", "read_capture", "srgb_to_linear", "linear_to_srgb",
+__all__ = ["CaptureFrame", "capture_frames", "is_capture_folder", "read_capture", "frame_of_color", "srgb_to_linear",
+           "linear_to_srgb", "read_color_and_depth",
            "COLOR_SUFFIXES", "DEPTH_SUFFIXES", "ASSUMED_ALBEDO"]
 
 COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -267,3 +268,14 @@ def read_color_and_depth(color: str | Path, depth: str | Path, depth_scale: floa
     found = next((p for p in candidates if p.is_file()), None)
     return CaptureFrame(color, depth if depth.exists() else None, found, float(depth_scale),
                         None if intrinsics is None else tuple(float(x) for x in intrinsics))
+
+
+def frame_of_color(color: str | Path, depth_scale: float = 1000.0) -> CaptureFrame:
+    """The frame of a colour file inside a capture folder (``DIR/color/<id>.png``): its
+    depth and intrinsics found by the layout (a missing depth fails on reading, named)."""
+    color = Path(color)
+    root = color.parent.parent
+    frames = {f.color.name: f for f in capture_frames(root, depth_scale)} if is_capture_folder(root) else {}
+    if color.name not in frames:
+        raise SceneFileError(color, f"not a colour image of a capture folder ({root}/color/ beside {root}/depth/)")
+    return frames[color.name]
