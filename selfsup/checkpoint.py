@@ -59,7 +59,7 @@ def load_network(path: str | Path | None = None, map_location="cpu") -> tuple[Li
     path = Path(path) if path is not None else DEFAULT_CHECKPOINT
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}" + (
-            " (the shipped one: train it with `python train.py`, see README)" if path == DEFAULT_CHECKPOINT else ""))
+            " (the shipped one: train it with `python train.py`, see docs/training.md)" if path == DEFAULT_CHECKPOINT else ""))
     state = load_checkpoint(path, map_location)
     if not isinstance(state, dict) or "model" not in state or "model_config" not in state:
         raise ValueError(f"{path} is not a LightNet checkpoint (needs 'model' and 'model_config')")

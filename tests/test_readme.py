@@ -16,9 +16,11 @@ def test_readme_starts_with_the_two_setup_commands_and_ci_runs_the_test_one():
     assert ci[-1] == first_block[1]
 
 
-def test_readme_example_runs():
-    code = re.search(r"```python\n(.*?)```", README, re.S).group(1)
-    exec(compile(code, "README.md", "exec"), {})
+def test_readme_examples_run():
+    blocks = re.findall(r"```python\n(.*?)```", README, re.S)
+    assert len(blocks) >= 2  # the estimator's and the layer's
+    for code in blocks:
+        exec(compile(code, "README.md", "exec"), {})
 
 
 def test_readme_links_reach_their_sections_and_files():
