@@ -25,6 +25,18 @@ MODES = ("train", "eval", "generate", "estimate", "insert", "benchmark")
 FULL_ERROR = os.environ.get("HYDRA_FULL_ERROR") == "1"  # the user's: a traceback instead of one line
 
 
+def _run_dir(mode: str, folder: str) -> str:
+    # Hydra's run folder: ``folder`` (outputs/<date>/<time>) for training, whose checkpoints and
+    # logs live there; a temporary one for the other modes, which write what the user asked for
+    # and nothing else in the working tree.
+    import tempfile
+
+    return folder if mode == "train" else tempfile.mkdtemp(prefix=f"shadowlight-{mode}-")
+
+
+OmegaConf.register_new_resolver("run_dir", _run_dir, replace=True)
+
+
 def _plain(node) -> dict:
     try:
         return OmegaConf.to_container(node, resolve=True, throw_on_missing=True)
@@ -70,6 +82,19 @@ def build_trainer(cfg: DictConfig):
                    config=OmegaConf.to_container(cfg, resolve=True))
 
 
+def training_summary(result: dict) -> str:
+    """One human line of a training run's end: validation error, angle, success, checkpoint."""
+    v = result.get("validation") or {}
+
+    def number(key: str, fmt: str) -> str:
+        return format(v[key], fmt) if isinstance(v.get(key), (int, float)) else "n/a"
+
+    return (f"trained {result['step']} steps in {result['minutes']:.1f} min; validation on {v.get('scenes', 'n/a')} "
+            f"scenes: median position error {number('median_position_error', '.3f')} of the scene size, median "
+            f"angle {number('median_angular_error', '.1f')} degrees, success {number('success_rate', '.0%')}, right "
+            f"light count {number('count_accuracy', '.0%')}; best checkpoint {result['best']}")
+
+
 def run(cfg: DictConfig):
     """Run ``cfg.mode``; a plain function so tests can call it with a composed config."""
     if cfg.mode not in MODES:
@@ -77,15 +102,17 @@ def run(cfg: DictConfig):
     torch.manual_seed(cfg.seed)
     if cfg.mode == "train":
         result = build_trainer(cfg).fit()
-        log.info("trained %d steps in %.1f min; validation %s; checkpoints %s", result["step"], result["minutes"],
-                 result["validation"], result["best"])
+        log.info("%s", training_summary(result))
         return result
     if cfg.mode == "eval":
         rows, path = instantiate(cfg.eval, sets=_plain(cfg.eval.sets), files=_plain(cfg.eval.files) or None,
                                  n_lights_probs=list(cfg.eval.n_lights_probs))
         for row in rows:
             log.info("%s", row)
-        log.info("results: %s", path)
+        if path:
+            log.info("results written to %s", path)
+        else:
+            log.info("eval.write=true also writes them to benchmarks/results/")
         return rows, path
     if cfg.mode == "insert":
         from selfsup.insert import insert_files

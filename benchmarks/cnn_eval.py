@@ -73,7 +73,7 @@ def cost_volume_only(network):
 
 def run(checkpoint: str | None = None, sets: dict | None = None, files: dict | None = None, scenes: int = 200,
         seed: int = 9000, height: int = 120, width: int = 160, samples: int = 2,
-        n_lights_probs: tuple = (0.75, 0.25), workers: int = 2, device: str = "auto", write: bool = True):
+        n_lights_probs: tuple = (0.75, 0.25), workers: int = 2, device: str = "auto", write: bool = False):
     """Evaluate ``checkpoint`` (None: the shipped one) on each procedural set in
     ``sets`` (name -> Degradations fields) and each directory in ``files``
     (name -> path). Returns ``(rows, results path or None)``."""

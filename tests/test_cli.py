@@ -32,3 +32,24 @@ def test_a_users_mistake_is_one_line_and_status_2(tmp_path, args, words):
 def test_hydra_full_error_shows_the_traceback(tmp_path):
     result = _train("mode=teach", f"hydra.run.dir={tmp_path}/run", env={"HYDRA_FULL_ERROR": "1"})
     assert result.returncode != 0 and "Traceback" in result.stderr
+
+
+def test_estimate_writes_what_was_asked_and_no_run_folder(tmp_path):
+    # Only training makes outputs/<date>/<time>/; mode=estimate leaves the output file alone.
+    result = subprocess.run([sys.executable, str(ROOT / "train.py"), "mode=estimate",
+                             f"estimate.input={ROOT / 'examples' / 'capture'}", "estimate.output=lights.jsonl",
+                             "estimate.progress=false"], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["lights.jsonl"]
+
+
+def test_training_ends_with_a_human_summary():
+    sys.path.insert(0, str(ROOT))
+    from train import training_summary
+
+    line = training_summary({"step": 900, "minutes": 2.7, "best": "outputs/x/best.pt",
+                             "validation": {"scenes": 150, "median_position_error": 0.02767, "median_angular_error": 2.84,
+                                            "success_rate": 0.5933, "count_accuracy": 0.7133}})
+    assert line == ("trained 900 steps in 2.7 min; validation on 150 scenes: median position error 0.028 of the scene "
+                    "size, median angle 2.8 degrees, success 59%, right light count 71%; best checkpoint "
+                    "outputs/x/best.pt")
