@@ -34,3 +34,19 @@ def test_readme_links_reach_their_sections_and_files():
             assert target[1:] in anchors, f"README links to a missing section {target}"
         elif "://" not in target:
             assert (ROOT / target.split("#")[0]).exists(), f"README links to a missing file {target}"
+
+
+def test_docs_links_reach_their_files_and_sections():
+    def anchors(path: Path) -> set[str]:
+        return {re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+                for heading in re.findall(r"^#+ (.*)$", path.read_text(), re.M)}
+
+    for doc in sorted((ROOT / "docs").glob("*.md")):
+        for target in re.findall(r"\]\(([^)\s]+)\)", doc.read_text()):
+            if "://" in target:
+                continue
+            path, _, anchor = target.partition("#")
+            file = (doc.parent / path).resolve() if path else doc
+            assert file.exists(), f"{doc.name} links to a missing file {target}"
+            if anchor and file.suffix == ".md":
+                assert anchor in anchors(file), f"{doc.name} links to a missing section {target}"
