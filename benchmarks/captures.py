@@ -200,8 +200,8 @@ def run(roots: list[Path], sets=SETS, write: bool = True, options=None, name: st
                   "right count = two lights found in the two-light scenes; median worst position error (of the scene "
                   "size); seconds per frame = estimate_files' wall time over the frames (the network's load included, "
                   "Python's start not); command seconds per frame (with --command-time) = `python train.py "
-                  "mode=estimate` on the folder, start-up included, over its frames." + (f" Settings changed: {options.changed_settings()}."
-                                             if options.changed_settings() else ""))
+                  "mode=estimate` on the folder, start-up included, over its frames."
+                  + (f" Settings changed: {options.changed_settings()}." if options.changed_settings() else ""))
         path = write_results(name, torch.device("cpu"), rows, header, COLUMNS)
     return rows, path
 

@@ -30,7 +30,8 @@ from selfsup.scenes.capture import (COLOR_SUFFIXES, CaptureFrame, capture_frames
                                     read_color_and_depth)
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
-__all__ = ["estimate_files", "estimate_inputs", "scene_files", "worker_count", "usable_cores", "start_method", "worker_threads"]
+__all__ = ["estimate_files", "estimate_inputs", "scene_files", "worker_count", "usable_cores", "start_method",
+           "worker_threads"]
 
 log = logging.getLogger(__name__)
 

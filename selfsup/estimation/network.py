@@ -45,7 +45,8 @@ def network_candidates(problem: FitProblem, slots: Tensor, presence: Tensor, spe
         at = torch.tensor(group, dtype=torch.long, device=slots.device)
         labels = [specular_of[i] for i in group]
         sub = problem.select(at)
-        fit = refine(sub, slots[at, :n_lights], replace(options.tuning.refine, specular=any(labels), max_iters=(0,), strides=(1,)))
+        solve = replace(options.tuning.refine, specular=any(labels), max_iters=(0,), strides=(1,))
+        fit = refine(sub, slots[at, :n_lights], solve)
         for i, c in zip(group, candidates(sub, fit, n_lights, labels, options)):
             chosen[i] = c
     return [(c, [c]) for c in chosen]

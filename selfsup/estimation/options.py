@@ -210,7 +210,8 @@ def _check_tuning(t: Tuning) -> None:
     need(t.max_pixels is None or (isinstance(t.max_pixels, int) and t.max_pixels >= 1), "max_pixels",
          "null or an integer >= 1")
     need(t.criterion_stride >= 1, "criterion_stride", ">= 1 pixel")
-    for name, choices in (("reflectance", REFLECTANCE), ("albedo_free_residuals", ("segments", "pairs")), ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT),
+    for name, choices in (("reflectance", REFLECTANCE), ("albedo_free_residuals", ("segments", "pairs")),
+                          ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT),
                           ("indirect", INDIRECT), ("search_shadows", SHADOW_METHODS),
                           ("criterion_shadows", SHADOW_METHODS)):
         _check_choice(f"tuning.{name}", getattr(t, name), choices)

@@ -40,7 +40,8 @@ def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, 
         cov = position_covariance(problem.select(at), fit, replace(options.tuning.refine, specular=specular),
                                   correlation_px=float(block**2), albedo_error=options.tuning.albedo_error,
                                   albedo_block_px=block, indirect_variation=options.tuning.indirect_variation,
-                                  indirect_length=options.tuning.indirect_length, normal_error=options.tuning.normal_error).cpu()
+                                  indirect_length=options.tuning.indirect_length,
+                                  normal_error=options.tuning.normal_error).cpu()
         if resolve:
             final = replace(options.tuning.refine, specular=specular, robust_scale=options.tuning.final_robust_scale)
             _, intensity, ambient, *_ = solve_at(criterion_light(problem.select(at), options), fit.position, final)
