@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+from typing import NoReturn
 
 import hydra
 import torch
@@ -167,7 +168,7 @@ def _one_line(error: BaseException) -> str:
 USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError)  # raised with a message that names the fix
 
 
-def _report(error: BaseException) -> None:
+def _report(error: BaseException) -> NoReturn:
     # One line on stderr and exit status 2, unless the user's HYDRA_FULL_ERROR=1 asks for the traceback.
     if FULL_ERROR:
         raise error

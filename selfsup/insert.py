@@ -275,8 +275,7 @@ def insert_files(scene: str, output: str, estimates: str | None = None, size: fl
     from selfsup.estimation.stages import estimate_scene
     from selfsup.model import scene_frame
     from selfsup.scenes.generate import to_rgb8
-    from selfsup.scenes.capture import COLOR_SUFFIXES, frame_of_color, read_capture
-    from selfsup.scenes.io import read_scene
+    from selfsup.scenes.capture import read_input
 
     _check_placement(pixel, size)  # before any estimate is made
     if object == "sphere":
@@ -287,10 +286,7 @@ def insert_files(scene: str, output: str, estimates: str | None = None, size: fl
         shape = load_obj(object)
     else:
         raise ValueError(f"insert.object must be sphere, cube or an .obj file, got {object!r}")
-    if Path(scene).suffix.lower() in COLOR_SUFFIXES:  # a frame of a capture folder
-        scene = read_capture(frame_of_color(scene))
-    else:
-        scene = read_scene(scene)
+    scene = read_input(scene)  # a scene file, or a colour image of a capture folder
     if estimates is None:
         with torch.no_grad():
             record = estimate_scene(scene, EstimateOptions())

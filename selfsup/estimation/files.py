@@ -26,9 +26,9 @@ from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.prepare import in_file_units, prepare, within_pixels, working_range
 from selfsup.estimation.records import records
 from selfsup.estimation.stages import estimate_batch
-from selfsup.scenes.capture import (COLOR_SUFFIXES, CaptureFrame, capture_frames, is_capture_folder,
-                                    read_color_and_depth)
-from selfsup.scenes.io import Scene, SceneFileError, read_scene
+from selfsup.scenes.capture import (COLOR_SUFFIXES, CaptureFrame, capture_frames, color_and_depth_frame,
+                                    is_capture_folder, read_input)
+from selfsup.scenes.io import Scene, SceneFileError
 
 __all__ = ["estimate_files", "estimate_inputs", "scene_files", "worker_count", "usable_cores", "start_method",
            "worker_threads"]
@@ -74,7 +74,7 @@ def estimate_inputs(input: str | Path, depth: str | Path | None = None, depth_sc
         if depth is None:
             raise ValueError(f"estimate.input {path} is a colour image: give its depth with estimate.depth=<file> "
                              "(16-bit millimetres, or .npy / .tif metres), or give the capture folder")
-        return [read_color_and_depth(path, depth, depth_scale, intrinsics)]
+        return [color_and_depth_frame(path, depth, depth_scale, intrinsics)]
     if path.is_file() and path.suffix.lower() != ".npz":
         raise ValueError(f"estimate.input {path} is not a .npz scene file, a colour image ({', '.join(COLOR_SUFFIXES)}) "
                          "or a capture folder (color/ and depth/)")
@@ -85,10 +85,6 @@ def estimate_inputs(input: str | Path, depth: str | Path | None = None, depth_sc
         raise FileNotFoundError(f"no .npz scene files or capture folder (color/ and depth/) in {path}" + (
             f" (its sub-folders {', '.join(folders)} hold some: give one of them)" if folders else ""))
     return files
-
-
-def _read(item: Input) -> Scene:
-    return item.read() if isinstance(item, CaptureFrame) else read_scene(item)
 
 
 def _signature(scene: Scene) -> tuple:
@@ -173,7 +169,7 @@ def _estimate_chunk(chunk: list[Path], options: EstimateOptions, device: torch.d
     reasons: dict[Path, str] = {}
     for path in chunk:
         try:
-            scene = within_pixels(_read(path), options)
+            scene = within_pixels(read_input(path), options)
         except (SceneFileError, ValueError, RuntimeError) as error:
             reasons[path] = error.reason if isinstance(error, SceneFileError) else f"{type(error).__name__}: {error}"
             continue

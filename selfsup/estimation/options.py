@@ -22,6 +22,7 @@ NORMAL_SMOOTHING = ("auto", "always", "never")
 REFLECTANCE = ("auto", "given", "albedo_free")
 INDIRECT = ("auto", "never")
 COAT = ("auto", "never", "always")
+ALBEDO_FREE_RESIDUALS = ("segments", "pairs")
 REFINE_METHODS = ("lm", "adam", "gd")
 
 
@@ -210,7 +211,7 @@ def _check_tuning(t: Tuning) -> None:
     need(t.max_pixels is None or (isinstance(t.max_pixels, int) and t.max_pixels >= 1), "max_pixels",
          "null or an integer >= 1")
     need(t.criterion_stride >= 1, "criterion_stride", ">= 1 pixel")
-    for name, choices in (("reflectance", REFLECTANCE), ("albedo_free_residuals", ("segments", "pairs")),
+    for name, choices in (("reflectance", REFLECTANCE), ("albedo_free_residuals", ALBEDO_FREE_RESIDUALS),
                           ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT),
                           ("indirect", INDIRECT), ("search_shadows", SHADOW_METHODS),
                           ("criterion_shadows", SHADOW_METHODS)):

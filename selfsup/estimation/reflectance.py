@@ -64,7 +64,8 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
     pairs = found.pairs.tolist()
     if min(pairs) < 100:
         raise ValueError(f"kd is one constant, so the lights are fitted albedo-free, but image {pairs.index(min(pairs))} "
-                         f"has {min(pairs)} pairs of neighbouring pixels with kd > 0 and light (at least 100 needed)")
+                         f"has {min(pairs)} usable residuals (lit pixels of albedo segments, or pairs of neighbouring "
+                         "pixels with kd > 0 and light; at least 100 needed)")
 
     def criterion(fit: albedo_free.AlbedoFreeFit) -> list[float]:
         n_params = 4 * fit.position.shape[1]  # position, and a contrast per light (the ambient's for the first)

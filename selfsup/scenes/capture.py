@@ -29,11 +29,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from selfsup.scenes.io import Scene, SceneFileError
+from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
-__all__ = ["CaptureFrame", "capture_frames", "is_capture_folder", "read_capture", "frame_of_color", "srgb_to_linear",
-           "linear_to_srgb", "read_color_and_depth",
-           "COLOR_SUFFIXES", "DEPTH_SUFFIXES", "ASSUMED_ALBEDO"]
+__all__ = ["CaptureFrame", "capture_frames", "is_capture_folder", "read_capture", "read_input", "frame_of_color",
+           "color_and_depth_frame", "srgb_to_linear", "linear_to_srgb", "COLOR_SUFFIXES", "DEPTH_SUFFIXES",
+           "ASSUMED_ALBEDO"]
 
 COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
 DEPTH_SUFFIXES = (".png", ".npy", ".tif", ".tiff")
@@ -81,6 +81,17 @@ def _by_stem(folder: Path, suffixes: tuple[str, ...]) -> dict[str, Path]:
     return out
 
 
+def _intrinsics_file(stem: str, roots: list[Path]) -> Path | None:
+    # The first of <root>/intrinsics/<stem>.json (the frame's own) and <root>/intrinsics.json
+    # (every frame's) that exists, root by root.
+    candidates = [path for root in roots for path in (root / "intrinsics" / f"{stem}.json", root / "intrinsics.json")]
+    return next((path for path in candidates if path.is_file()), None)
+
+
+def _override(intrinsics) -> tuple[float, float, float, float] | None:
+    return None if intrinsics is None else tuple(float(x) for x in intrinsics)
+
+
 def capture_frames(folder: str | Path, depth_scale: float = 1000.0,
                    intrinsics: tuple[float, float, float, float] | None = None) -> list[CaptureFrame]:
     """The frames of a capture folder, in the order of their stems.
@@ -93,14 +104,8 @@ def capture_frames(folder: str | Path, depth_scale: float = 1000.0,
     _check_depth_scale(depth_scale)
     colors = _by_stem(folder / "color", COLOR_SUFFIXES)
     depths = _by_stem(folder / "depth", DEPTH_SUFFIXES)
-    shared = folder / "intrinsics.json"
-    frames = []
-    for stem in sorted(colors):
-        own = folder / "intrinsics" / f"{stem}.json"
-        frames.append(CaptureFrame(colors[stem], depths.get(stem), own if own.is_file() else
-                                   (shared if shared.is_file() else None), float(depth_scale),
-                                   None if intrinsics is None else tuple(float(x) for x in intrinsics)))
-    return frames
+    return [CaptureFrame(colors[stem], depths.get(stem), _intrinsics_file(stem, [folder]), float(depth_scale),
+                         _override(intrinsics)) for stem in sorted(colors)]
 
 
 def _check_depth_scale(depth_scale: float) -> None:
@@ -256,18 +261,16 @@ def read_capture(frame: CaptureFrame) -> Scene:
                  kd=torch.full((H, W, 3), ASSUMED_ALBEDO), meta=meta)
 
 
-def read_color_and_depth(color: str | Path, depth: str | Path, depth_scale: float = 1000.0,
-                         intrinsics: tuple[float, float, float, float] | None = None) -> CaptureFrame:
+def color_and_depth_frame(color: str | Path, depth: str | Path, depth_scale: float = 1000.0,
+                          intrinsics: tuple[float, float, float, float] | None = None) -> CaptureFrame:
     """The frame of a single colour file and its depth file (``estimate.depth``);
     intrinsics from ``intrinsics``, else ``intrinsics/<stem>.json`` or ``intrinsics.json``
     beside the colour file's folder or in it."""
     color, depth = Path(color), Path(depth)
     _check_depth_scale(depth_scale)
-    candidates = [color.parent.parent / "intrinsics" / f"{color.stem}.json", color.parent.parent / "intrinsics.json",
-                  color.parent / "intrinsics" / f"{color.stem}.json", color.parent / "intrinsics.json"]
-    found = next((p for p in candidates if p.is_file()), None)
-    return CaptureFrame(color, depth if depth.exists() else None, found, float(depth_scale),
-                        None if intrinsics is None else tuple(float(x) for x in intrinsics))
+    return CaptureFrame(color, depth if depth.exists() else None,
+                        _intrinsics_file(color.stem, [color.parent.parent, color.parent]), float(depth_scale),
+                        _override(intrinsics))
 
 
 def frame_of_color(color: str | Path, depth_scale: float = 1000.0) -> CaptureFrame:
@@ -275,7 +278,19 @@ def frame_of_color(color: str | Path, depth_scale: float = 1000.0) -> CaptureFra
     depth and intrinsics found by the layout (a missing depth fails on reading, named)."""
     color = Path(color)
     root = color.parent.parent
-    frames = {f.color.name: f for f in capture_frames(root, depth_scale)} if is_capture_folder(root) else {}
-    if color.name not in frames:
+    if not (color.is_file() and is_capture_folder(root)):
         raise SceneFileError(color, f"not a colour image of a capture folder ({root}/color/ beside {root}/depth/)")
-    return frames[color.name]
+    _check_depth_scale(depth_scale)
+    return CaptureFrame(color, _by_stem(root / "depth", DEPTH_SUFFIXES).get(color.stem),
+                        _intrinsics_file(color.stem, [root]), float(depth_scale))
+
+
+def read_input(item: str | Path | CaptureFrame) -> Scene:
+    """What ``mode=estimate`` or ``mode=insert`` is given, as a scene: a capture frame, a
+    colour image of a capture folder (:func:`frame_of_color`), or a scene file."""
+    if isinstance(item, CaptureFrame):
+        return read_capture(item)
+    path = Path(item)
+    if path.suffix.lower() in COLOR_SUFFIXES:
+        return read_capture(frame_of_color(path))
+    return read_scene(path)

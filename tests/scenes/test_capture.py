@@ -14,7 +14,7 @@ from benchmarks.captures import make_capture, read_truth
 from selfsup.estimation import EstimateOptions, RefineOptions, Tuning, estimate_files
 from selfsup.estimation.files import estimate_inputs
 from selfsup.scenes.capture import (ASSUMED_ALBEDO, capture_frames, linear_to_srgb, read_capture,
-                                    read_color_and_depth, srgb_to_linear)
+                                    color_and_depth_frame, srgb_to_linear)
 from selfsup.scenes.exact import render_spec
 from selfsup.scenes.io import SceneFileError, write_scene
 from selfsup.scenes.sampler import SamplerConfig, sample_scene
@@ -145,7 +145,7 @@ def test_a_single_colour_file_takes_its_depth_from_estimate_depth(tmp_path):
     cap = tmp_path / "cap"
     color, depth = cap / "color" / "frame_003.png", cap / "depth" / "frame_003.png"
     (frame,) = estimate_inputs(color, depth)
-    assert frame == read_color_and_depth(color, depth) and frame.intrinsics_file == cap / "intrinsics" / "frame_003.json"
+    assert frame == color_and_depth_frame(color, depth) and frame.intrinsics_file == cap / "intrinsics" / "frame_003.json"
     with pytest.raises(ValueError, match="give its depth with estimate.depth"):
         estimate_inputs(color)
     with pytest.raises(FileNotFoundError, match="estimate.depth .* does not exist"):
