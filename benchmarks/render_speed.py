@@ -47,9 +47,16 @@ def make_inputs(height, width, batch, num_lights, device, dtype=torch.float32):
     return g, mat, pos, intensity, ambient
 
 
-def measure(height, width, batch, num_lights, method, device, compiled: bool = False):
+# Shadow settings timed beside each method's defaults on the target configurations:
+# label -> (method, options). The bounded solid is what matches an independent renderer
+# best (benchmarks/layer_vs_mitsuba.py).
+TARGET_VARIANTS = {"epipolar, scene_thickness=0.03": ("epipolar", {"scene_thickness": 0.03})}
+
+
+def measure(height, width, batch, num_lights, method, device, compiled: bool = False, shadow_options=None,
+            label: str | None = None):
     g, mat, pos, intensity, ambient = make_inputs(height, width, batch, num_lights, device)
-    layer = ShadowedBlinnPhong(shadows=method, check_finite=False)
+    layer = ShadowedBlinnPhong(shadows=method, shadow_options=shadow_options, check_finite=False)
     run_layer = torch.compile(layer) if compiled else layer
 
     def forward():
@@ -73,7 +80,7 @@ def measure(height, width, batch, num_lights, method, device, compiled: bool = F
     t_fb = timed(forward_backward, device)
     return {
         "device": device.type, "resolution": f"{width}x{height}", "batch": batch, "lights": num_lights,
-        "shadows": method, "mode": "compiled" if compiled else "eager",
+        "shadows": label or method, "mode": "compiled" if compiled else "eager",
         "fwd_ms_per_image": round(1e3 * t_fwd / batch, 3),
         "fwd_bwd_ms_per_image": round(1e3 * t_fb / batch, 3),
         "fwd_bwd_images_per_s": round(batch / t_fb, 1), "compile_s": compile_s,
@@ -103,6 +110,10 @@ def run(quick: bool = False, max_work: float | None = None, device: str | None =
             row = measure(h, w, b, l, m, dev)
             print(row, flush=True)
             rows.append(row)
+        for label, (method, options) in TARGET_VARIANTS.items():
+            target = CPU_TARGET if dev.type == "cpu" else GPU_TARGET
+            rows.append(measure(*target, method, dev, shadow_options=options, label=label))
+            print(rows[-1], flush=True)
         if compiled:
             target = CPU_TARGET if dev.type == "cpu" else GPU_TARGET
             try:
