@@ -154,7 +154,8 @@ def score(folder: Path, estimates: Path) -> list[dict]:
 
 
 def summary(root: str, set_name: str, rows: list[dict], frames: int, wall: float) -> dict:
-    """The table's row of one set: shares over the frames (a failed frame counts as a miss)."""
+    """The table's row of one set: ``success`` over every frame (a frame that failed counts
+    as a miss); the one- and two-light columns over the frames estimated."""
     one = [r for r in rows if r["true"] == 1]
     two = [r for r in rows if r["true"] == 2]
 
