@@ -97,8 +97,11 @@ def _start_worker(worker_id: int) -> None:
 
 def generate_set(out: str, count: int = 100, seed: int = 0, sampler: SamplerConfig | None = None,
                  degradations: Degradations | None = None, samples: int = 2, protocol: bool = False,
-                 contact_sheet_rows: int = 6, workers: int = 0) -> list[Path]:
+                 contact_sheet_rows: int = 6, workers: int = 0, sequence: str | None = None) -> list[Path]:
     """Write ``count`` scene files (or the 9 x 6 protocol set) into ``out``.
+
+    ``sequence`` (a kind of :data:`selfsup.scenes.sequences.SEQUENCE_KINDS`): ``count``
+    frames of one sequence instead, ``<out>/frame_<index>.npz`` (for ``mode=track``).
 
     Files are ``<out>/scene_<index>.npz`` in the format of ``docs/scene-format.md``
     with ground truth; the inputs carry the chosen degradations. With
@@ -117,6 +120,13 @@ def generate_set(out: str, count: int = 100, seed: int = 0, sampler: SamplerConf
                                                          or value < low):
             raise ValueError(f"{key} must be an integer >= {low} ({meaning}), got {value!r}")
     out_dir = Path(out)
+    if sequence is not None:
+        from selfsup.scenes.sequences import render_sequence, write_sequence
+
+        frames = render_sequence(sequence, seed, count, sampler, degradations, samples)
+        paths = write_sequence(frames, out_dir)
+        log.info("wrote a %s sequence of %d frames to %s", sequence, len(paths), out_dir)
+        return paths
     out_dir.mkdir(parents=True, exist_ok=True)
     specs = protocol_specs(sampler, seed=seed + 7000) if protocol else None
     total = len(specs) if protocol else count

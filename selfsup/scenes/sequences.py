@@ -1,0 +1,158 @@
+"""Frame sequences with exact ground truth, for the tracker (``mode=track``).
+
+One scene of :func:`selfsup.scenes.sampler.sample_scene`, then per frame a change of
+its lights or of the camera, every frame rendered by the exact ray caster
+(:func:`selfsup.scenes.exact.render_specs`) and written as a scene file with its
+frame's true lights. The kinds (:data:`SEQUENCE_KINDS`):
+
+- ``static``: nothing moves (the frames differ by their image noise only: the tracker's jitter);
+- ``moving_light``: one light along a horizontal half circle;
+- ``moving_camera``: one still light, the camera orbiting a point ahead of it (up to
+  ``CAMERA_SWING_DEG`` either way), so every light moves in the camera's frame;
+- ``switch``: two still lights, the second switched on a third of the way through and
+  off at two thirds;
+- ``two_lights``: two lights, the first moving as in ``moving_light``, the second still.
+
+Albedo textures are drawn in camera coordinates: under ``moving_camera`` they slide a
+little on the surfaces; the geometry, the shadows and the lights are exact.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from selfsup.scenes.degrade import Degradations, degrade
+from selfsup.scenes.exact import render_specs
+from selfsup.scenes.io import Scene, write_scene
+from selfsup.scenes.raycast import Primitives
+from selfsup.scenes.sampler import SamplerConfig, SceneSpec, sample_scene, signed_distance
+
+__all__ = ["SEQUENCE_KINDS", "sequence_specs", "render_sequence", "write_sequence", "CAMERA_SWING_DEG"]
+
+SEQUENCE_KINDS = ("static", "moving_light", "moving_camera", "switch", "two_lights")
+CAMERA_SWING_DEG = 8.0  # the moving camera's orbit, either side of the first frame's view
+PATH_RADIUS = 0.12  # a moving light's half circle: this share of the room's smaller floor side
+_TRIES = 50  # seeds tried for a scene whose light path stays clear of every surface
+
+
+def _up(spec: SceneSpec) -> Tensor:
+    return spec.prims.planes[0, 3:6].double()  # the floor's normal, in the camera frame
+
+
+def _light_path(spec: SceneSpec, light: int, frames: int, margin: float) -> Tensor | None:
+    """``(frames, 3)`` positions of ``light`` along a horizontal half circle from where it is,
+    or None when no such path (of either turn) keeps ``margin`` from every surface."""
+    start = spec.light_position[light].double()
+    up = _up(spec)
+    across = torch.linalg.cross(up, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    across = across / across.norm()
+    along = torch.linalg.cross(across, up)
+    radius = PATH_RADIUS * min(spec.meta["room_size_m"][0], spec.meta["room_size_m"][1])
+    turn = torch.linspace(0.0, math.pi, frames, dtype=torch.float64)[:, None]
+    prims = _double(spec.prims)
+    for sign in (1.0, -1.0):
+        centre = start - sign * radius * across
+        path = centre + sign * radius * (torch.cos(turn) * across + torch.sin(turn) * along)
+        if bool((signed_distance(prims, path) > margin).all()):
+            return path.float()
+    return None
+
+
+def _double(prims: Primitives) -> Primitives:
+    return Primitives(*(getattr(prims, f.name).double() for f in dataclasses.fields(prims)))
+
+
+def _orbited(spec: SceneSpec, angle_deg: float) -> SceneSpec:
+    """``spec`` seen by its camera turned ``angle_deg`` about the vertical through a point
+    ahead (at the depth of the room's middle): everything turns the other way in the camera's frame."""
+    up = _up(spec)
+    pivot = torch.tensor([0.0, 0.0, 0.5 * spec.meta["room_size_m"][1]], dtype=torch.float64)
+    a = math.radians(-angle_deg)
+    k = torch.tensor([[0, -up[2], up[1]], [up[2], 0, -up[0]], [-up[1], up[0], 0]], dtype=torch.float64)
+    R = torch.eye(3, dtype=torch.float64) + math.sin(a) * k + (1 - math.cos(a)) * (k @ k)  # Rodrigues
+
+    def point(x: Tensor) -> Tensor:
+        return ((x.double() - pivot) @ R.T + pivot).float()
+
+    def direction(x: Tensor) -> Tensor:
+        return (x.double() @ R.T).float()
+
+    p = spec.prims
+    boxes = torch.cat([point(p.boxes[:, :3]), p.boxes[:, 3:6],
+                       (R.float()[None] @ p.boxes[:, 6:15].reshape(-1, 3, 3)).reshape(-1, 9)], 1)
+    prims = Primitives(planes=torch.cat([point(p.planes[:, :3]), direction(p.planes[:, 3:6])], 1),
+                       spheres=torch.cat([point(p.spheres[:, :3]), p.spheres[:, 3:4]], 1), boxes=boxes,
+                       cylinders=torch.cat([point(p.cylinders[:, :3]), direction(p.cylinders[:, 3:6]),
+                                            p.cylinders[:, 6:8]], 1))
+    return dataclasses.replace(spec, prims=prims, light_position=point(spec.light_position))
+
+
+def _frames_of(kind: str, spec: SceneSpec, frames: int, margin: float) -> list[SceneSpec] | None:
+    # The frames' specs of one drawn scene, or None when a light's path would touch a surface.
+    if kind == "static":
+        return [spec] * frames
+    if kind == "moving_camera":
+        swing = torch.linspace(-CAMERA_SWING_DEG, CAMERA_SWING_DEG, frames).tolist()
+        return [_orbited(spec, angle) for angle in swing]
+    if kind == "switch":
+        first, last = frames // 3, 2 * frames // 3
+        one = dataclasses.replace(spec, light_position=spec.light_position[:1],
+                                  light_relative_intensity=spec.light_relative_intensity[:1])
+        return [spec if first <= f < last else one for f in range(frames)]
+    path = _light_path(spec, 0, frames, margin)
+    if path is None:
+        return None
+    moved = []
+    for f in range(frames):
+        position = spec.light_position.clone()
+        position[0] = path[f]
+        moved.append(dataclasses.replace(spec, light_position=position))
+    return moved
+
+
+def sequence_specs(kind: str, seed: int, frames: int = 24, config: SamplerConfig | None = None) -> list[SceneSpec]:
+    """The specs of ``frames`` frames of a sequence of ``kind`` (:data:`SEQUENCE_KINDS`)
+    from the first scene at or after ``seed`` whose moving light stays clear of every surface."""
+    if kind not in SEQUENCE_KINDS:
+        raise ValueError(f"unknown sequence kind {kind!r}; available: {', '.join(SEQUENCE_KINDS)}")
+    if not (isinstance(frames, int) and frames >= 2):
+        raise ValueError(f"a sequence needs at least 2 frames, got {frames!r}")
+    config = config or SamplerConfig(height=120, width=160)
+    lights = 2 if kind in ("switch", "two_lights") else 1
+    for attempt in range(_TRIES):
+        spec = sample_scene(seed + attempt, config, n_lights=lights)
+        specs = _frames_of(kind, spec, frames, config.light_margin)  # metres, as the spec's
+        if specs is not None:
+            return [dataclasses.replace(s, meta={**s.meta, "sequence": kind, "frame": f}) for f, s in enumerate(specs)]
+    raise ValueError(f"no scene of seeds {seed} .. {seed + _TRIES - 1} keeps a {kind} light clear of the surfaces")
+
+
+def render_sequence(kind: str, seed: int, frames: int = 24, config: SamplerConfig | None = None,
+                    degradations: Degradations | None = None, samples: int = 2) -> list[Scene]:
+    """The frames of :func:`sequence_specs` as scene files' contents (truth lights of each
+    frame, ids ``<kind>_<seed>_<frame>``); ``degradations`` drawn afresh for every frame."""
+    specs = sequence_specs(kind, seed, frames, config)
+    degradations = degradations or Degradations()
+    scenes = []
+    for f, rendered in enumerate(render_specs(specs, samples=samples)):
+        scene = degrade(rendered.scene, degradations, seed * 1000 + f)
+        scene.meta.update(id=f"{kind}_{seed}_{f:03d}", sequence=kind, frame=f)
+        scenes.append(scene)
+    return scenes
+
+
+def write_sequence(scenes: list[Scene], folder: str | Path) -> list[Path]:
+    """``folder/frame_<NNN>.npz`` for each scene, in order."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for f, scene in enumerate(scenes):
+        path = folder / f"frame_{f:03d}.npz"
+        write_scene(path, scene)
+        paths.append(path)
+    return paths
