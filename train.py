@@ -4,6 +4,7 @@
     python train.py mode=eval eval.checkpoint=outputs/<run>/best.pt
     python train.py mode=generate generate.out=data/test generate.count=200
     python train.py mode=estimate estimate.input=scenes/ estimate.output=lights.jsonl
+    python train.py mode=track track.input=captures/ track.output=track.jsonl
     python train.py mode=insert insert.scene=scene.npz insert.estimates=lights.jsonl insert.output=insert.png
     python train.py mode=benchmark benchmark=render_speed benchmark.quick=true
 """
@@ -22,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 
 log = logging.getLogger(__name__)
-MODES = ("train", "eval", "generate", "estimate", "insert", "benchmark")
+MODES = ("train", "eval", "generate", "estimate", "track", "insert", "benchmark")
 FULL_ERROR = os.environ.get("HYDRA_FULL_ERROR") == "1"  # the user's: a traceback instead of one line
 
 
@@ -137,6 +138,20 @@ def run(cfg: DictConfig):
         io = {k: est.pop(k) for k in ("input", "output", "progress", "batch", "device", "workers", "depth",
                                       "depth_scale", "intrinsics")}
         return estimate_files(options=EstimateOptions(**est), **io)
+    if cfg.mode == "track":
+        return _track(_plain(cfg.track))
+
+
+def _track(settings: dict) -> dict:
+    # mode=track: the tracker's tuning and the full estimates' options from one config node.
+    from selfsup.estimation import EstimateOptions, Tuning
+    from selfsup.tracking import TrackTuning, track_files
+
+    io = {k: settings.pop(k) for k in ("input", "output", "progress", "device", "depth_scale", "intrinsics",
+                                       "refresh")}
+    tuning = TrackTuning(**settings.pop("tuning", {}))
+    estimate_tuning = Tuning(**settings.pop("estimate_tuning", {}))
+    return track_files(options=EstimateOptions(**settings, tuning=estimate_tuning), tuning=tuning, **io)
 
 
 @hydra.main(version_base="1.3", config_path="configs", config_name="train")
@@ -148,7 +163,7 @@ def main(cfg: DictConfig) -> None:
         result = run(cfg)
     except USER_ERRORS as error:
         _report(error)
-    if cfg.mode == "estimate" and result["failed"]:
+    if cfg.mode in ("estimate", "track") and result["failed"]:
         raise SystemExit(1)  # some files failed: each is named in the log above
 
 

@@ -1,5 +1,6 @@
 """The command line: a user's mistake is one line on stderr and exit status 2, no traceback."""
 
+import json
 import os
 import subprocess
 import sys
@@ -53,3 +54,20 @@ def test_training_ends_with_a_human_summary():
     assert line == ("trained 900 steps in 2.7 min; validation on 150 scenes: median position error 0.028 of the scene "
                     "size, median angle 2.8 degrees, success 59%, right light count 71%; best checkpoint "
                     "outputs/x/best.pt")
+
+
+def test_track_writes_a_record_per_frame(tmp_path):
+    # mode=track on the example captures: one JSON line per frame, in the frames' order.
+    result = subprocess.run([sys.executable, str(ROOT / "train.py"), "mode=track",
+                             f"track.input={ROOT / 'examples' / 'capture'}", "track.output=track.jsonl",
+                             "track.progress=false"], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["track.jsonl"]
+    records = [json.loads(line) for line in (tmp_path / "track.jsonl").read_text().splitlines()]
+    assert [r["id"] for r in records] == ["room_00", "room_01", "room_02"]
+    assert records[0]["reason"] == "first" and all(r["lights"] for r in records)
+
+
+def test_a_misspelled_track_setting_is_one_line(tmp_path):
+    result = _train("mode=track", "track.inptu=x", "track.output=o.jsonl", f"hydra.run.dir={tmp_path}/run")
+    assert result.returncode == 2 and "track.inptu" in result.stderr and "Traceback" not in result.stderr

@@ -69,3 +69,19 @@ def test_the_estimate_group_is_the_users_dozen_settings_with_the_codes_defaults(
         assert _plain(values[key]) == options[key], f"estimate.{key}: YAML {values[key]!r}, EstimateOptions {options[key]!r}"
     for key in ("progress", "device", "depth", "depth_scale", "intrinsics"):  # batch and workers: the command's
         assert values[key] == files[key], f"estimate.{key}: YAML {values[key]!r}, estimate_files {files[key]!r}"
+
+
+def test_the_track_group_is_the_users_settings_with_the_codes_defaults(cfg):
+    from selfsup.tracking import Tracker, track_files
+
+    values = OmegaConf.to_container(cfg.track, resolve=False)
+    options = _defaults(EstimateOptions)
+    files = {name: p.default for name, p in inspect.signature(track_files).parameters.items()
+             if p.default is not inspect.Parameter.empty}
+    command = {"input", "output", "refresh", "device", "progress", "depth_scale", "intrinsics"}
+    assert set(values) == (set(options) - {"tuning"}) | command
+    for key in set(options) - {"tuning"}:
+        assert _plain(values[key]) == options[key], f"track.{key}: YAML {values[key]!r}, EstimateOptions {options[key]!r}"
+    for key in command - {"input", "output"}:
+        assert values[key] == files[key], f"track.{key}: YAML {values[key]!r}, track_files {files[key]!r}"
+    assert values["refresh"] == Tracker().refresh

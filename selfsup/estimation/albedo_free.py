@@ -128,12 +128,13 @@ SEGMENT_MIN_SIZE = 15
 MIN_SEGMENT_PIXELS = 8
 
 
-def albedo_segments(problem: FitProblem, scale: float = 50.0) -> Tensor:
+def albedo_segments(problem: FitProblem, scale: float = 50.0, geometry: Tensor | None = None) -> Tensor:
     """Regions of one albedo ``(B, H, W)`` long (-1: none): the smooth surfaces of the
     geometry (:func:`selfsup.estimation.normals.surface_segments`) cut by the image's edges
     (Felzenszwalb's segmentation of the sRGB-encoded image at ``scale``), so that both an
     object's outline and a texture's edges bound them. Found once per image: a subsample's
-    are every stride-th label (:func:`search`)."""
+    are every stride-th label (:func:`search`). ``geometry``: the surfaces ``(B, H, W)``
+    when already found (a still camera's frames share them)."""
     import numpy as np
     from skimage.segmentation import felzenszwalb
 
@@ -142,7 +143,9 @@ def albedo_segments(problem: FitProblem, scale: float = 50.0) -> Tensor:
 
     g = problem.gbuffer
     B, H, W = g.mask.shape
-    geometry = surface_segments(g.points, g.normals, g.mask).flatten(1).cpu().numpy()
+    if geometry is None:
+        geometry = surface_segments(g.points, g.normals, g.mask)
+    geometry = geometry.flatten(1).cpu().numpy()
     image = problem.image.detach().double().cpu().numpy()
     keep = g.mask.flatten(1).cpu().numpy()
     out = np.full((B, H * W), -1, dtype=np.int64)

@@ -1,0 +1,103 @@
+"""A sequence of frames in, one JSON line per frame out: ``mode=track``.
+
+The frames are those ``mode=estimate`` reads (:func:`selfsup.estimation.files.estimate_inputs`:
+a capture folder, or a directory of ``.npz`` scene files) in the natural order of their
+names (``frame_9`` before ``frame_10``). A frame that cannot be read or estimated is
+named with its reason and skipped; the tracker goes on from the frames before it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import re
+import time
+from pathlib import Path
+
+import torch
+
+from selfsup.estimation.files import estimate_inputs
+from selfsup.estimation.network import cached_network
+from selfsup.estimation.options import EstimateOptions
+from selfsup.scenes.io import SceneFileError
+from selfsup.tracking.tracker import Tracker, TrackTuning
+
+__all__ = ["track_files", "natural_order"]
+
+log = logging.getLogger(__name__)
+
+
+def natural_order(items: list) -> list:
+    """``items`` sorted by their names' text, numbers compared as numbers (``frame_9`` before ``frame_10``)."""
+    def key(item) -> list:
+        return [(0, int(part), "") if part.isdigit() else (1, 0, part) for part in re.split(r"(\d+)", str(item))]
+
+    return sorted(items, key=key)
+
+
+def _progress(total: int, enabled: bool):
+    try:
+        from tqdm import tqdm
+        from tqdm.contrib.logging import logging_redirect_tqdm
+    except ImportError:  # tqdm is optional
+        return None, contextlib.nullcontext()
+    return (tqdm(total=total, desc="track", unit="frame", disable=not enabled),
+            logging_redirect_tqdm() if enabled else contextlib.nullcontext())
+
+
+def track_files(input: str | Path, output: str | Path, options: EstimateOptions | None = None,
+                tuning: TrackTuning | None = None, refresh: int = 30, progress: bool = True, device: str = "cpu",
+                depth_scale: float = 1000.0, intrinsics: tuple[float, float, float, float] | None = None) -> dict:
+    """Track the lights through the frames under ``input``; one JSON line per frame in ``output``.
+
+    ``input``: a capture folder or a directory of scene files (their frames in natural
+    order); ``options``: the full estimates' settings (:class:`EstimateOptions`);
+    ``tuning``: the tracker's constants; ``refresh``: a full estimate every that-many-th
+    frame whatever the evidence (0: on evidence only); ``depth_scale``, ``intrinsics``:
+    as ``mode=estimate``. Returns a summary: ``done``, ``failed`` (with reasons),
+    ``full`` (frames estimated in full), the median warm latency in ms, the wall time.
+    """
+    started = time.perf_counter()
+    options = options or EstimateOptions()
+    where = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else
+                         ("cpu" if device == "auto" else device))
+    frames = natural_order(estimate_inputs(input, None, depth_scale, intrinsics))
+    if options.method in ("cnn", "cnn+refine"):
+        cached_network(options.checkpoint, str(where))  # a missing or bad checkpoint stops here, before any frame
+    tracker = Tracker(options, tuning or TrackTuning(), refresh, where)
+    output = Path(output)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    failed: dict[str, str] = {}
+    warm, full = [], 0
+    bar, printing = _progress(len(frames), progress)
+    with printing, output.open("w") as out:
+        for frame in frames:
+            try:
+                record = tracker.update(frame)
+                line = json.dumps(record, allow_nan=False)
+            except (SceneFileError, ValueError, RuntimeError) as error:
+                reason = error.reason if isinstance(error, SceneFileError) else f"{type(error).__name__}: {error}"
+                failed[str(frame)] = reason
+                log.error("skipped %s: %s", frame, reason)
+            else:
+                out.write(line + "\n")
+                out.flush()
+                if record["full"]:
+                    full += 1
+                else:
+                    warm.append(record["latency_ms"])
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
+    done = len(frames) - len(failed)
+    if not done:  # every frame failed: no empty output left behind to be taken for a result
+        output.unlink(missing_ok=True)
+    wall = time.perf_counter() - started
+    summary = {"done": done, "failed": len(failed), "failures": failed, "full": full,
+               "warm_ms_median": sorted(warm)[len(warm) // 2] if warm else None, "wall_seconds": round(wall, 3),
+               "output": str(output) if done else None}
+    log.info("tracked %d frame(s), %d failed, %d estimated in full, in %.1f s (warm frames %.1f ms median); wrote %s",
+             done, len(failed), full, wall, summary["warm_ms_median"] or 0.0, output if done else "nothing")
+    return summary
