@@ -72,11 +72,24 @@ def _exposure_draw(name: str) -> float:
 
 def make_capture(scene_path: Path, out: Path, frame_id: str) -> None:
     """One scene file as a capture frame of folder ``out`` (colour, depth, intrinsics, truth)."""
-    scene = read_scene(scene_path)
+    write_capture(read_scene(scene_path), out, frame_id, source=str(scene_path))
+
+
+def capture_exposure(scene, frame_id: str) -> float:
+    """The exposure of the recipe: the 99th percentile of the valid values at a share of
+    full scale drawn from ``frame_id`` (:func:`_exposure_draw`)."""
     image, depth = scene.image.double().numpy(), scene.depth.double().numpy()
     valid = np.isfinite(depth) & (depth > 0)
-    level = float(np.percentile(image[valid], 99))
-    exposure = _exposure_draw(frame_id) / max(level, 1e-12)
+    return _exposure_draw(frame_id) / max(float(np.percentile(image[valid], 99)), 1e-12)
+
+
+def write_capture(scene, out: Path, frame_id: str, exposure: float | None = None, source: str = "") -> None:
+    """``scene`` as a capture frame of folder ``out`` at ``exposure`` (None: the recipe's
+    draw, :func:`capture_exposure`; a sequence keeps one for every frame, as a camera with
+    its exposure locked)."""
+    exposure = capture_exposure(scene, frame_id) if exposure is None else exposure
+    image, depth = scene.image.double().numpy(), scene.depth.double().numpy()
+    valid = np.isfinite(depth) & (depth > 0)
     color = np.round(linear_to_srgb(image * exposure) * 255).astype(np.uint8)
     millimetres = np.round(np.where(valid, depth, 0.0) * 1000).clip(0, 65535).astype(np.uint16)
     import imageio.v3 as iio
@@ -88,7 +101,7 @@ def make_capture(scene_path: Path, out: Path, frame_id: str) -> None:
     K = scene.K.double().numpy()
     (out / "intrinsics" / f"{frame_id}.json").write_text(json.dumps(
         {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}))
-    meta = {**scene.meta, "id": frame_id, "source_file": str(scene_path), "exposure": exposure}
+    meta = {**scene.meta, "id": frame_id, "source_file": source, "exposure": exposure}
     truth = {"depth": scene.depth.numpy(), "K": scene.K.numpy(), "meta": np.array(json.dumps(meta))}
     if scene.light_pos is not None:
         truth.update(light_pos=scene.light_pos.numpy(), light_intensity=scene.light_intensity.numpy() * exposure)

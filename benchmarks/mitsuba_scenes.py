@@ -305,9 +305,14 @@ def _sensor_noise(image: np.ndarray, depth: np.ndarray, normals: np.ndarray, K: 
     return noisy_image, z, _plane_normals(points, keep), points
 
 
-def render_variants(spec: SceneSpec, scene_id: str, closed: bool = False) -> dict[str, Scene]:
+def render_variants(spec: SceneSpec, scene_id: str, closed: bool = False, exposure: float | None = None,
+                    variants: tuple[str, ...] = ("direct", "gi", "noisy"), noise_seed: int | None = None
+                    ) -> dict[str, Scene]:
     """The ``direct``, ``gi`` and ``noisy`` scene files of ``spec`` (Mitsuba's variant must
-    be set); ``closed``: see :func:`scene_dict`."""
+    be set), or those of ``variants``; ``closed``: see :func:`scene_dict`. ``exposure``:
+    the image's scale (None: the spec's exposure over the 99th percentile of the direct
+    light; a sequence keeps its first frame's); ``noise_seed``: the sensor noise's draw
+    (None: from the spec's seed; a sequence's frames each draw their own)."""
     import mitsuba as mi
 
     seed = spec.seed % (2**31)
@@ -333,9 +338,10 @@ def render_variants(spec: SceneSpec, scene_id: str, closed: bool = False) -> dic
     shininess = np.where(valid & ours, shin_prim[primitive], 1.0)
 
     direct = _per_light(scene, 16)
-    gi = _per_light({**scene, "integrator": {"type": "path", "max_depth": 6}}, 256)
+    gi = _per_light({**scene, "integrator": {"type": "path", "max_depth": 6}}, 256) if "gi" in variants else None
     brightest = direct.max(-1)[valid]
-    exposure = spec.exposure / max(float(np.quantile(brightest, 0.99)), 1e-6)
+    if exposure is None:
+        exposure = spec.exposure / max(float(np.quantile(brightest, 0.99)), 1e-6)
     K = spec.K.double().numpy()
     meta = {"falloff": "inverse_square", "n_lights": int(spec.light_position.shape[0]), "seed": spec.seed,
             "renderer": f"mitsuba {mi.__version__} {mi.variant()}", **spec.meta, "closed_room": closed,
@@ -353,15 +359,16 @@ def render_variants(spec: SceneSpec, scene_id: str, closed: bool = False) -> dic
         fields.update({k: (t(v) if v is not None else None) for k, v in extra.items()})
         return Scene(meta={**meta, "id": f"{scene_id}_{variant}", "generator": f"mitsuba3-{variant}"}, **fields)
 
-    rng = np.random.default_rng(seed + 1)
+    rng = np.random.default_rng(seed + 1 if noise_seed is None else noise_seed)
     noisy_image, noisy_depth, noisy_normals, noisy_points = _sensor_noise(direct * exposure * valid[..., None], depth,
                                                                           normals, K, rng)
-    return {
-        "direct": scene_file(direct, "direct"),
-        "gi": scene_file(gi, "gi", ambient=None),
-        "noisy": scene_file(noisy_image / exposure, "noisy", depth=noisy_depth, normals=noisy_normals,
-                      scene_scale=_diagonal(noisy_points[noisy_depth > 0])),
+    made = {
+        "direct": lambda: scene_file(direct, "direct"),
+        "gi": lambda: scene_file(gi, "gi", ambient=None),
+        "noisy": lambda: scene_file(noisy_image / exposure, "noisy", depth=noisy_depth, normals=noisy_normals,
+                                    scene_scale=_diagonal(noisy_points[noisy_depth > 0])),
     }
+    return {variant: made[variant]() for variant in variants}
 
 
 def main() -> None:

@@ -252,8 +252,19 @@ def insert_object(scene: Scene, position: Tensor, intensity: Tensor, ambient: Te
         rendered_with = render_image(g_with, m_with, lights, ambient[None].to(kd.dtype), **options)[0].permute(1, 2, 0)
         rendered_without = render_image(gbuffer, m_without, lights, ambient[None].to(kd.dtype), **options)[0].permute(1, 2, 0)
     real = torch.where(torch.isfinite(scene.image), scene.image, torch.zeros_like(scene.image))
-    composite = torch.where(on_object[..., None], rendered_with, (real + rendered_with - rendered_without).clamp_min(0))
-    return composite, on_object
+    return torch.where(on_object[..., None], rendered_with, relit(real, rendered_with, rendered_without)), on_object
+
+
+def relit(real: Tensor, rendered_with: Tensor, rendered_without: Tensor, lit: float = 0.05) -> Tensor:
+    """The real image ``(..., 3)`` with the object's effect on the scene: each pixel scaled
+    by ``rendered_with / rendered_without`` where the scene's own rendering is at least
+    ``lit`` of its median (the ratio keeps the real surface's colour under an albedo the
+    estimate only assumed: a shadow on a green floor stays green), the difference added
+    elsewhere (where the rendering is dark the ratio says nothing)."""
+    level = rendered_without.flatten().median().clamp_min(1e-30) * lit
+    ratio = rendered_with / rendered_without.clamp_min(1e-30)
+    by_ratio = real * ratio
+    return torch.where(rendered_without > level, by_ratio, real + rendered_with - rendered_without).clamp_min(0)
 
 
 def insert_sphere(scene: Scene, position: Tensor, intensity: Tensor, ambient: Tensor, sphere: Sphere,
