@@ -50,10 +50,12 @@ Input = Path | CaptureFrame  # a scene file, or a capture frame (str() of either
 
 
 def estimate_inputs(input: str | Path, depth: str | Path | None = None, depth_scale: float = 1000.0,
-                    intrinsics: tuple[float, float, float, float] | None = None) -> list[Input]:
+                    intrinsics: tuple[float, float, float, float] | None = None, key: str = "estimate.input"
+                    ) -> list[Input]:
     """What ``estimate.input`` names, in order: the frames of a capture folder
     (:func:`selfsup.scenes.capture.capture_frames`), one colour file with its ``depth``,
-    the ``.npz`` scene files of a directory, or one scene file.
+    the ``.npz`` scene files of a directory, or one scene file. ``key``: the setting the
+    errors name.
 
     Raises:
         FileNotFoundError: nothing there, or nothing estimable in the directory (its
@@ -62,7 +64,7 @@ def estimate_inputs(input: str | Path, depth: str | Path | None = None, depth_sc
     """
     path = Path(input)
     if not path.exists():
-        raise FileNotFoundError(f"estimate.input {path} does not exist")
+        raise FileNotFoundError(f"{key} {path} does not exist")
     if depth is not None and not Path(depth).is_file():
         raise FileNotFoundError(f"estimate.depth {depth} does not exist")
     if is_capture_folder(path):
@@ -72,11 +74,11 @@ def estimate_inputs(input: str | Path, depth: str | Path | None = None, depth_sc
         return frames
     if path.is_file() and path.suffix.lower() in COLOR_SUFFIXES:
         if depth is None:
-            raise ValueError(f"estimate.input {path} is a colour image: give its depth with estimate.depth=<file> "
+            raise ValueError(f"{key} {path} is a colour image: give its depth with estimate.depth=<file> "
                              "(16-bit millimetres, or .npy / .tif metres), or give the capture folder")
         return [color_and_depth_frame(path, depth, depth_scale, intrinsics)]
     if path.is_file() and path.suffix.lower() != ".npz":
-        raise ValueError(f"estimate.input {path} is not a .npz scene file, a colour image ({', '.join(COLOR_SUFFIXES)}) "
+        raise ValueError(f"{key} {path} is not a .npz scene file, a colour image ({', '.join(COLOR_SUFFIXES)}) "
                          "or a capture folder (color/ and depth/)")
     files = scene_files(path)
     if not files:

@@ -62,7 +62,7 @@ def track_files(input: str | Path, output: str | Path, options: EstimateOptions 
     options = options or EstimateOptions()
     where = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else
                          ("cpu" if device == "auto" else device))
-    frames = natural_order(estimate_inputs(input, None, depth_scale, intrinsics))
+    frames = natural_order(estimate_inputs(input, None, depth_scale, intrinsics, key="track.input"))
     if options.method in ("cnn", "cnn+refine"):
         cached_network(options.checkpoint, str(where))  # a missing or bad checkpoint stops here, before any frame
     tracker = Tracker(options, tuning or TrackTuning(), refresh, where)
