@@ -394,7 +394,8 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
             for start in range(0, rows.numel(), per_chunk):
                 r, c = rows[start:start + per_chunk], cols[start:start + per_chunk]
                 node, fa, fs = _node_index(*_pixel_coords(lines.select(r), u[c], v[c], options.lookback), ns)
-                node_min, columns = _slab_minima(front_table, back_table, r, node, gamma[r, c])
+                node_min, columns = _bounded_minima(running_flat, argmin_flat, front_table, back_table, r, node,
+                                                    gamma[r, c])
                 slab_min = _lerp_nodes(node_min, fa, fs)
                 visibility[r, c], t_rc = _smooth_visibility(slab_min, gamma[r, c], pts[r, c, 2], distance[r, c],
                                                             focal[r], options)
@@ -478,6 +479,26 @@ def _slab_ends(front: Tensor, back: Tensor, valid: Tensor, H: int, W: int) -> Te
     spread = torch.where(valid, back, _NO_OCCLUDER).reshape(-1, 1, H, W)
     lowest = (-F.max_pool2d(-spread, 3, stride=1, padding=1)).reshape(back.shape)
     return torch.where(valid & (lowest < front), lowest, back)
+
+
+def _bounded_minima(running: Tensor, argmin: Tensor, front: Tensor, back: Tensor, rows: Tensor, node: Tensor,
+                    gamma: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`_slab_minima`, scanning the lines only where it can differ from the unbounded
+    solid's minima ``running``, ``argmin (N, (nl + 2) (ns + 1))``: a node whose unbounded
+    minimum lies in a slab that reaches behind the pixel's ray (or that has no occluder) has
+    that minimum under the bounded solid too (a minimum over all samples, taken by one the
+    bounded solid keeps), so only the other pixels are scanned (most of a shadow's pixels
+    are not: the light passes behind an object at few of them)."""
+    width = front.shape[-1]
+    at = rows[:, None]
+    minima, columns = running[at, node], argmin[at, node]  # (M, 4)
+    line_rows = torch.div(node, width, rounding_mode="floor")
+    reach = back.flatten(1)[at, line_rows * width + columns]
+    scan = ~((reach >= gamma[:, None]) | (minima >= _NO_OCCLUDER)).all(-1)
+    if bool(scan.any()):
+        scanned = scan.nonzero(as_tuple=True)[0]
+        minima[scanned], columns[scanned] = _slab_minima(front, back, rows[scanned], node[scanned], gamma[scanned])
+    return minima, columns
 
 
 def _slab_minima(front: Tensor, back: Tensor, rows: Tensor, node: Tensor, gamma: Tensor) -> tuple[Tensor, Tensor]:

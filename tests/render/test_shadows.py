@@ -143,6 +143,27 @@ def test_epipolar_thickness_lets_rays_pass_behind_an_object(light):
         assert lit[wall].all() and slab[wall].all()
 
 
+@pytest.mark.parametrize("light", [[1.0, 0.0, 3.8], [0.9, -0.5, 1.0]])
+def test_the_bounded_solid_scans_only_where_the_unbounded_minimum_does_not_count(light, monkeypatch):
+    # The shortcut (a node whose unbounded minimum lies in a slab reaching the ray keeps it)
+    # gives exactly the full scan's visibility and gradient.
+    import render.shadows.epipolar as epipolar
+
+    g, lp, _, _ = _plate_before_wall(light, thickness=0.5)
+
+    def run():
+        position = lp[None, None].clone().requires_grad_(True)
+        vis = epipolar_shadow_visibility(g.points, g.mask, g.intrinsics, position, EpipolarShadowOptions(thickness=0.5))
+        (vis * torch.linspace(0, 1, vis.numel()).reshape(vis.shape)).sum().backward()
+        return vis.detach(), position.grad
+
+    fast = run()
+    monkeypatch.setattr(epipolar, "_bounded_minima", lambda running, argmin, front, back, rows, node, gamma:
+                        epipolar._slab_minima(front, back, rows, node, gamma))
+    full = run()
+    assert torch.equal(fast[0], full[0]) and torch.equal(fast[1], full[1])
+
+
 def test_epipolar_thickness_of_the_scene_is_a_share_of_its_diagonal():
     g, lp, _, _ = _plate_before_wall([0.9, -0.5, 1.0], thickness=0.5)
     points = g.points[0][g.mask[0]]
