@@ -1,95 +1,143 @@
-"""Speed against error of every way to estimate one light (issue 6, item 2).
+"""Speed against error: our estimator and its methods beside the alternatives, on the same captures.
 
-Methods, on the same fixed-seed procedural scenes (one light, 160x120, true
-reflectance, specular objects as the generator draws them):
-
-- ``cnn``: the network alone;
-- ``cnn + LM k``: Levenberg-Marquardt with epipolar shadows from the network's
-  first slot, capped at k iterations at half resolution (and k/3 at full);
-- ``grid + LM (refine)``: the grid search and LM of ``estimate.method=refine``;
-- ``Boom model``: ambient + diffuse, no cast shadows, grid + LM;
-- ``Neverova model``: + specular, no cast shadows, grid + LM.
-
-Output: median position error, success rate and median seconds per scene, a
-markdown table and (with matplotlib installed: ``pip install '.[plot]'``) a PNG
-with the Pareto front, under benchmarks/results/pareto_<device>_<date>.*.
-
+    python -m benchmarks.captures make --scenes data/mitsuba --out data/captures/mitsuba   # once
     python train.py mode=benchmark benchmark=pareto
+
+The one-light frames of capture folders made from Mitsuba 3 renders (8-bit sRGB at an
+unknown exposure, millimetre depth, no albedo; ``benchmark.captures``: the direct,
+path-traced and sensor-noisy sets), each estimated by:
+
+- ``mode=estimate`` (``cnn+refine``, the default), ``estimate.method=refine`` (grid
+  search + LM), ``estimate.method=cnn`` (the network alone): the command's own pipeline,
+  every default, the light count its own choice;
+- ``paper gradient descent``: the paper's method (Blinn-Phong with its cube-map shadows,
+  plain squared error, rate 0.02 in scene sizes, from above the middle of the scene, at
+  most 300 steps) with the capture's albedo taken as 0.5;
+- ``Mitsuba 3 inverse rendering`` (:mod:`benchmarks.mitsuba_inverse`): a mesh of the
+  depth map, albedo 0.5, Adam on one point light through ``llvm_ad_rgb`` (needs the
+  ``mitsuba`` extra; left out when it is not installed).
+
+Reported per method and set: success (every true light within 0.05 of the scene size,
+and the right count), the median worst position error and the median seconds per frame
+(the frame in memory). A markdown table and (with matplotlib, ``pip install '.[plot]'``)
+a PNG, ``benchmarks/results/pareto_<device>_<date>.*``.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import statistics
 import time
+from pathlib import Path
 
+import numpy as np
 import torch
 
 from benchmarks.common import RESULTS, device_name, device_slug, write_results
-from render import GBuffer
-from selfsup.estimation.network import network_slots
-from selfsup.estimation.prepare import problem_of
-from selfsup.metrics import SUCCESS_THRESHOLD, light_errors
-from selfsup.estimation.options import RefineOptions
-from selfsup.estimation.solvers import refine, search
-from selfsup.scenes.exact import render_spec
-from selfsup.scenes.sampler import SamplerConfig, sample_scene
+from selfsup.metrics import SUCCESS_THRESHOLD
 
 log = logging.getLogger(__name__)
-COLUMNS = ["method", "scenes", "median_position_error", "success_rate", "median_seconds"]
+COLUMNS = ["method", "set", "frames", "success_rate", "median_worst_error", "median_seconds"]
+DEFAULT_CAPTURES = ("data/captures/mitsuba/direct", "data/captures/mitsuba/gi", "data/captures/mitsuba/noisy")
 
 
-def _methods(caps: list[int]):
-    def cnn(scene, problem):
-        return network_slots(problem)[0][:, :1]
+def _ours(**settings):
+    from selfsup.estimation import EstimateOptions, estimate_scene
 
-    def capped(k):
-        def run(scene, problem):
-            start = network_slots(problem)[0][:, :1]
-            return refine(problem, start, RefineOptions(max_iters=(k, max(1, k // 3)), strides=(2, 1))).position
-        return run
+    options = EstimateOptions(**settings)
 
-    def grid(specular: bool | None, shadows: str):
-        def run(scene, problem):
-            has_specular = scene.ks is not None and bool((scene.ks > 0).any())
-            return search(dataclasses.replace(problem, shadows=shadows), 1,
-                          RefineOptions(specular=has_specular if specular is None else specular)).position
-        return run
-
-    yield "cnn", cnn
-    for k in caps:
-        yield f"cnn + LM {k}", capped(k)
-    yield "grid + LM (refine)", grid(None, "epipolar")
-    yield "Boom model (no specular, no shadows)", grid(False, "none")
-    yield "Neverova model (specular, no shadows)", grid(None, "none")
+    def run(scene):
+        record = estimate_scene(scene, options)
+        return np.array([light["position"] for light in record["lights"]], dtype=np.float64).reshape(-1, 3)
+    return run
 
 
-def run(scenes: int = 10, seed: int = 9200, caps: list[int] | None = None, write: bool = True):
-    sampler = SamplerConfig(height=120, width=160)
-    data = [render_spec(sample_scene(seed * 1_000_003 + i, sampler, n_lights=1), samples=2).scene
-            for i in range(scenes)]
+def _paper_gd(max_iters: int = 300):
+    from benchmarks.paper_table import fixed_start
+    from selfsup.estimation.options import RefineOptions
+    from selfsup.estimation.prepare import problem_of
+    from selfsup.estimation.solvers import refine
+
+    options = RefineOptions(method="gd", learning_rate=0.02, robust=False, max_iters=(max_iters,), strides=(1,),
+                            specular=False)
+
+    def run(scene):
+        problem = problem_of(scene, "paper")
+        return refine(problem, fixed_start(problem), options).position[0].double().numpy()
+    return run
+
+
+def _mitsuba():
+    from benchmarks.mitsuba_inverse import fit_frame
+
+    def run(scene):
+        position, _, _ = fit_frame(scene.image.double().numpy(), scene.depth.double().numpy(), scene.K.double().numpy())
+        return position[None]
+    return run
+
+
+def methods() -> dict:
+    """name -> a function of a scene giving its light positions ``(L, 3)``."""
+    out = {"mode=estimate (cnn+refine)": _ours(), "estimate.method=refine": _ours(method="refine"),
+           "estimate.method=cnn": _ours(method="cnn"), "paper gradient descent": _paper_gd()}
+    try:
+        import mitsuba  # noqa: F401
+        out["Mitsuba 3 inverse rendering"] = _mitsuba()
+    except ImportError:
+        log.warning("mitsuba is not installed (pip install '.[mitsuba]'): its inverse rendering is left out")
+    return out
+
+
+def _worst_error(found: np.ndarray, truth) -> tuple[float, bool]:
+    true = truth.light_pos.double().numpy()
+    if found.shape[0] == 0:
+        return float("inf"), False
+    distance = np.linalg.norm(true[:, None] - found[None], axis=-1).min(1) / float(truth.scene_scale)
+    worst = float(distance.max())
+    return worst, worst < SUCCESS_THRESHOLD and found.shape[0] == true.shape[0]
+
+
+def run(captures: list[str] | tuple[str, ...] = DEFAULT_CAPTURES, frames: int = 24, write: bool = True):
+    """Rows of (method, set): the one-light frames (the first ``frames``) of each capture folder."""
+    from benchmarks.captures import read_truth
+    from selfsup.scenes.capture import capture_frames, read_capture
+
+    folders = [Path(c) for c in captures]
+    missing = [str(f) for f in folders if not f.is_dir()]
+    if missing:
+        raise FileNotFoundError(f"no capture folder {', '.join(missing)}: make them with python -m benchmarks."
+                                "mitsuba_scenes --out data/mitsuba --count 48 and python -m benchmarks.captures make "
+                                "--scenes data/mitsuba --out data/captures/mitsuba")
     rows = []
-    for name, method in _methods(list(caps or [5, 10, 20, 50])):
-        errors, seconds = [], []
-        for scene in data:
-            problem = problem_of(scene)
-            started = time.perf_counter()
-            with torch.no_grad():
-                position = method(scene, problem)[0]
-            seconds.append(time.perf_counter() - started)
-            g = GBuffer.from_depth(scene.depth[None], scene.K[None])
-            errors.append(max(light_errors(position, None, scene.light_pos, None, float(scene.scene_scale),
-                                           g.points[0][g.mask[0]].mean(0)).position))
-        rows.append({"method": name, "scenes": scenes, "median_position_error": round(statistics.median(errors), 4),
-                     "success_rate": round(sum(e < SUCCESS_THRESHOLD for e in errors) / scenes, 3),
-                     "median_seconds": round(statistics.median(seconds), 3)})
-        log.info("%s", rows[-1])
+    for folder in folders:
+        data = []
+        for frame in capture_frames(folder):
+            truth = read_truth(folder / "truth" / f"{frame.color.stem}.npz")
+            if truth.light_pos.shape[0] == 1:
+                data.append((read_capture(frame), truth))
+        data = data[:frames]
+        for name, method in methods().items():
+            errors, hits, seconds = [], 0, []
+            for scene, truth in data:
+                started = time.perf_counter()
+                with torch.no_grad():
+                    found = method(scene)
+                seconds.append(time.perf_counter() - started)
+                worst, success = _worst_error(found, truth)
+                errors.append(worst)
+                hits += success
+            rows.append({"method": name, "set": folder.name, "frames": len(data),
+                         "success_rate": round(hits / max(len(data), 1), 3),
+                         "median_worst_error": round(statistics.median(errors), 4),
+                         "median_seconds": round(statistics.median(seconds), 3)})
+            log.info("%s", rows[-1])
     path = None
     if write:
-        header = (f"{scenes} one-light procedural scenes (seeds {seed}*1000003+i), 160x120, 2x2 AA, true "
-                  "reflectance; position error of the scene size (median over scenes); seconds per scene on this "
-                  "device. Plot: pareto_<device>_<date>.png (median error against median seconds, log-log).")
+        header = (f"One-light frames of capture folders made from Mitsuba 3 renders ({', '.join(map(str, folders))}; "
+                  "8-bit sRGB at an unknown exposure, millimetre depth, no albedo), each method on the same frames; "
+                  f"success = the one light found, within {SUCCESS_THRESHOLD} of the scene size; median worst "
+                  "position error of the scene size; median seconds per frame on this device (the frame in memory). "
+                  "Plot: pareto_<device>_<date>.png.")
         path = write_results("pareto", torch.device("cpu"), rows, header, COLUMNS)
         _plot(rows, torch.device("cpu"))
     return rows, path
@@ -106,26 +154,31 @@ def _plot(rows: list[dict], device: torch.device) -> None:
         return
     import datetime
 
-    front, best = [], float("inf")
-    for row in sorted(rows, key=lambda r: r["median_seconds"]):
-        if row["median_position_error"] < best:
-            best = row["median_position_error"]
-            front.append(row)
-    figure, axes = plt.subplots(figsize=(7, 4.5))
-    for row in rows:
-        axes.scatter(row["median_seconds"], max(row["median_position_error"], 1e-4), zorder=3)
-        axes.annotate(row["method"], (row["median_seconds"], max(row["median_position_error"], 1e-4)), fontsize=7,
-                      xytext=(4, 4), textcoords="offset points")
-    axes.plot([r["median_seconds"] for r in front], [max(r["median_position_error"], 1e-4) for r in front], "k--",
-              lw=1, label="Pareto front")
-    axes.axhline(SUCCESS_THRESHOLD, color="grey", lw=0.8, ls=":", label="success threshold")
+    names = list(dict.fromkeys(r["method"] for r in rows))
+    sets = list(dict.fromkeys(r["set"] for r in rows))
+    markers = ["o", "s", "^", "D", "v", "P"]
+    colours = plt.get_cmap("tab10")
+    figure, axes = plt.subplots(figsize=(7.5, 4.2))
+    for i, name in enumerate(names):
+        for j, set_name in enumerate(sets):
+            row = next((r for r in rows if r["method"] == name and r["set"] == set_name), None)
+            if row is None:
+                continue
+            axes.scatter(row["median_seconds"], 100 * row["success_rate"], s=55, marker=markers[j % len(markers)],
+                         color=colours(i), edgecolors="black", linewidths=0.5, zorder=3,
+                         label=name if j == 0 else None)
+    for j, set_name in enumerate(sets):  # the sets' markers, in grey
+        axes.scatter([], [], marker=markers[j % len(markers)], color="lightgrey", edgecolors="black", linewidths=0.5,
+                     label=f"set: {set_name}")
     axes.set_xscale("log")
-    axes.set_yscale("log")
-    axes.set_xlabel("median seconds per scene")
-    axes.set_ylabel("median position error (of scene size)")
+    axes.set_ylim(-3, 103)
+    axes.set_xlabel("median seconds per frame (log scale)")
+    axes.set_ylabel("success (% of one-light frames)")
     date = datetime.date.today().isoformat()
-    axes.set_title(f"Speed against error, {device_name(device)}, {date}", fontsize=9)
-    axes.legend(fontsize=8)
+    axes.set_title(f"One-light Mitsuba captures, no albedo: success against time ({device_name(device)}, {date})",
+                   fontsize=8)
+    axes.grid(True, which="both", lw=0.3, alpha=0.5)
+    axes.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False)
     figure.tight_layout()
     figure.savefig(RESULTS / f"pareto_{device_slug(device)}_{date}.png", dpi=110)
     plt.close(figure)
