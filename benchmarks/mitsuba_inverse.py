@@ -21,7 +21,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 EDGE_JUMP = 0.05  # relative depth difference above which a 2x2 quad is a depth step, not a surface
 ALBEDO = 0.5

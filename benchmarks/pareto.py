@@ -80,10 +80,11 @@ def methods() -> dict:
     """name -> a function of a scene giving its light positions ``(L, 3)``."""
     out = {"mode=estimate (cnn+refine)": _ours(), "estimate.method=refine": _ours(method="refine"),
            "estimate.method=cnn": _ours(method="cnn"), "paper gradient descent": _paper_gd()}
-    try:
-        import mitsuba  # noqa: F401
+    import importlib.util
+
+    if importlib.util.find_spec("mitsuba") is not None:
         out["Mitsuba 3 inverse rendering"] = _mitsuba()
-    except ImportError:
+    else:
         log.warning("mitsuba is not installed (pip install '.[mitsuba]'): its inverse rendering is left out")
     return out
 
