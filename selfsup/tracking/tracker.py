@@ -119,6 +119,17 @@ class TrackTuning:
                 raise ValueError(f"track.tuning.{f.name} must be a finite number > 0, got {value!r}")
 
 
+def _check_frame(scene: Scene) -> None:
+    # A frame given in memory (a file's reader checks its own): a clear error, not NaN lights.
+    for name in ("image", "kd", "K"):
+        value = getattr(scene, name)
+        if not bool(torch.isfinite(value).all()):
+            raise SceneFileError(scene.id, f"{name} holds {int((~torch.isfinite(value)).sum())} non-finite values "
+                                           "(NaN or inf): give finite values (0 depth marks a missing pixel)")
+    if bool((scene.image < 0).any()):
+        raise SceneFileError(scene.id, "the image holds negative values: give linear, non-negative values")
+
+
 @dataclass
 class _Measured:
     # One frame's lights as measured (working units): positions (L, 3), their covariances
@@ -225,6 +236,7 @@ class Tracker:
         started = time.perf_counter()
         scene = frame if isinstance(frame, Scene) else read_input(frame)
         read = time.perf_counter() - started
+        _check_frame(scene)
         scene, factor = working_range(within_pixels(scene, self.options))
         with torch.no_grad():
             full_resolution = self._problem(scene)

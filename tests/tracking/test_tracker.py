@@ -125,3 +125,21 @@ def test_a_dark_frame_is_named(tmp_path, switch_frames):
     write_scene(tmp_path / "dark.npz", dark)
     with pytest.raises(ValueError, match="zero on every valid pixel"):
         Tracker().update(tmp_path / "dark.npz")
+
+
+def test_a_frame_with_nan_pixels_is_named_and_the_tracker_goes_on(switch_frames):
+    tracker = Tracker()
+    tracker.update(switch_frames[0])
+    bad = type(switch_frames[1])(**{**switch_frames[1].__dict__, "image": switch_frames[1].image.clone()})
+    bad.image[5:9, 5:9] = float("nan")
+    with pytest.raises(ValueError, match="image holds 48 non-finite values"):
+        tracker.update(bad)
+    record = tracker.update(switch_frames[2])
+    assert record["reason"] is None and _worst_error(record, switch_frames[2]) < 0.02
+
+
+def test_a_smaller_frame_mid_sequence_is_tracked_on_its_own_grid(switch_frames):
+    tracker = Tracker()
+    tracker.update(switch_frames[0])
+    record = tracker.update(switch_frames[1].subsampled(2))
+    assert record["lights"] and _worst_error(record, switch_frames[1]) < 0.02
