@@ -71,6 +71,8 @@ class EpipolarShadowOptions:
             (which occluders count is a choice without a gradient).
         scene_thickness: the same, as a fraction of each image's scene size (the
             diagonal of the bounding box of its valid points). At most one of the two.
+            0.03 matches Mitsuba 3 best (``docs/renderer.md``), but its hard far end
+            roughens a fit's landscape: the default stays unbounded.
     """
 
     width_px: float = 1.0
@@ -291,8 +293,8 @@ def _band_gradient(visibility: Tensor, band: Tensor, pts: Tensor, weight: Tensor
     #    they move.
     ns = lines.num_samples
     rows, cols = band.nonzero(as_tuple=True)
-    if rows.numel() == 0:
-        return visibility
+    if rows.numel() == 0:  # no pixel in a soft edge: a zero gradient, the graph kept (backward works)
+        return visibility + 0.0 * light.sum(-1, keepdim=True)
     band_lines = lines.select(rows)
     node, fa, fs = _node_index(*_pixel_coords(band_lines, u[cols], v[cols], options.lookback), ns)  # (M, 4), (M,), (M,)
     at = rows[:, None]
@@ -390,7 +392,9 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
             # its pixels are these, filtered, in the same (row-major) order.
             rows, cols = (valid & (t < 1)).nonzero(as_tuple=True)
             per_chunk = max(1, options.chunk_samples // (2 * (ns + 1)))
-            band_minima, band_columns = [], []
+            # (0, 4) each when no pixel is shadowed (a light that lights everything)
+            band_minima = [running_flat.new_empty(0, 4)]
+            band_columns = [argmin_flat.new_empty(0, 4)]
             for start in range(0, rows.numel(), per_chunk):
                 r, c = rows[start:start + per_chunk], cols[start:start + per_chunk]
                 node, fa, fs = _node_index(*_pixel_coords(lines.select(r), u[c], v[c], options.lookback), ns)

@@ -129,7 +129,7 @@ def test_epipolar_thickness_lets_rays_pass_behind_an_object(light):
     # With a thickness the shadows are those of the plate with that slab behind it.
     g, lp, wall, lit = _plate_before_wall(light, thickness=0.5)
     run = lambda opts: epipolar_shadow_visibility(g.points, g.mask, g.intrinsics, lp[None, None], opts)[0, 0] > 0.5
-    unbounded, slab = run(EpipolarShadowOptions()), run(EpipolarShadowOptions(thickness=0.5))
+    unbounded, slab = run(EpipolarShadowOptions(scene_thickness=None)), run(EpipolarShadowOptions(thickness=0.5))
     # Three pixels either side of the exact edge (also where it lies just outside the
     # image) left out: the sweep's edge sits up to 1.5 pixel-sized angles off at the
     # plate (bias and width), and the wall, farther from the light, magnifies that.
@@ -164,6 +164,17 @@ def test_the_bounded_solid_scans_only_where_the_unbounded_minimum_does_not_count
     assert torch.equal(fast[0], full[0]) and torch.equal(fast[1], full[1])
 
 
+def test_a_bounded_solid_without_soft_edges_still_has_a_zero_gradient():
+    # No pixel in a soft edge (the light behind the plate's slab): backward works and gives
+    # zero (it raised "expected a non-empty list", then "does not require grad").
+    g, lp, _, _ = _plate_before_wall([1.0, 0.0, 3.8], thickness=0.5)
+    position = lp[None, None].clone().requires_grad_(True)
+    options = EpipolarShadowOptions(thickness=0.5, bias_px=0.0)
+    vis = epipolar_shadow_visibility(g.points, g.mask, g.intrinsics, position, options)
+    vis.sum().backward()
+    assert torch.equal(position.grad, torch.zeros_like(lp)[None, None])
+
+
 def test_epipolar_thickness_of_the_scene_is_a_share_of_its_diagonal():
     g, lp, _, _ = _plate_before_wall([0.9, -0.5, 1.0], thickness=0.5)
     points = g.points[0][g.mask[0]]
@@ -171,7 +182,8 @@ def test_epipolar_thickness_of_the_scene_is_a_share_of_its_diagonal():
     run = lambda opts: epipolar_shadow_visibility(g.points, g.mask, g.intrinsics, lp[None, None], opts)
     assert torch.equal(run(EpipolarShadowOptions(scene_thickness=0.1)), run(EpipolarShadowOptions(thickness=0.1 * diagonal)))
     # Larger than any ray's depth behind the surface: the unbounded solid's answer.
-    assert torch.allclose(run(EpipolarShadowOptions(thickness=1e6)), run(EpipolarShadowOptions()), atol=1e-9)
+    assert torch.allclose(run(EpipolarShadowOptions(thickness=1e6)), run(EpipolarShadowOptions(scene_thickness=None)),
+                          atol=1e-9)
 
 
 @pytest.mark.parametrize("fields", [{"thickness": 0.0}, {"thickness": float("inf")}, {"scene_thickness": -0.1},
