@@ -78,7 +78,8 @@ def shadow_gain(problem: FitProblem, position: Tensor, light: Tensor, specular: 
     lights of 5-7% of the light +0.03 and +0.09 (two others +0.002 and -0.004).
     """
     shadowed = light_transport(problem.gbuffer, problem.material, position, falloff=problem.falloff,
-                               shadows="epipolar", specular=specular)
+                               shadows="epipolar", specular=specular,
+                               shadow_options=EpipolarShadowOptions(scene_thickness=None))  # as it was measured
     bare = light_transport(problem.gbuffer, problem.material, position, falloff=problem.falloff, shadows="none",
                            specular=specular)
     pick = torch.nn.functional.one_hot(light, position.shape[1]).to(position.dtype)[..., None, None]  # (B, L, 1, 1)
@@ -158,7 +159,7 @@ def judged_problem(problem: FitProblem, options: EstimateOptions) -> FitProblem:
 def criterion_light(problem: FitProblem, options: EstimateOptions) -> FitProblem:
     # The problem's light transport as the criterion models it: its cast shadows and, where
     # the file leaves light unaccounted for, each light's indirect light.
-    if options.tuning.criterion_thickness is not None and options.tuning.criterion_shadows == "epipolar":
+    if options.tuning.criterion_shadows == "epipolar":  # criterion_thickness None: the unbounded solid
         problem = problem.with_shadows("epipolar", EpipolarShadowOptions(scene_thickness=options.tuning.criterion_thickness))
     elif options.tuning.criterion_shadows != problem.shadows:
         problem = problem.with_shadows(options.tuning.criterion_shadows)

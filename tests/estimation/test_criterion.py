@@ -169,7 +169,8 @@ def test_the_criterion_judges_the_fit_itself_only_where_nothing_differs():
     assert judged.shadows == "epipolar" and tuple(judged.image.shape[-2:]) == (24, 32) and not judged.indirect
     assert judged.shadow_options == EpipolarShadowOptions(scene_thickness=EstimateOptions().tuning.criterion_thickness)
     assert judged.select(torch.tensor([0, 0])).shadow_options == judged.shadow_options
-    assert judged_problem(problem, EstimateOptions(tuning=Tuning(criterion_thickness=None))).shadow_options is None
+    unbounded = judged_problem(problem, EstimateOptions(tuning=Tuning(criterion_thickness=None))).shadow_options
+    assert unbounded.scene_thickness is None and unbounded.thickness is None  # the unbounded solid, asked for
     assert judged_problem(dataclasses.replace(problem, ambient=None), EstimateOptions()).indirect
     assert not judged_problem(dataclasses.replace(problem, ambient=None), EstimateOptions(tuning=Tuning(indirect="never"))).indirect
     # Valid pixels on odd rows alone: every second pixel would see none of them, so every pixel is judged.

@@ -88,3 +88,34 @@ def test_tiny_and_huge_scenes_render_the_same_picture(method, scale):
     scaled = _check(layer, GBuffer.from_depth(depth * scale, K), mat, torch.tensor([[[0.2, -1.5, 2.0]]]) * scale,
                     torch.full((1, 1, 3), 10.0 * scale**2))
     assert (scaled - ref).abs().max() < 1e-3 * ref.abs().max()
+
+
+@pytest.mark.parametrize("name,light,scale", [
+    ("grazing", [-3.0, 0.999, 4.0], 1.0), ("1 mm above the floor", [0.0, 0.999, 3.0], 1.0),
+    ("inside the sphere", [-0.4, 0.5, 4.0], 1.0), ("above", [0.3, -1.0, 3.0], 1.0),
+    ("tiny scene", [0.3, -1.0, 3.0], 1e-3), ("huge scene", [0.3, -1.0, 3.0], 1e3)])
+def test_the_default_layers_light_gradient_matches_central_differences(name, light, scale):
+    # The whole image's derivative with respect to the light position, float64, with the
+    # layer's default shadows (the bounded solid, soft at both ends): autograd against
+    # central differences (the huge scene's gradient was NaN through the holes' points).
+    view = exact_view((0.2, -1.5, 2.0), H, W, scale=scale)
+    g = GBuffer.from_depth(view.depth.double()[None], view.K.double()[None])
+    mat = Material(kd=torch.full((1, H, W, 3), 0.5, dtype=torch.float64),
+                   ks=torch.full((1, H, W, 1), 0.3, dtype=torch.float64), shininess=20.0)
+    layer = ShadowedBlinnPhong(shadows="epipolar")
+    weight = torch.rand(1, 3, H, W, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    intensity = torch.full((1, 1, 3), 5.0 * scale**2, dtype=torch.float64)
+
+    def f(p):
+        return (layer(g, mat, PointLights(position=p, intensity=intensity)) * weight).sum()
+
+    p = (torch.tensor([[light]], dtype=torch.float64) * scale).requires_grad_(True)
+    f(p).backward()
+    assert torch.isfinite(p.grad).all()
+    h = 1e-6 * scale
+    for k in range(3):
+        e = torch.zeros(1, 1, 3, dtype=torch.float64)
+        e[0, 0, k] = h
+        with torch.no_grad():
+            numeric = ((f(p.detach() + e) - f(p.detach() - e)) / (2 * h)).item()
+        assert p.grad[0, 0, k].item() == pytest.approx(numeric, rel=1e-5, abs=1e-9 * abs(p.grad).max().item())
