@@ -36,6 +36,7 @@ def settings() -> dict[str, tuple[str, object]]:
         out[f"epipolar, scene_thickness={t}"] = ("epipolar", EpipolarShadowOptions(scene_thickness=t))
     for radius, bias in ((0, 0.02), (2, 0.02), (1, 0.01), (1, 0.05)):
         out[f"paper, splat_radius={radius}, bias={bias}"] = ("paper", CubeShadowOptions(splat_radius=radius, bias=bias))
+    out["paper, footprint splats and bias"] = ("paper", CubeShadowOptions(footprint=True, splat_radius=0, bias=0.0))
     return out
 
 

@@ -22,8 +22,9 @@ def test_paper_table_runs_shrunk_with_the_published_numbers_beside():
                           "benchmark.width=32", "benchmark.gd_max_iters=3", "benchmark.reflectance=[ideal]",
                           "benchmark.models=[boom,epipolar_shadows]",
                           "benchmark.write=false"))
-    assert path is None and len(rows) == 4  # 2 models x 2 optimisers
-    assert {r["optimiser"] for r in rows} == {"gd (paper)", "search + LM"} and all(r["experiments"] == 6 for r in rows)
+    assert path is None and len(rows) == 5  # 2 models x 2 optimisers, and mode=estimate's whole pipeline
+    assert {r["optimiser"] for r in rows} == {"gd (paper)", "search + LM", "mode=estimate (whole pipeline)"}
+    assert all(r["experiments"] == 6 for r in rows)
     assert rows[0]["paper_median"] == 0.0792  # Boom et al., true reflectance, as published
     assert all(0 <= r["median_error"] < 10 for r in rows)
 

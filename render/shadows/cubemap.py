@@ -37,12 +37,22 @@ class CubeShadowOptions:
         fd_step: finite-difference step for ``dS/dL``, relative to each light's
             mean distance to the valid points. Costs 6 more maps, only when the
             light position needs a gradient.
+        footprint: each point's splat covers its own pixel's footprint as the
+            light sees it (the spacing to its nearest valid neighbour over its
+            distance to the light, in texels, at least ``splat_radius``, at most
+            ``MAX_FOOTPRINT_TEXELS``), and its depth test allows ``bias`` plus
+            ``FOOTPRINT_BIAS`` times the larger of that footprint and a texel (as
+            angles): splats and bias sized to the pixel, not fixed. Against Mitsuba
+            3 (96 rooms, true lights): 3.8% median relative L1, against 6.3% for the
+            defaults and 4.1% for the best fixed setting (``bias=0.05``); three times
+            the defaults' time. Off by default.
     """
 
     resolution: int = 256
     splat_radius: int = 1
     bias: float = 0.02
     fd_step: float = 0.01
+    footprint: bool = False
 
     def __post_init__(self) -> None:
         if self.resolution < 1:
@@ -53,6 +63,30 @@ class CubeShadowOptions:
             raise ValueError(f"bias must be >= 0, got {self.bias}")
         if not self.fd_step > 0:
             raise ValueError(f"fd_step must be > 0, got {self.fd_step}")
+
+
+MAX_FOOTPRINT_TEXELS = 4  # the largest splat half-width a footprint may ask for
+FOOTPRINT_BIAS = 8.0  # texels of depth tolerance (or pixel footprints): 2 -> 6.6%, 4 -> 4.1%, 8 -> 3.8%, 16 -> 3.9% vs Mitsuba
+
+
+def _neighbour_spacing(points: Tensor, mask: Tensor) -> Tensor:
+    """``(B, H, W)`` distance from each valid point to its nearest valid 4-neighbour (a
+    pixel's footprint on its surface; the nearer side, so a depth step does not count);
+    0 where it has none."""
+    inf = torch.full_like(points[..., 0], float("inf"))
+    gaps = []
+    for axis in (1, 2):
+        step = (points.narrow(axis, 1, points.shape[axis] - 1) - points.narrow(axis, 0, points.shape[axis] - 1)).norm(
+            dim=-1)
+        both = mask.narrow(axis, 1, mask.shape[axis] - 1) & mask.narrow(axis, 0, mask.shape[axis] - 1)
+        step = torch.where(both, step, float("inf"))
+        pad = [0, 0, 0, 0]
+        for side, index in ((0, 1), (1, 0)):  # the gap before and after each pixel along the axis
+            p = list(pad)
+            p[(2 - axis) * 2 + side] = 1
+            gaps.append(torch.nn.functional.pad(step, p, value=float("inf")))
+    nearest = torch.stack(gaps).amin(0)
+    return torch.where(mask & torch.isfinite(nearest), nearest, torch.zeros_like(inf))
 
 
 def _hard_visibility(points: Tensor, mask: Tensor, light_position: Tensor, opt: CubeShadowOptions) -> Tensor:
@@ -78,14 +112,25 @@ def _hard_visibility(points: Tensor, mask: Tensor, light_position: Tensor, opt: 
     base = (torch.arange(B * L, device=points.device).view(B, L, 1) * 6 + face) * (R * R)
     shadow_map = torch.full((B * L * 6 * R * R,), float("inf"), dtype=points.dtype, device=points.device)
     r = opt.splat_radius
+    tolerance = opt.bias
+    if opt.footprint:
+        spacing = _neighbour_spacing(points, mask).reshape(B, 1, H * W)  # metres
+        # the footprint's half-width in texels: R / 2 texels per unit of the face's tangent
+        reach = (0.5 * spacing / major.abs().clamp_min(torch.finfo(points.dtype).tiny) * (0.5 * R)).ceil()
+        per_point = reach.clamp(opt.splat_radius, MAX_FOOTPRINT_TEXELS).long()
+        r = int(per_point.max()) if per_point.numel() else 0
+        tolerance = opt.bias + FOOTPRINT_BIAS * torch.maximum(spacing / distance.clamp_min(torch.finfo(points.dtype).tiny), torch.tensor(2.0 / R, dtype=points.dtype))
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
             s = (texel[..., 0] + dx).clamp(0, R - 1)
             t = (texel[..., 1] + dy).clamp(0, R - 1)
-            shadow_map.scatter_reduce_(0, (base + t * R + s).flatten(), depth_value.flatten(), "amin")
+            value = depth_value
+            if opt.footprint:  # this offset only for the points whose footprint reaches it
+                value = torch.where((per_point >= abs(dx)) & (per_point >= abs(dy)), depth_value, far)
+            shadow_map.scatter_reduce_(0, (base + t * R + s).flatten(), value.flatten(), "amin")
     own = base + texel[..., 1] * R + texel[..., 0]
     nearest = shadow_map[own]
-    lit = distance <= nearest * (1 + opt.bias)
+    lit = distance <= nearest * (1 + tolerance)
     return lit.to(points.dtype).reshape(B, L, H, W)
 
 

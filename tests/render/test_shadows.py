@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from render import CubeShadowOptions, EpipolarShadowOptions, GBuffer, Material, PointLights, render
-from render.shadows import epipolar_shadow_visibility
+from render.shadows import cube_shadow_visibility, epipolar_shadow_visibility
 from selfsup.scenes.analytic import compare_to_exact, shadow_edge_band
 from tests.conftest import CAMERA_SIDE_LIGHTS, exact_view, gbuffer_of
 
@@ -191,3 +191,14 @@ def test_epipolar_thickness_of_the_scene_is_a_share_of_its_diagonal():
 def test_epipolar_thickness_rejects_absurd_values(fields):
     with pytest.raises(ValueError, match="thickness"):
         EpipolarShadowOptions(**fields)
+
+
+def test_footprint_splats_shadow_like_the_fixed_ones_where_points_are_dense():
+    # A plate before a wall, a light in front: the footprint-sized splats and bias give the
+    # same shadow as the fixed defaults away from its edges, and no acne on the lit wall.
+    g, lp, wall, lit = _plate_before_wall([0.2, -0.1, 0.5], thickness=0.5)
+    run = lambda opts: cube_shadow_visibility(g.points, g.mask, lp[None, None], opts)[0, 0] > 0.5
+    footprint = run(CubeShadowOptions(footprint=True, splat_radius=0, bias=0.0))
+    band = shadow_edge_band(lit.double(), pixels=3)
+    keep = wall & ~band
+    assert (footprint == lit)[keep].float().mean() > 0.99
