@@ -6,7 +6,6 @@ z forward; pixel ``(row i, col j)`` has image coordinates ``u = j, v = i``.
 
 from __future__ import annotations
 
-
 import torch
 from kornia.geometry.depth import depth_to_3d_v2
 from torch import Tensor

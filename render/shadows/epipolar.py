@@ -43,7 +43,6 @@ __all__ = ["EpipolarShadowOptions", "epipolar_shadow_visibility"]
 
 # gamma lies in [0, pi]; this marks "no occluder seen yet" in the running minimum.
 _NO_OCCLUDER = 4.0
-SOFT_SLAB_END = True  # the bounded solid's far end a soft edge (_passed_behind); False: a hard one
 # The default solid behind each pixel, a share of the scene size. Against Mitsuba 3's direct
 # light (96 rooms, true lights, diffuse pixels) 0.03 gave a median relative L1 of 2.9% (0.05:
 # 2.9%, 0.02: 3.5%, unbounded: 4.4%); an exhaustive ray march of the depth map with the same
@@ -292,11 +291,12 @@ def _thickness(points: Tensor, mask: Tensor, options: EpipolarShadowOptions) -> 
 def _band_gradient(visibility: Tensor, band: Tensor, pts: Tensor, weight: Tensor, light: Tensor, lines: _Lines,
                    line_of_row: Tensor, running_flat: Tensor, argmin_flat: Tensor, kept: tuple[Tensor, Tensor] | None,
                    focal: Tensor, u: Tensor, v: Tensor, H: int, W: int, options: EpipolarShadowOptions,
-                   thickness: Tensor | None = None) -> Tensor:
+                   slab_end: Tensor | None = None) -> Tensor:
     """:func:`_sweep`'s visibility ``(N, H*W)`` with the smooth ``band``'s pixels computed again
     so that autograd sees them; ``kept``: the thick sweep's node minima and occluder
     columns of the band (None: read from the unbounded sweep's ``running_flat``, ``argmin_flat``);
-    ``thickness (N,)``: the slab's far end is soft (:func:`_passed_behind`), recomputed too."""
+    ``slab_end (N, H*W)``: the bounded solid's slab ends (:func:`_slab_end_angles`), whose
+    soft far end (:func:`_passed_behind`) is recomputed too."""
     # With a gradient, only where it is not zero: inside the smooth band (the
     #    clamped smoothstep is flat, derivative 0, everywhere else). The same
     #    computation as above for the band's pixels, the sweep's choices kept (which
@@ -325,9 +325,8 @@ def _band_gradient(visibility: Tensor, band: Tensor, pts: Tensor, weight: Tensor
     band_light = light[rows]
     band_gamma = _angle_from_camera_ray(band_points, band_light)
     band_distance = norm3(band_light - band_points)
-    if thickness is not None:  # the slab ends as the sweep's table holds them (cut back at depth steps)
-        back_image = _slab_end_angles(pts, weight > 0, light, thickness, H, W)
-        back, _ = _masked_angle_at(pts, weight, light, rows, xy, H, W, values=back_image)
+    if slab_end is not None:  # the slab ends as the sweep's table holds them (cut back at depth steps)
+        back, _ = _masked_angle_at(pts, weight, light, rows, xy, H, W, values=slab_end)
         soft = options.width_px * _pixel_angle(band_points[:, 2], band_distance, focal[rows])
         angle = _passed_behind(angle, back, band_gamma[:, None], soft[:, None])
     band_min = _lerp_nodes(torch.where(seen & ok, angle, _NO_OCCLUDER), fa, fs)
@@ -352,6 +351,9 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     v = torch.arange(H, dtype=dtype, device=device).repeat_interleave(W)
 
     thick = thickness is not None
+    # The slab ends, found once: the sweep's table reads them, the gradient pass too (with the
+    # graph, when a gradient is asked for).
+    slab_end = _slab_end_angles(pts, valid, light, thickness, H, W) if thick else None
     with torch.no_grad():
         gamma = _angle_from_camera_ray(pts, light[:, None])  # (N, H*W)
         # 1) The sweep, on the padded table of _node_index (rows: lines, then the two
@@ -363,7 +365,7 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
         #    that slab when front <= g <= back (gamma grows with depth along a camera ray).
         channels = [weight, gamma * weight]
         if thick:
-            channels.append(_slab_end_angles(pts, valid, light, thickness, H, W, gamma) * weight)
+            channels.append(slab_end.detach() * weight)
         angle_image = torch.stack(channels, dim=1).reshape(N, len(channels), H, W)
         line_of_row = _line_of_row(lines, nl)  # (N, nl + 2)
         running = torch.empty(N, nl + 2, ns + 1, dtype=dtype, device=device)
@@ -414,8 +416,7 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
             for start in range(0, rows.numel(), per_chunk):
                 r, c = rows[start:start + per_chunk], cols[start:start + per_chunk]
                 node, fa, fs = _node_index(*_pixel_coords(lines.select(r), u[c], v[c], options.lookback), ns)
-                soft = (options.width_px * _pixel_angle(pts[r, c, 2], distance[r, c], focal[r])
-                        if SOFT_SLAB_END else None)
+                soft = options.width_px * _pixel_angle(pts[r, c, 2], distance[r, c], focal[r])
                 node_min, columns = _bounded_minima(running_flat, argmin_flat, front_table, back_table, r, node,
                                                     gamma[r, c], soft)
                 slab_min = _lerp_nodes(node_min, fa, fs)
@@ -434,7 +435,7 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     # 3) With a gradient, only where it is not zero: _band_gradient.
     kept = (torch.cat(band_minima), torch.cat(band_columns)) if thick else None
     return _band_gradient(visibility, band, pts, weight, light, lines, line_of_row, running_flat, argmin_flat, kept,
-                          focal, u, v, H, W, options, thickness if SOFT_SLAB_END else None)
+                          focal, u, v, H, W, options, slab_end)
 
 
 def _line_of_row(lines: _Lines, nl: int) -> Tensor:
@@ -491,12 +492,10 @@ def _node_index(a: Tensor, s: Tensor, ns: int) -> tuple[Tensor, Tensor, Tensor]:
     return node, a - a0, s - s0
 
 
-def _slab_end_angles(pts: Tensor, valid: Tensor, light: Tensor, thickness: Tensor, H: int, W: int,
-                     gamma: Tensor | None = None) -> Tensor:
+def _slab_end_angles(pts: Tensor, valid: Tensor, light: Tensor, thickness: Tensor, H: int, W: int) -> Tensor:
     """Each pixel's slab end as an angle at the light ``(N, H*W)``: the point ``thickness (N,)``
-    behind its surface along the camera ray, cut back at depth steps (:func:`_slab_ends`);
-    ``gamma``: the surface's own angles when found already."""
-    gamma = _angle_from_camera_ray(pts, light[:, None]) if gamma is None else gamma
+    behind its surface along the camera ray, cut back at depth steps (:func:`_slab_ends`)."""
+    gamma = _angle_from_camera_ray(pts, light[:, None])
     # Invalid pixels (points at the origin) keep their point: no 0 * inf there, in values or gradients.
     distance = torch.where(valid, norm3(pts), 1.0).clamp_min(torch.finfo(pts.dtype).tiny)
     behind = pts * torch.where(valid, 1 + thickness[:, None] / distance, 1.0)[..., None]
@@ -516,7 +515,7 @@ def _slab_ends(front: Tensor, back: Tensor, valid: Tensor, H: int, W: int) -> Te
 
 
 def _bounded_minima(running: Tensor, argmin: Tensor, front: Tensor, back: Tensor, rows: Tensor, node: Tensor,
-                    gamma: Tensor, soft: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                    gamma: Tensor, soft: Tensor) -> tuple[Tensor, Tensor]:
     """:func:`_slab_minima`, scanning the lines only where it can differ from the unbounded
     solid's minima ``running``, ``argmin (N, (nl + 2) (ns + 1))``: a node whose unbounded
     minimum lies in a slab that reaches behind the pixel's ray (or that has no occluder) has
@@ -532,7 +531,7 @@ def _bounded_minima(running: Tensor, argmin: Tensor, front: Tensor, back: Tensor
     if bool(scan.any()):
         scanned = scan.nonzero(as_tuple=True)[0]
         minima[scanned], columns[scanned] = _slab_minima(front, back, rows[scanned], node[scanned], gamma[scanned],
-                                                         None if soft is None else soft[scanned])
+                                                         soft[scanned])
     return minima, columns
 
 
@@ -546,20 +545,17 @@ def _passed_behind(front: Tensor, back: Tensor, gamma: Tensor, soft: Tensor) -> 
     return front + s * s * (3 - 2 * s) * (gamma - front).clamp_min(0)
 
 
-def _slab_minima(front: Tensor, back: Tensor, rows: Tensor, node: Tensor, gamma: Tensor,
-                 soft: Tensor | None = None) -> tuple[Tensor, Tensor]:
+def _slab_minima(front: Tensor, back: Tensor, rows: Tensor, node: Tensor, gamma: Tensor, soft: Tensor
+                 ) -> tuple[Tensor, Tensor]:
     """The running minimum at ``node (M, 4)`` (flat indices of _node_index into tables
-    ``(N, nl + 2, ns + 1)`` of images ``rows (M,)``) over only the samples whose slab
-    ``front <= gamma <= back`` reaches behind a pixel's ray of angle ``gamma (M,)``:
-    ``(M, 4)`` minima (_NO_OCCLUDER where none) and the columns holding them."""
+    ``(N, nl + 2, ns + 1)`` of images ``rows (M,)``) of the samples' angles as occluders of a
+    pixel's ray of angle ``gamma (M,)``: their ``front`` where the slab ``front <= gamma <=
+    back`` reaches behind the ray, rising to ``gamma`` over ``soft (M,)`` past its end
+    (:func:`_passed_behind`). ``(M, 4)`` minima and the columns holding them."""
     width = front.shape[-1]
     line_rows = torch.div(node[:, ::2], width, rounding_mode="floor")  # (M, 2): the two lines' table rows
     at = rows[:, None]
-    if soft is None:
-        reaching = back[at, line_rows] >= gamma[:, None, None]  # (M, 2, ns + 1)
-        angle = torch.where(reaching, front[at, line_rows], _NO_OCCLUDER)
-    else:
-        angle = _passed_behind(front[at, line_rows], back[at, line_rows], gamma[:, None, None], soft[:, None, None])
+    angle = _passed_behind(front[at, line_rows], back[at, line_rows], gamma[:, None, None], soft[:, None, None])
     first_col, last_col = node[:, :2].remainder(width).unbind(-1)  # the nodes' columns (M,), the same on both lines
     column = torch.arange(width, device=node.device)
     before, before_col = torch.where(column <= first_col[:, None, None], angle, _NO_OCCLUDER).min(-1)  # (M, 2)
