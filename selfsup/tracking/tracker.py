@@ -119,6 +119,12 @@ class TrackTuning:
                 raise ValueError(f"track.tuning.{f.name} must be a finite number > 0, got {value!r}")
 
 
+def _inverse_depth(depth: Tensor) -> Tensor:
+    # (H, W) 1 / depth on the valid pixels (finite, > 0), 0 elsewhere.
+    valid = (depth > 0) & torch.isfinite(depth)
+    return torch.where(valid, 1 / torch.where(valid, depth, 1.0), 0.0)
+
+
 def _check_frame(scene: Scene) -> None:
     # A frame given in memory (a file's reader checks its own): a clear error, not NaN lights.
     for name in ("image", "kd", "K"):
@@ -133,17 +139,16 @@ def _check_frame(scene: Scene) -> None:
 @dataclass
 class _Measured:
     # One frame's lights as measured (working units): positions (L, 3), their covariances
-    # (L, 3, 3), intensities (L, 3), ambient (3,), the loss per residual of the warm fit
-    # (None after a full estimate), each light's share (L,), the model image (1, 3, H, W), the
-    # albedo-free log weights (L + 1,).
+    # (L, 3, 3), intensities (L, 3), ambient (3,), the model image (1, 3, H, W), the
+    # albedo-free log weights (L + 1,); a warm fit's loss per residual and each light's share (L,).
     position: Tensor
     covariance: Tensor
     intensity: Tensor
     ambient: Tensor
-    loss: float | None
-    share: Tensor
     model: Tensor
     log_weight: Tensor | None = None
+    loss: float | None = None
+    share: Tensor | None = None
 
 
 @dataclass
@@ -152,6 +157,7 @@ class _Geometry:
     # (its normals, mask before clipped pixels, normal tilt) and its smooth surfaces.
     depth: Tensor
     problem: FitProblem
+    inverse: Tensor  # (H, W) 1 / depth where valid, 0 elsewhere: what later frames' depths are compared with
     surfaces: Tensor | None = None
     labels: Tensor | None = None  # (1, H, W) at the warm stride
     labels_at: Tensor | None = None  # (L, 3): the lights when they were found
@@ -245,15 +251,16 @@ class Tracker:
             reason = self._due()
             measured = None
             if reason is None:
+                predicted = [predict(t.state, self.tuning.acceleration_std * size) for t in self._tracks]
                 labels = self._labels(full_resolution, size)
-                measured = self._warm(problem, labels=labels)
-                reason = self._changed(problem, measured, size)
+                measured = self._warm(problem, torch.stack([p.position for p in predicted]), labels)
+                reason = self._changed(problem, measured, predicted, size)
                 if reason is None and self.refresh and self._since_full + 1 >= self.refresh:
                     reason = "refresh"
             if reason is None:
-                self._filtered(measured, size)
+                self._filtered(measured, predicted, size)
             elif reason == "refresh":
-                measured = self._refreshed(problem, scene, measured, size, labels)
+                measured = self._refreshed(problem, scene, measured, predicted, size, labels)
             else:
                 measured = self._full(scene)
                 same = self._restarted(measured, size)
@@ -269,9 +276,10 @@ class Tracker:
         # The frame's problem; the kept geometry's normals where the depth is the same.
         kept = self._geometry
         depth = scene.depth.to(self.device)
-        if kept is None or not self._same_depth(kept.depth, depth):
+        inverse = _inverse_depth(depth)
+        if kept is None or not self._same_depth(kept, depth, inverse):
             base = prepare([scene], self.options.tuned(mask_saturated=False), self.device)
-            self._geometry = _Geometry(depth, base)
+            self._geometry = _Geometry(depth, base, inverse)
             self._unexplained = None  # pixels no longer correspond
         base = self._geometry.problem
         image = scene.image.to(self.device, base.image.dtype).permute(2, 0, 1)[None]
@@ -287,22 +295,21 @@ class Tracker:
         return FitProblem(replace(base.gbuffer, mask=mask), material, image, ambient, base.falloff, base.shadows,
                           normal_tilt=base.normal_tilt)
 
-    def _same_depth(self, kept: Tensor, depth: Tensor) -> bool:
-        # Whether ``depth`` is the kept frame's seen from the same place: its inverse depth
-        # (affine in the pixel on a plane) changed, averaged over blocks, by no more than
-        # its noise allows on all but ``moved_blocks`` of the blocks.
-        if kept.shape != depth.shape:
+    def _same_depth(self, kept: _Geometry, depth: Tensor, inverse: Tensor) -> bool:
+        # Whether ``depth`` (``inverse``: its inverse, 0 where missing) is the kept frame's seen
+        # from the same place: its inverse depth (affine in the pixel on a plane) changed,
+        # averaged over blocks, by no more than its noise allows on all but ``moved_blocks`` of them.
+        if kept.depth.shape != depth.shape:
             return False
-        valid_kept, valid = (kept > 0) & torch.isfinite(kept), (depth > 0) & torch.isfinite(depth)
+        valid_kept, valid = kept.inverse > 0, inverse > 0
         both = valid_kept & valid
         if float((valid_kept != valid).float().mean()) > MOVED_HOLES or not bool(both.any()):
             return False
-        inverse = torch.where(valid, 1 / depth.clamp_min(1e-12), torch.zeros_like(depth))
         triples = valid[:, :-2] & valid[:, 1:-1] & valid[:, 2:]
         second = (inverse[:, :-2] - 2 * inverse[:, 1:-1] + inverse[:, 2:])[triples]
         level = float(inverse[valid].median())
         noise = max(1.4826 / math.sqrt(6) * float(second.abs().median()) if second.numel() else 0.0, 1e-6 * level)
-        change = torch.where(both, inverse - torch.where(valid_kept, 1 / kept.clamp_min(1e-12), inverse), 0.0)
+        change = torch.where(both, inverse - kept.inverse, 0.0)
         px = MOVED_BLOCK_PX
         sums = torch.nn.functional.avg_pool2d(change[None, None], px, px, ceil_mode=True)[0, 0] * px * px
         counts = torch.nn.functional.avg_pool2d(both[None, None].to(change.dtype), px, px, ceil_mode=True)[0, 0] * px * px
@@ -337,23 +344,22 @@ class Tracker:
             return "first" if self._frame == 0 else "share"  # every light lost: estimated afresh
         return None
 
-    def _refreshed(self, problem: FitProblem, scene: Scene, warm: _Measured, size: float, labels: Tensor | None
-                   ) -> _Measured:
+    def _refreshed(self, problem: FitProblem, scene: Scene, warm: _Measured, predicted: list[LightState],
+                   size: float, labels: Tensor | None) -> _Measured:
         # A refresh: the full estimate replaces the tracked lights unless it chose the same
         # model and light count and, refined as a warm step, explains the frame no better
         # than they do (a full estimate can miss what the tracker holds, as a weak second light).
         model, reference = self._model, list(self._reference)
         full = self._full(scene)
         if self._model == model and full.position.shape == warm.position.shape:
-            start = full.position.to(problem.image.device, problem.image.dtype)[None]
             if self._model.albedo_free:
                 self._ambient = full.log_weight[:1]
                 for track, weight in zip(self._tracks, full.log_weight[1:]):
                     track.log_weight = weight
-            again = self._warm(problem, start, labels)
+            again = self._warm(problem, full.position, labels)
             if warm.loss <= again.loss:
                 self._reference.extend(reference)
-                self._filtered(warm, size)
+                self._filtered(warm, predicted, size)
                 return warm
         self._restarted(full, size)
         return full
@@ -378,28 +384,21 @@ class Tracker:
             log_weight = grey.log()
         self._reference.clear()
         self._since_full = 0
-        share = torch.full((position.shape[0],), 1.0 / max(position.shape[0], 1), dtype=torch.float64)
         stride = self.tuning.warm_stride
-        return _Measured(position, cov, intensity, ambient, None, share, best.fit.model[..., ::stride, ::stride],
-                         log_weight)
+        return _Measured(position, cov, intensity, ambient, best.fit.model[..., ::stride, ::stride], log_weight)
 
-    def _warm(self, problem: FitProblem, start: Tensor | None = None, labels: Tensor | None = None) -> _Measured:
-        # A few LM steps of the chosen model from ``start (1, L, 3)`` (None: the filter's predictions).
-        if start is None:
-            start = torch.stack([predict(t.state, self._acceleration(problem)).position for t in self._tracks])
-            start = start.to(problem.image.device, problem.image.dtype)[None]
+    def _warm(self, problem: FitProblem, start: Tensor, labels: Tensor | None) -> _Measured:
+        # A few LM steps of the chosen model from ``start (L, 3)``.
+        start = start.to(problem.image.device, problem.image.dtype)[None]
         if self._model.albedo_free:
             return self._warm_albedo_free(problem, start, labels)
         return self._warm_given(problem, start)
-
-    def _acceleration(self, problem: FitProblem) -> float:
-        return self.tuning.acceleration_std * float(centre_and_size(problem)[1][0])
 
     def _warm_albedo_free(self, problem: FitProblem, start: Tensor, labels: Tensor | None) -> _Measured:
         tuning = self.options.tuning
         obs = albedo_free.observe(problem, tuning.albedo_free_scale, residuals=self.tuning.warm_residuals,
                                   labels=labels)
-        log_weight = torch.cat([self._ambient_weight(), torch.stack([t.log_weight for t in self._tracks])])
+        log_weight = torch.cat([self._ambient, torch.stack([t.log_weight for t in self._tracks])])
         log_weight = log_weight.to(start.device, start.dtype)[None]
         fit = albedo_free.refine_positions(obs, start, log_weight, self.tuning.warm_iterations)
         block = block_px(self.options, problem.image.shape[-1], albedo_free=True)
@@ -409,10 +408,7 @@ class Tracker:
         share = albedo_free.light_shares(problem, fit)
         loss = float(fit.loss[0]) / max(float(fit.pairs[0]), 1.0)
         return _Measured(fit.position[0].double(), cov[0].double(), solved.intensity[0].double(),
-                         solved.ambient[0].double(), loss, share[0].double(), solved.model, fit.log_weight[0].double())
-
-    def _ambient_weight(self) -> Tensor:
-        return self._ambient if self._ambient is not None else torch.zeros(1, dtype=torch.float64)
+                         solved.ambient[0].double(), solved.model, fit.log_weight[0].double(), loss, share[0].double())
 
     def _warm_given(self, problem: FitProblem, start: Tensor) -> _Measured:
         tuning, model = self.options.tuning, self._model
@@ -429,7 +425,7 @@ class Tracker:
         share = light_shares(problem, fit, model.specular)
         loss = float(fit.cost[0]) / max(float(fit.n[0]), 1.0)
         return _Measured(fit.position[0].double(), cov[0].double(), fit.intensity[0].double(),
-                         fit.ambient[0].double(), loss, share[0].double(), fit.model)
+                         fit.ambient[0].double(), fit.model, loss=loss, share=share[0].double())
 
     def _log_ratio(self, problem: FitProblem, model: Tensor) -> Tensor:
         # (H, W) log(image / model) of the grey values; NaN where the pixel is invalid or
@@ -456,7 +452,8 @@ class Tracker:
         step = max(self.tuning.change_step, 3 * math.sqrt(2) * relative_noise)
         return float((change > step).float().mean())
 
-    def _changed(self, problem: FitProblem, measured: _Measured, size: float) -> str | None:
+    def _changed(self, problem: FitProblem, measured: _Measured, predicted: list[LightState], size: float
+                 ) -> str | None:
         # Why the warm step's answer is not to be trusted, or None.
         if bool((measured.share < self.options.tuning.min_light_share).any()):
             return "share"
@@ -464,8 +461,8 @@ class Tracker:
             self._change_rests -= 1
         elif self._changed_share(problem, measured.model) > self.tuning.change_share:
             return "change"
-        predicted = torch.stack([predict(t.state, self.tuning.acceleration_std * size).position for t in self._tracks])
-        if float((measured.position - predicted).norm(dim=-1).max()) > self.tuning.fast_motion * size:
+        expected = torch.stack([p.position for p in predicted])
+        if float((measured.position - expected).norm(dim=-1).max()) > self.tuning.fast_motion * size:
             return "motion"
         if len(self._reference) and measured.loss > self.tuning.jump_ratio * sorted(self._reference)[
                 len(self._reference) // 2]:
@@ -480,12 +477,10 @@ class Tracker:
         floor = (self.tuning.measurement_floor * size) ** 2
         return cov + torch.eye(3, dtype=torch.float64) * floor
 
-    def _filtered(self, measured: _Measured, size: float) -> None:
-        # A warm frame: every track predicted and updated with its light's measurement.
-        q = self.tuning.acceleration_std * size
+    def _filtered(self, measured: _Measured, predicted: list[LightState], size: float) -> None:
+        # A warm frame: every track's prediction updated with its light's measurement.
         for k, track in enumerate(self._tracks):
-            track.state = update(predict(track.state, q), measured.position[k],
-                                 self._measurement_cov(measured.covariance[k], size))
+            track.state = update(predicted[k], measured.position[k], self._measurement_cov(measured.covariance[k], size))
             track.intensity = measured.intensity[k]
             if measured.log_weight is not None:
                 track.log_weight = measured.log_weight[k + 1]
