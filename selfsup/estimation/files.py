@@ -31,6 +31,7 @@ from selfsup.scenes.capture import (COLOR_SUFFIXES, CaptureFrame, capture_frames
 from selfsup.scenes.io import Scene, SceneFileError
 
 __all__ = ["estimate_files", "estimate_inputs", "scene_files", "worker_count", "usable_cores", "start_method",
+           "failure_reason", "record_line", "progress_bar", "resolve_device",
            "worker_threads"]
 
 log = logging.getLogger(__name__)
@@ -117,13 +118,40 @@ def _estimate_group(group: list[tuple[Path, Scene]], options: EstimateOptions, d
                 done.update(one_done)
                 failed.update(one_failed)
             return done, failed
-        reason = error.reason if isinstance(error, SceneFileError) else f"{type(error).__name__}: {error}"
-        return {}, {group[0][0]: reason}
+        return {}, {group[0][0]: failure_reason(error)}
     seconds = round((time.perf_counter() - started) / len(group), 4)
     return {path: {**record, "seconds": seconds} for (path, _), record in zip(group, out)}, {}
 
 
-def _device(name: str) -> torch.device:
+def failure_reason(error: Exception) -> str:
+    """The one-line reason a file failed: a :class:`SceneFileError`'s own, else the error's type and message."""
+    return error.reason if isinstance(error, SceneFileError) else f"{type(error).__name__}: {error}"
+
+
+def record_line(record: dict) -> str:
+    """``record`` as one line of strict JSON. Raises ValueError naming a non-finite number
+    (NaN or inf), which one line would carry into every strict reader's failure."""
+    try:
+        return json.dumps(record, allow_nan=False)
+    except ValueError:
+        raise ValueError("its estimate holds a non-finite number (NaN or inf), which JSON cannot carry") from None
+
+
+def progress_bar(total: int, desc: str, unit: str, enabled: bool):
+    """``(bar, printing)``: a tqdm bar (None without tqdm, which is optional) and the context
+    under which log lines are printed above it, not into its line."""
+    try:
+        from tqdm import tqdm
+        from tqdm.contrib.logging import logging_redirect_tqdm
+    except ImportError:
+        return None, contextlib.nullcontext()
+    return (tqdm(total=total, desc=desc, unit=unit, disable=not enabled),
+            logging_redirect_tqdm() if enabled else contextlib.nullcontext())
+
+
+def resolve_device(name: str) -> torch.device:
+    """``cpu``, ``cuda[:i]`` or ``auto`` (CUDA when there is one) as a device; CUDA asked
+    for where there is none is an error."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name.startswith("cuda") and not torch.cuda.is_available():
@@ -173,7 +201,7 @@ def _estimate_chunk(chunk: list[Path], options: EstimateOptions, device: torch.d
         try:
             scene = within_pixels(read_input(path), options)
         except (SceneFileError, ValueError, RuntimeError) as error:
-            reasons[path] = error.reason if isinstance(error, SceneFileError) else f"{type(error).__name__}: {error}"
+            reasons[path] = failure_reason(error)
             continue
         groups.setdefault(_signature(scene), []).append((path, scene))
     for group in groups.values():
@@ -260,7 +288,7 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
     if batch < 1:
         raise ValueError(f"estimate.batch must be >= 1, got {batch}")
     started = time.perf_counter()
-    where = _device(device)
+    where = resolve_device(device)
     files = estimate_inputs(input, depth, depth_scale, intrinsics)
     chunks = [files[first : first + batch] for first in range(0, len(files), batch)]
     workers = min(worker_count(workers, len(files), where), len(chunks))
@@ -270,14 +298,7 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
     output.parent.mkdir(parents=True, exist_ok=True)
     failed: dict[str, str] = {}
     seconds: list[float] = []
-    try:
-        from tqdm import tqdm
-        from tqdm.contrib.logging import logging_redirect_tqdm
-        bar = tqdm(total=len(files), desc="estimate", unit="scene", disable=not progress)
-        # A file's error is printed above the bar, not into its line.
-        printing = logging_redirect_tqdm() if progress else contextlib.nullcontext()
-    except ImportError:  # tqdm is optional: no progress bar then
-        bar, printing = None, contextlib.nullcontext()
+    bar, printing = progress_bar(len(files), "estimate", "scene", progress)
     with printing, output.open("w") as out:
         for chunk, done, reasons in _chunk_results(chunks, options, where, workers):
             for path in chunk:  # in the files' order
@@ -285,11 +306,10 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
                     failed[str(path)] = reasons[path]
                     log.error("skipped %s: %s", path, reasons[path])
                 elif path in done:
-                    try:  # strict JSON: one NaN would break a strict reader on every line
-                        line = json.dumps(done[path], allow_nan=False)
-                    except ValueError:
-                        failed[str(path)] = ("its estimate holds a non-finite number (NaN or inf), "
-                                             "which JSON cannot carry")
+                    try:
+                        line = record_line(done[path])
+                    except ValueError as error:
+                        failed[str(path)] = str(error)
                         log.error("skipped %s: %s", path, failed[str(path)])
                         continue
                     seconds.append(done[path]["seconds"])

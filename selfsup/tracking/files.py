@@ -8,16 +8,13 @@ named with its reason and skipped; the tracker goes on from the frames before it
 
 from __future__ import annotations
 
-import contextlib
-import json
 import logging
 import re
 import time
 from pathlib import Path
 
-import torch
 
-from selfsup.estimation.files import estimate_inputs
+from selfsup.estimation.files import estimate_inputs, failure_reason, progress_bar, record_line, resolve_device
 from selfsup.estimation.network import cached_network
 from selfsup.estimation.options import EstimateOptions
 from selfsup.scenes.io import SceneFileError
@@ -36,16 +33,6 @@ def natural_order(items: list) -> list:
     return sorted(items, key=key)
 
 
-def _progress(total: int, enabled: bool):
-    try:
-        from tqdm import tqdm
-        from tqdm.contrib.logging import logging_redirect_tqdm
-    except ImportError:  # tqdm is optional
-        return None, contextlib.nullcontext()
-    return (tqdm(total=total, desc="track", unit="frame", disable=not enabled),
-            logging_redirect_tqdm() if enabled else contextlib.nullcontext())
-
-
 def track_files(input: str | Path, output: str | Path, options: EstimateOptions | None = None,
                 tuning: TrackTuning | None = None, refresh: int = 30, progress: bool = True, device: str = "cpu",
                 depth_scale: float = 1000.0, intrinsics: tuple[float, float, float, float] | None = None) -> dict:
@@ -60,8 +47,7 @@ def track_files(input: str | Path, output: str | Path, options: EstimateOptions 
     """
     started = time.perf_counter()
     options = options or EstimateOptions()
-    where = torch.device("cuda" if device == "auto" and torch.cuda.is_available() else
-                         ("cpu" if device == "auto" else device))
+    where = resolve_device(device)
     frames = natural_order(estimate_inputs(input, None, depth_scale, intrinsics, key="track.input"))
     if options.method in ("cnn", "cnn+refine"):
         cached_network(options.checkpoint, str(where))  # a missing or bad checkpoint stops here, before any frame
@@ -70,16 +56,15 @@ def track_files(input: str | Path, output: str | Path, options: EstimateOptions 
     output.parent.mkdir(parents=True, exist_ok=True)
     failed: dict[str, str] = {}
     warm, full = [], 0
-    bar, printing = _progress(len(frames), progress)
+    bar, printing = progress_bar(len(frames), "track", "frame", progress)
     with printing, output.open("w") as out:
         for frame in frames:
             try:
                 record = tracker.update(frame)
-                line = json.dumps(record, allow_nan=False)
+                line = record_line(record)
             except (SceneFileError, ValueError, RuntimeError) as error:
-                reason = error.reason if isinstance(error, SceneFileError) else f"{type(error).__name__}: {error}"
-                failed[str(frame)] = reason
-                log.error("skipped %s: %s", frame, reason)
+                failed[str(frame)] = failure_reason(error)
+                log.error("skipped %s: %s", frame, failed[str(frame)])
             else:
                 out.write(line + "\n")
                 out.flush()
