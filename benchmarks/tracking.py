@@ -102,7 +102,7 @@ def _inputs(folder: Path) -> list:
     return natural_order(estimate_inputs(folder))
 
 
-def _truth(folder: Path, item, scene) -> object:
+def _truth(folder: Path, scene) -> object:
     # The frame's truth: the scene file itself, or the capture's truth file.
     if scene.light_pos is not None:
         return scene
@@ -147,22 +147,24 @@ def _recovery(frames: list[dict]) -> list[int]:
     return waits
 
 
-def track_sequence(folder: Path, options=None, tuning=None) -> dict:
-    """Track and independently estimate every frame of one sequence folder; per-frame scores and latencies."""
+def track_sequence(folder: Path, options=None, tuning=None, refresh: int = 30) -> dict:
+    """Track and independently estimate every frame of one sequence folder; per-frame scores
+    and latencies. Each frame is read once, timed apart, and given to both in memory."""
     from selfsup.estimation import EstimateOptions, estimate_scene
     from selfsup.scenes.capture import read_input
-    from selfsup.tracking import Tracker
+    from selfsup.tracking import Tracker, TrackTuning
 
     options = options or EstimateOptions()
-    tracker = Tracker(options, tuning) if tuning is not None else Tracker(options)
+    tracker = Tracker(options, tuning or TrackTuning(), refresh)
     tracked, independent, warm, full, alone, reads = [], [], [], [], [], []
     for item in _inputs(folder):
-        record = tracker.update(item)
+        started = time.perf_counter()
         scene = read_input(item)
-        truth = _truth(folder, item, scene)
+        reads.append(1000 * (time.perf_counter() - started))
+        record = tracker.update(scene)
+        truth = _truth(folder, scene)
         tracked.append(_scored(record, truth))
-        (full if record["full"] else warm).append(record["latency_ms"] - record["read_ms"])
-        reads.append(record["read_ms"])
+        (full if record["full"] else warm).append(record["latency_ms"])
         started = time.perf_counter()
         own = estimate_scene(scene, options)
         alone.append(1000 * (time.perf_counter() - started))
@@ -208,17 +210,18 @@ def summary(root: str, set_name: str, kind: str, runs: list[dict]) -> dict:
             "read_ms_median": round(statistics.median(reads), 1) if reads else ""}
 
 
-def run(roots: list[Path], sets=SETS, write: bool = True, name: str = "tracking") -> tuple[list[dict], Path | None]:
-    """Score every sequence under ``roots/<set>/<kind>_<seed>``; one row per root, set and kind."""
-    torch.set_num_threads(torch.get_num_threads())
+def run(roots: list[Path], sets=SETS, write: bool = True, name: str = "tracking", kinds=SEQUENCE_KINDS,
+        refresh: int = 30) -> tuple[list[dict], Path | None]:
+    """Score every sequence under ``roots/<set>/<kind>_<seed>`` (the ``kinds`` given), the
+    tracker's ``refresh`` as ``track.refresh``; one row per root, set and kind."""
     rows = []
     for root in roots:
         for set_name in sets:
             if not (root / set_name).is_dir():
                 continue
             folders = sorted(p for p in (root / set_name).iterdir() if p.is_dir())
-            for kind in SEQUENCE_KINDS:
-                runs = [track_sequence(p) for p in folders if p.name.rsplit("_", 1)[0] == kind]
+            for kind in kinds:
+                runs = [track_sequence(p, refresh=refresh) for p in folders if p.name.rsplit("_", 1)[0] == kind]
                 if runs:
                     rows.append(summary(root.name, set_name, kind, runs))
                     print(json.dumps(rows[-1]), flush=True)
@@ -232,8 +235,8 @@ def run(roots: list[Path], sets=SETS, write: bool = True, name: str = "tracking"
                   "until the count was right (0: that frame); full share = frames the tracker estimated in full; "
                   "latencies per frame from the frame in memory to its record, as a live stream gives it (warm: the "
                   "tracker's warm steps; full: its full estimates; independent: mode=estimate's pipeline on the "
-                  "frame); read = reading the frame from its files, apart. Sequences of 24 (Mitsuba 16) frames: "
-                  "track.refresh (30) never comes due.")
+                  f"frame); read = reading the frame from its files, apart. track.refresh = {refresh} (sequences of 24 "
+                  "frames, Mitsuba 16: the default 30 never comes due).")
         path = write_results(name, torch.device("cpu"), rows, header, COLUMNS)
     return rows, path
 
@@ -285,13 +288,16 @@ def main() -> None:
     a.add_argument("--sequence", type=Path, required=True)
     a.add_argument("--out", type=Path, required=True)
     a.add_argument("--object", default="cube", choices=("cube", "sphere"))
-    a.add_argument("--pixel", type=float, nargs=2, default=(0.5, 0.75), help="where it stands, as shares of width and height")
+    a.add_argument("--pixel", type=float, nargs=2, default=(0.5, 0.75),
+                   help="where it stands, as shares of width and height")
     a.add_argument("--size", type=float, default=0.04, help="its half side, of the scene size")
     r = sub.add_parser("run", help="track and score sequences")
     r.add_argument("--sequences", type=Path, nargs="+", required=True)
     r.add_argument("--sets", nargs="+", default=list(SETS))
     r.add_argument("--no-write", action="store_true")
     r.add_argument("--name", default="tracking")
+    r.add_argument("--kinds", nargs="+", default=list(SEQUENCE_KINDS), choices=SEQUENCE_KINDS)
+    r.add_argument("--refresh", type=int, default=30, help="track.refresh")
     args = parser.parse_args()
     if args.command == "make":
         make(args.out, args.seeds, args.frames)
@@ -300,7 +306,8 @@ def main() -> None:
     elif args.command == "animate":
         animate(args.sequence, args.out, args.size, tuple(args.pixel), args.object)
     else:
-        print(run(args.sequences, args.sets, write=not args.no_write, name=args.name)[1])
+        print(run(args.sequences, args.sets, write=not args.no_write, name=args.name, kinds=args.kinds,
+                  refresh=args.refresh)[1])
 
 
 if __name__ == "__main__":

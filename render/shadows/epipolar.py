@@ -45,8 +45,9 @@ __all__ = ["EpipolarShadowOptions", "epipolar_shadow_visibility"]
 _NO_OCCLUDER = 4.0
 # The default solid behind each pixel, a share of the scene size. Against Mitsuba 3's direct
 # light (96 rooms, true lights, diffuse pixels) 0.03 gave a median relative L1 of 2.9% (0.05:
-# 2.9%, 0.02: 3.5%, unbounded: 4.4%); an exhaustive ray march of the depth map with the same
-# solid gives 2.7%, exact rays through the true geometry 2.1% (docs/renderer.md).
+# 2.9%, 0.02: 3.5%, unbounded: 4.4%); on the open rooms an exhaustive ray march of the depth map
+# with the same solid gives 2.7%, exact rays through the true geometry 2.1%
+# (benchmarks/shadow_floor.py, docs/renderer.md).
 SCENE_THICKNESS = 0.03
 _DEFAULT_SCENE_THICKNESS = float(SCENE_THICKNESS)  # the default's own object: a user's 0.03 is another
 

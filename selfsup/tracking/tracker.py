@@ -43,8 +43,8 @@ from selfsup.tracking.kalman import LightState, pair_lights, predict, start_stat
 __all__ = ["Tracker", "TrackTuning", "REASONS"]
 
 CHANGE_LIT = 0.2  # the change test's pixels: image and model at least this share of their medians
-MOVED_BLOCK_PX = 8
-MOVED_HOLES = 0.05  # or when this share of the pixels gained or lost their depth (a sensor's holes come and go)  # the blocks over which the depth's change is averaged (TrackTuning.moved_sigma)
+MOVED_BLOCK_PX = 8  # the blocks over which the depth's change is averaged (TrackTuning.moved_sigma)
+MOVED_HOLES = 0.05  # or when this share of the pixels gained or lost their depth (a sensor's holes come and go)
 
 # Why a frame was estimated in full (a record's "reason"; None: a warm step).
 REASONS = ("first", "refresh", "change", "residual", "motion", "share")
