@@ -23,8 +23,10 @@ def _train(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
     (["mode=estimate", "estimate.input=.", "estimate.output=o.jsonl", "estimate.method=magic"], "estimate.method"),
     (["mode=teach"], "unknown mode 'teach'"),
     (["mode=track", "track.inptu=x", "track.output=o.jsonl"], "track.inptu"),
-    (["mode=track", "track.input=/no/such/folder", "track.output=o.jsonl"], "track.input /no/such/folder does not exist"),
-    (["mode=track", "track.input=.", "track.output=o.jsonl", "+track.tuning.warm_iterations=0"], "warm_iterations must be"),
+    (["mode=track", "track.input=/no/such/folder", "track.output=o.jsonl"],
+     "track.input /no/such/folder does not exist"),
+    (["mode=track", "track.input=.", "track.output=o.jsonl", "+track.tuning.warm_iterations=0"],
+     "warm_iterations must be"),
 ])
 def test_a_users_mistake_is_one_line_and_status_2(tmp_path, args, words):
     result = _train(*args, f"hydra.run.dir={tmp_path}/run")

@@ -213,7 +213,8 @@ class Tracker:
     _next_id: int = field(default=0, init=False, repr=False)
     _ambient: Tensor | None = field(default=None, init=False, repr=False)  # the albedo-free ambient's log weight (1,)
     _ambient_rgb: Tensor | None = field(default=None, init=False, repr=False)  # (3,) working units
-    _unexplained: Tensor | None = field(default=None, init=False, repr=False)  # (H, W) log(image / model) of the last frame
+    # (H, W) log(image / model) of the last frame, what the change test compares with
+    _unexplained: Tensor | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self):
         if isinstance(self.tuning, dict):  # from a config
@@ -312,7 +313,8 @@ class Tracker:
         change = torch.where(both, inverse - kept.inverse, 0.0)
         px = MOVED_BLOCK_PX
         sums = torch.nn.functional.avg_pool2d(change[None, None], px, px, ceil_mode=True)[0, 0] * px * px
-        counts = torch.nn.functional.avg_pool2d(both[None, None].to(change.dtype), px, px, ceil_mode=True)[0, 0] * px * px
+        counts = torch.nn.functional.avg_pool2d(both[None, None].to(change.dtype), px, px, ceil_mode=True)[0, 0]
+        counts = counts * px * px
         usable = counts >= px * px / 2
         if not bool(usable.any()):
             return False
@@ -480,7 +482,8 @@ class Tracker:
     def _filtered(self, measured: _Measured, predicted: list[LightState], size: float) -> None:
         # A warm frame: every track's prediction updated with its light's measurement.
         for k, track in enumerate(self._tracks):
-            track.state = update(predicted[k], measured.position[k], self._measurement_cov(measured.covariance[k], size))
+            covariance = self._measurement_cov(measured.covariance[k], size)
+            track.state = update(predicted[k], measured.position[k], covariance)
             track.intensity = measured.intensity[k]
             if measured.log_weight is not None:
                 track.log_weight = measured.log_weight[k + 1]
