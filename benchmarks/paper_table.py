@@ -35,6 +35,12 @@ comparable one to one). The paper's published numbers (its scenes: 3-D scans
 rendered by Unity, kd = ks = 1, alpha = 10, grey images) sit beside ours.
 
     python train.py mode=benchmark benchmark=paper_table [benchmark.scenes=9 benchmark.gd_max_iters=300]
+    python train.py mode=benchmark benchmark=paper_table benchmark.rows_cache=data/paper_table_rows.jsonl
+
+The whole table takes about two hours on a 2-core CPU. With ``rows_cache`` every finished
+row is appended to that JSON Lines file and a later run with the same settings on the same
+device takes it from there, so an interrupted run resumes (delete the file after changing
+the estimator: its rows would be stale).
 
 Results: benchmarks/results/paper_table.md (the file the README links) and
 paper_table_<device>_<date>.{md,json}.
@@ -43,11 +49,14 @@ paper_table_<device>_<date>.{md,json}.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import statistics
 import time
 
 import torch
+
+from pathlib import Path
 
 from benchmarks.common import RESULTS, device_name, write_results
 from selfsup.estimation.prepare import problem_of
@@ -122,11 +131,12 @@ def _row(reflectance: str, model: str, optimiser: str, errors: list[float], seco
 
 def run(scenes: int = 9, height: int = 120, width: int = 160, seed: int = 7000, gd_max_iters: int = 300,
         reflectance: list[str] | None = None, models: list[str] | None = None,
-        optimisers: list[str] | None = None, write: bool = True):
+        optimisers: list[str] | None = None, write: bool = True, rows_cache: str | None = None):
     """Fill the table; returns ``(rows, path of the markdown file or None)``.
 
     ``reflectance``, ``models``, ``optimisers``: subsets by key (None: all) of
-    :data:`REFLECTANCE`, :data:`MODELS`, :data:`OPTIMISERS`.
+    :data:`REFLECTANCE`, :data:`MODELS`, :data:`OPTIMISERS`. ``rows_cache``: a JSON Lines
+    file of finished rows (:class:`RowCache`), read and appended to.
     """
     for name, chosen, known in (("reflectance", reflectance, REFLECTANCE), ("models", models, MODELS),
                                 ("optimisers", optimisers, OPTIMISERS)):
@@ -134,7 +144,18 @@ def run(scenes: int = 9, height: int = 120, width: int = 160, seed: int = 7000, 
         if unknown:
             raise ValueError(f"unknown {name} {unknown}; choose from {list(known)}")
     exact = protocol_scenes(scenes, height, width, seed)
+    cache = RowCache(rows_cache, dict(scenes=scenes, height=height, width=width, seed=seed, gd_max_iters=gd_max_iters,
+                                      device=device_name(torch.device("cpu"))))
     rows = []
+
+    def measured(key: tuple[str, str, str], measure) -> None:
+        row = cache.get(key)
+        if row is None:
+            row = _row(*key, *measure())
+            cache.put(key, row)
+        rows.append(row)
+        log.info("%s", row)
+
     for row_name, (_, degradations) in REFLECTANCE.items():
         if reflectance and row_name not in reflectance:
             continue
@@ -147,18 +168,44 @@ def run(scenes: int = 9, height: int = 120, width: int = 160, seed: int = 7000, 
                 if (optimisers and optimiser not in optimisers) or optimiser == "estimate":
                     continue
                 if optimiser == "gd":
-                    errors, seconds = _gd(problems, specular, gd_max_iters, exact)
+                    measured((row_name, model, optimiser), lambda: _gd(problems, specular, gd_max_iters, exact))
                 else:
-                    errors, seconds = _search_lm(problems, specular, exact)
-                rows.append(_row(row_name, model, optimiser, errors, seconds))
-                log.info("%s", rows[-1])
+                    measured((row_name, model, optimiser), lambda: _search_lm(problems, specular, exact))
         if not optimisers or "estimate" in optimisers:
-            errors, seconds = _estimate(inputs, exact)
-            rows.append(_row(row_name, "estimator", "estimate", errors, seconds))
-            log.info("%s", rows[-1])
+            measured((row_name, "estimator", "estimate"), lambda: _estimate(inputs, exact))
     full = not (reflectance or models or optimisers)
     path = _write(rows, scenes, height, width, seed, gd_max_iters, full) if write else None
     return rows, path
+
+
+class RowCache:
+    """Finished rows in a JSON Lines file, one ``{"settings", "key", "row"}`` object a line:
+    a row is taken from it when its key and the run's settings (sizes, seed, gd cap, device)
+    are those of a line. ``path`` None: nothing kept."""
+
+    def __init__(self, path: str | None, settings: dict):
+        self.path = None if path is None else Path(path)
+        self.settings = settings
+        self.rows: dict[tuple, dict] = {}
+        if self.path is not None and self.path.exists():
+            for number, line in enumerate(self.path.read_text().splitlines(), 1):
+                try:
+                    entry = json.loads(line)
+                    if entry["settings"] == settings:
+                        self.rows[tuple(entry["key"])] = entry["row"]
+                except (ValueError, KeyError, TypeError) as error:
+                    raise ValueError(f"{self.path}:{number} is not a row of the paper table ({error}); delete the "
+                                     "line or the file") from None
+
+    def get(self, key: tuple[str, str, str]) -> dict | None:
+        return self.rows.get(key)
+
+    def put(self, key: tuple[str, str, str], row: dict) -> None:
+        self.rows[key] = row
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with self.path.open("a") as out:
+                out.write(json.dumps({"settings": self.settings, "key": list(key), "row": row}) + "\n")
 
 
 def _estimate(inputs: list[Scene], exact: list[Scene]):

@@ -29,6 +29,31 @@ def test_paper_table_runs_shrunk_with_the_published_numbers_beside():
     assert all(0 <= r["median_error"] < 10 for r in rows)
 
 
+def test_paper_table_resumes_from_its_rows_cache(tmp_path, monkeypatch):
+    import benchmarks.paper_table as paper_table
+
+    cache = tmp_path / "rows.jsonl"
+    shrunk = ("mode=benchmark", "benchmark=paper_table", "benchmark.scenes=1", "benchmark.height=24",
+              "benchmark.width=32", "benchmark.gd_max_iters=3", "benchmark.reflectance=[ideal]",
+              "benchmark.models=[boom]", "benchmark.optimisers=[gd,search_lm]", "benchmark.write=false",
+              f"benchmark.rows_cache={cache}")
+    first, _ = run(_cfg(*shrunk))
+    assert len(cache.read_text().splitlines()) == 2
+
+    def not_again(*args):
+        raise AssertionError("a cached row was measured again")
+
+    monkeypatch.setattr(paper_table, "_gd", not_again)
+    monkeypatch.setattr(paper_table, "_search_lm", not_again)
+    assert run(_cfg(*shrunk))[0] == first
+    # Other settings are other rows: measured, not taken from the file.
+    with pytest.raises(InstantiationException, match="measured again"):
+        run(_cfg(*shrunk, "benchmark.gd_max_iters=4"))
+    cache.write_text("not json\n")
+    with pytest.raises(InstantiationException, match="rows.jsonl:1 is not a row of the paper table"):
+        run(_cfg(*shrunk))
+
+
 def test_paper_table_names_an_unknown_row():
     # Hydra wraps the benchmark's ValueError; the message still names the row.
     with pytest.raises(InstantiationException, match="unknown reflectance \\['shiny'\\]"):
