@@ -1,12 +1,15 @@
 """The renderer layer against an independent renderer: our images of Mitsuba's scenes, given their true lights.
 
-    python -m benchmarks.layer_vs_mitsuba --scenes data/mitsuba/direct data/mitsuba_closed/direct
+    python -m benchmarks.layer_vs_mitsuba --scenes data/mitsuba/direct data/mitsuba_closed/direct [--rooms 48]
 
 For every scene file of Mitsuba 3's direct light (``benchmarks/mitsuba_scenes.py``: its
 geometry, albedo and true lights), ``render.render`` with each shadow setting renders the
 image, and the median over the scenes of the relative L1 error on the diffuse pixels
 (``ks == 0``: no Blinn-Phong-against-Beckmann mismatch) is reported: ``sum |ours - mitsuba|
-/ sum mitsuba`` per scene, and the time of one forward pass. Results to
+/ sum mitsuba`` per scene, and the time of one forward pass. With ``--rooms N`` (default 48)
+each setting's lit/shadowed agreement with exact shadow rays on N procedural rooms sits
+beside (:func:`benchmarks.shadow_accuracy.setting_agreement`), so one table holds error,
+agreement and cost. Results to
 ``benchmarks/results/layer_vs_mitsuba_<device>_<date>.*``.
 """
 
@@ -20,11 +23,13 @@ from pathlib import Path
 import torch
 
 from benchmarks.common import write_results
+from benchmarks.shadow_accuracy import procedural_rooms, setting_agreement, shares
 from render import PointLights, render
 from render.shadows import CubeShadowOptions, EpipolarShadowOptions
 from selfsup.scenes.io import read_scene, render_inputs
 
 COLUMNS = ["setting", "scenes", "median_relative_l1", "mean_relative_l1", "ms_per_image"]
+AGREEMENT = ["rooms_agree", "rooms_missed", "rooms_extra"]
 
 
 def settings() -> dict[str, tuple[str, object]]:
@@ -61,14 +66,31 @@ def errors(files: list[Path], method: str, options, device: torch.device) -> tup
     return rel, 1000 * statistics.median(times)
 
 
-def run(folders: list[Path], device: str = "cpu", write: bool = True) -> tuple[list[dict], Path | None]:
+def agreement(rooms: int, seed: int = 9100) -> dict[str, dict]:
+    """Each setting's agreement, missed and extra shadow (:func:`benchmarks.shadow_accuracy.shares`)
+    summed over ``rooms`` procedural rooms."""
+    total: dict[str, int] = {}
+    runs = settings()
+    for exact in procedural_rooms(rooms, seed):
+        for key, value in setting_agreement(exact.scene, exact.visibility, runs).items():
+            total[key] = total.get(key, 0) + value
+    return {name: {f"rooms_{k.removeprefix(name + '_')}": v for k, v in shares(total, [name]).items()
+                   if k != "shadowed_share"} for name in runs}
+
+
+def run(folders: list[Path], device: str = "cpu", write: bool = True, rooms: int = 48) -> tuple[list[dict], Path | None]:
     files = [p for folder in folders for p in sorted(folder.glob("*.npz"))]
+    if not files:
+        raise ValueError(f"no scene files (*.npz) in {', '.join(str(f) for f in folders)}: make them with "
+                         "python -m benchmarks.mitsuba_scenes --out data/mitsuba")
     where = torch.device(device)
+    agreed = agreement(rooms) if rooms else {}
     rows = []
     for name, (method, options) in settings().items():
         rel, ms = errors(files, method, options, where)
         rows.append({"setting": name, "scenes": len(rel), "median_relative_l1": round(statistics.median(rel), 4),
-                     "mean_relative_l1": round(statistics.mean(rel), 4), "ms_per_image": round(ms, 2)})
+                     "mean_relative_l1": round(statistics.mean(rel), 4), "ms_per_image": round(ms, 2),
+                     **agreed.get(name, {})})
         print(rows[-1], flush=True)
     path = None
     if write:
@@ -77,7 +99,13 @@ def run(folders: list[Path], device: str = "cpu", write: bool = True) -> tuple[l
                   "lights under each shadow setting; relative L1 = sum |ours - Mitsuba| / sum Mitsuba over the "
                   "diffuse valid pixels (ks = 0) of each scene; median and mean over the scenes; ms: median time "
                   "of one forward render (no gradient) on this device.")
-        path = write_results("layer_vs_mitsuba", where, rows, header, COLUMNS)
+        if rooms:
+            header += (f" rooms_*: the same setting's cast shadows on {rooms} procedural two-light rooms (seed 9100, "
+                       "160x120, exact depth) against exact shadow rays, every light, on the pixels facing the light "
+                       "away from a 1-pixel band at exact shadow edges: agree = share of those pixels of the same "
+                       "lit/shadowed class; missed (shadowed, lit by the setting) and extra (lit, shadowed by it) as "
+                       "shares of the exactly shadowed pixels (benchmarks/shadow_accuracy.py).")
+        path = write_results("layer_vs_mitsuba", where, rows, header, COLUMNS + (AGREEMENT if rooms else []))
     return rows, path
 
 
@@ -85,6 +113,7 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--scenes", type=Path, nargs="+", required=True, help="folders of direct-light scene files")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--rooms", type=int, default=48, help="procedural rooms of the agreement columns (0: none)")
     parser.add_argument("--no-write", action="store_true")
     args = parser.parse_args()
-    print(run(args.scenes, args.device, not args.no_write)[1])
+    print(run(args.scenes, args.device, not args.no_write, args.rooms)[1])

@@ -87,13 +87,25 @@ def room_agreement(scene, exact_visibility: torch.Tensor, methods=("epipolar", "
                    thicknesses: tuple[float, ...] = ()) -> dict:
     """Each method's cast shadows of one procedural ``scene`` (its exact depth, normals
     and intrinsics) against the generator's exact shadow rays, ``exact_visibility
-    (H, W, L)``, summed over its lights. Counted on the pixels that face each light
-    (where the shading is not zero anyway, so a shadow changes the image) away from a
-    one-pixel band at exact shadow edges: ``pixels`` (those counted), ``shadowed``
-    (of them, exactly shadowed), and per method ``<method>_missed`` (exactly shadowed,
-    lit by the method) and ``<method>_extra`` (exactly lit, shadowed by the method).
-    Each of ``thicknesses`` adds the epipolar sweep with that ``scene_thickness``,
-    named ``epipolar_T<thickness>``."""
+    (H, W, L)``, summed over its lights: :func:`setting_agreement` of each method with its
+    defaults, the unbounded epipolar solid beside the default (the bounded one) when
+    ``epipolar`` is among them, and the epipolar sweep with each ``scene_thickness`` of
+    ``thicknesses``, named ``epipolar_T<thickness>``."""
+    runs = {method: (method, None) for method in methods}
+    if "epipolar" in methods:
+        runs["epipolar_unbounded"] = ("epipolar", EpipolarShadowOptions(scene_thickness=None))
+    runs.update({f"epipolar_T{t}": ("epipolar", EpipolarShadowOptions(scene_thickness=t)) for t in thicknesses})
+    return setting_agreement(scene, exact_visibility, runs)
+
+
+def setting_agreement(scene, exact_visibility: torch.Tensor, runs: dict[str, tuple[str, object]]) -> dict:
+    """Pixel counts of each shadow setting ``runs`` (name -> (method, options); ``none``:
+    everything lit) against exact shadow rays ``exact_visibility (H, W, L)`` of one
+    procedural ``scene``. Counted on the pixels that face each light (where the shading
+    is not zero anyway, so a shadow changes the image) away from a one-pixel band at
+    exact shadow edges: ``pixels`` (those counted), ``shadowed`` (of them, exactly
+    shadowed), and per setting ``<name>_missed`` (exactly shadowed, lit by the setting)
+    and ``<name>_extra`` (exactly lit, shadowed by it)."""
     g = GBuffer.from_depth(scene.depth[None], scene.K[None], None if scene.normals is None else scene.normals[None])
     light = scene.light_pos[None].to(g.points.dtype)
     exact = exact_visibility.permute(2, 0, 1) > 0.5  # (L, H, W)
@@ -102,34 +114,37 @@ def room_agreement(scene, exact_visibility: torch.Tensor, methods=("epipolar", "
     facing = (g.normals * toward).sum(-1) > 0
     keep = g.mask & facing & ~band
     counts = {"pixels": int(keep.sum()), "shadowed": int((keep & ~exact).sum())}
-    runs = [(method, method, None) for method in methods]
-    if "epipolar" in methods:  # the unbounded solid beside the default (the bounded one)
-        runs.append(("epipolar_unbounded", "epipolar", EpipolarShadowOptions(scene_thickness=None)))
-    runs += [(f"epipolar_T{t}", "epipolar", EpipolarShadowOptions(scene_thickness=t)) for t in thicknesses]
-    for name, method, options in runs:
-        lit = shadow_visibility(method, g.points, g.mask, g.intrinsics, light, options)[0] > 0.5
+    for name, (method, options) in runs.items():
+        visibility = shadow_visibility(method, g.points, g.mask, g.intrinsics, light, options)
+        lit = torch.ones_like(exact) if visibility is None else visibility[0] > 0.5
         counts[f"{name}_missed"] = int((keep & ~exact & lit).sum())
         counts[f"{name}_extra"] = int((keep & exact & ~lit).sum())
     return counts
+
+
+def procedural_rooms(count: int, seed: int) -> list:
+    """The first ``count`` rooms of the procedural two-light test set, exactly rendered:
+    ``(exact render, ...)`` items with ``.scene`` and ``.visibility``."""
+    if count < 1:
+        raise ValueError(f"--rooms needs at least 1 room, got {count}")
+    degradations, lights = SETS["true reflectance, 2 lights"]
+    sampler = SamplerConfig(height=120, width=160, n_lights_probs=tuple(lights))
+    return [exact for exact, _ in render_items([seed * 1_000_003 + i for i in range(count)], sampler,
+                                               Degradations(**degradations), 2)]
 
 
 def run_rooms(count: int = 32, seed: int = 9100, methods=("epipolar", "paper"), write: bool = True,
               thicknesses: tuple[float, ...] = ()):
     """:func:`room_agreement` over the first ``count`` scenes of the procedural two-light
     set: one row per scene and a total (shares of the exactly shadowed pixels)."""
-    if count < 1:
-        raise ValueError(f"--rooms needs at least 1 room, got {count}")
-    degradations, lights = SETS["true reflectance, 2 lights"]
-    sampler = SamplerConfig(height=120, width=160, n_lights_probs=tuple(lights))
-    rendered = render_items([seed * 1_000_003 + i for i in range(count)], sampler, Degradations(**degradations), 2)
     rows, total = [], {}
-    for index, (exact, _) in enumerate(rendered):
+    for index, exact in enumerate(procedural_rooms(count, seed)):
         counts = room_agreement(exact.scene, exact.visibility, methods, thicknesses)
         names = [key.removesuffix("_missed") for key in counts if key.endswith("_missed")]  # as room_agreement names them
         for key, value in counts.items():
             total[key] = total.get(key, 0) + value
-        rows.append({"scene": index, **_shares(counts, names)})
-    rows.append({"scene": "**all**", **_shares(total, names)})
+        rows.append({"scene": index, **shares(counts, names)})
+    rows.append({"scene": "**all**", **shares(total, names)})
     path = None
     if write:
         columns = ["scene", "shadowed_share"] + [f"{m}_{k}" for m in names for k in ("agree", "missed", "extra")]
@@ -145,7 +160,7 @@ def run_rooms(count: int = 32, seed: int = 9100, methods=("epipolar", "paper"), 
     return rows, path
 
 
-def _shares(counts: dict, methods) -> dict:
+def shares(counts: dict, methods) -> dict:
     shadowed = max(counts["shadowed"], 1)
     row = {"shadowed_share": round(counts["shadowed"] / max(counts["pixels"], 1), 3)}
     for method in methods:

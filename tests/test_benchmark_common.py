@@ -43,7 +43,7 @@ def test_room_agreement_counts_each_light_against_its_own_exact_shadows():
     # A method scored against its own shadows misses and adds nothing; the same shadows
     # with the lights swapped (or the classes flipped) do not: the bookkeeping of light
     # order, layout and classes is what the rooms' table rests on.
-    from benchmarks.shadow_accuracy import room_agreement
+    from benchmarks.shadow_accuracy import room_agreement, setting_agreement
     from render.shadows import shadow_visibility
     from render.types import GBuffer
     from selfsup.scenes.exact import render_spec
@@ -58,6 +58,9 @@ def test_room_agreement_counts_each_light_against_its_own_exact_shadows():
     assert swapped["epipolar_missed"] + swapped["epipolar_extra"] > 0
     flipped = room_agreement(scene, (1 - own).permute(1, 2, 0), methods=("epipolar",))
     assert flipped["epipolar_missed"] == flipped["shadowed"] > 0
+    # No shadows at all: every exactly shadowed pixel missed, none added.
+    bare = setting_agreement(scene, own.permute(1, 2, 0), {"bare": ("none", None)})
+    assert bare["bare_missed"] == bare["shadowed"] > 0 and bare["bare_extra"] == 0
 
 
 def test_the_devset_score_gives_each_scene_its_worst_relative_intensity_error(tmp_path):
