@@ -57,20 +57,23 @@ def errors(files: list[Path], method: str, options, device: torch.device) -> tup
             image = render(gbuffer, material, PointLights(lights.position, lights.intensity), ambient,
                            falloff=scene.falloff, shadows=method, shadow_options=options).image
         times.append(time.perf_counter() - started)
-        diffuse = gbuffer.mask[0]
-        if scene.ks is not None:
-            diffuse = diffuse & (scene.ks.amax(-1) == 0)
-        observed = scene.image.permute(2, 0, 1)
-        pixels = diffuse[None].expand_as(observed)
-        rel.append(float((image[0] - observed).abs()[pixels].sum() / observed[pixels].sum().clamp_min(1e-12)))
+        rel.append(diffuse_relative_l1(image[0], scene, gbuffer.mask[0]))
     return rel, 1000 * statistics.median(times)
 
 
-def agreement(rooms: int, seed: int = 9100) -> dict[str, dict]:
-    """Each setting's agreement, missed and extra shadow (:func:`benchmarks.shadow_accuracy.shares`)
-    summed over ``rooms`` procedural rooms."""
+def diffuse_relative_l1(image: torch.Tensor, scene, mask: torch.Tensor) -> float:
+    """``sum |image - scene.image| / sum scene.image`` over the valid (``mask (H, W)``) diffuse
+    (ks = 0) pixels of ``image (3, H, W)``."""
+    diffuse = mask if scene.ks is None else mask & (scene.ks.amax(-1) == 0)
+    observed = scene.image.permute(2, 0, 1)
+    pixels = diffuse[None].expand_as(observed)
+    return float((image - observed).abs()[pixels].sum() / observed[pixels].sum().clamp_min(1e-12))
+
+
+def agreement(runs: dict[str, tuple[str, object]], rooms: int, seed: int = 9100) -> dict[str, dict]:
+    """Each setting of ``runs`` (:func:`settings`): its agreement, missed and extra shadow
+    (:func:`benchmarks.shadow_accuracy.shares`) summed over ``rooms`` procedural rooms."""
     total: dict[str, int] = {}
-    runs = settings()
     for exact in procedural_rooms(rooms, seed):
         for key, value in setting_agreement(exact.scene, exact.visibility, runs).items():
             total[key] = total.get(key, 0) + value
@@ -84,9 +87,10 @@ def run(folders: list[Path], device: str = "cpu", write: bool = True, rooms: int
         raise ValueError(f"no scene files (*.npz) in {', '.join(str(f) for f in folders)}: make them with "
                          "python -m benchmarks.mitsuba_scenes --out data/mitsuba")
     where = torch.device(device)
-    agreed = agreement(rooms) if rooms else {}
+    runs = settings()
+    agreed = agreement(runs, rooms) if rooms else {}
     rows = []
-    for name, (method, options) in settings().items():
+    for name, (method, options) in runs.items():
         rel, ms = errors(files, method, options, where)
         rows.append({"setting": name, "scenes": len(rel), "median_relative_l1": round(statistics.median(rel), 4),
                      "mean_relative_l1": round(statistics.mean(rel), 4), "ms_per_image": round(ms, 2),

@@ -53,10 +53,9 @@ import json
 import logging
 import statistics
 import time
+from pathlib import Path
 
 import torch
-
-from pathlib import Path
 
 from benchmarks.common import RESULTS, device_name, write_results
 from selfsup.estimation.prepare import problem_of

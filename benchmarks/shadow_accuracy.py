@@ -124,7 +124,7 @@ def setting_agreement(scene, exact_visibility: torch.Tensor, runs: dict[str, tup
 
 def procedural_rooms(count: int, seed: int) -> list:
     """The first ``count`` rooms of the procedural two-light test set, exactly rendered:
-    ``(exact render, ...)`` items with ``.scene`` and ``.visibility``."""
+    each with its ``.scene`` and exact shadow rays' ``.visibility``."""
     if count < 1:
         raise ValueError(f"--rooms needs at least 1 room, got {count}")
     degradations, lights = SETS["true reflectance, 2 lights"]

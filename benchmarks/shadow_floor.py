@@ -28,6 +28,7 @@ from pathlib import Path
 import torch
 
 from benchmarks.common import write_results
+from benchmarks.layer_vs_mitsuba import diffuse_relative_l1
 from render import GBuffer, PointLights, light_transport, render
 from selfsup.scenes.io import read_scene, render_inputs
 from selfsup.scenes.raycast import cast_rays
@@ -86,9 +87,6 @@ def run(folders: list[Path], thickness: float = 0.03, write: bool = True) -> tup
         if scene.meta.get("closed_room"):
             continue
         g, material, lights = render_inputs(scene)
-        diffuse = g.mask[0] & (scene.ks.amax(-1) == 0) if scene.ks is not None else g.mask[0]
-        observed = scene.image.permute(2, 0, 1)
-        pixels = diffuse[None].expand_as(observed)
         size = float((g.points[0][g.mask[0]].amax(0) - g.points[0][g.mask[0]].amin(0)).norm())
         transport = light_transport(g, material, lights.position, shadows="none", specular=False).diffuse
         kd = material.kd.permute(0, 3, 1, 2)
@@ -105,8 +103,7 @@ def run(folders: list[Path], thickness: float = 0.03, write: bool = True) -> tup
                                        shadows="epipolar", falloff=scene.falloff).image[0],
         }
         for name, image in images.items():
-            errors.setdefault(name, []).append(float((image - observed).abs()[pixels].sum()
-                                                     / observed[pixels].sum().clamp_min(1e-12)))
+            errors.setdefault(name, []).append(diffuse_relative_l1(image, scene, g.mask[0]))
     rows = [{"visibility": name, "scenes": len(rel), "median_relative_l1": round(statistics.median(rel), 4),
              "mean_relative_l1": round(statistics.mean(rel), 4)} for name, rel in errors.items()]
     for row in rows:
