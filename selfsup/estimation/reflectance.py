@@ -80,8 +80,9 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         at = torch.tensor(growing, dtype=torch.long, device=device)
         before = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in growing])
         sub = problem.select(at)
-        more = albedo_free.search(sub, n_lights, fixed=before, robust_scale=options.tuning.albedo_free_scale,
-                                  labels=None if labels is None else labels[at], **_residuals(options))
+        kwargs = dict(robust_scale=options.tuning.albedo_free_scale, labels=None if labels is None else labels[at],
+                      **_residuals(options))
+        more = albedo_free.search_each(sub, albedo_free.search(sub, n_lights, fixed=before, **kwargs), **kwargs)
         shares = albedo_free.light_shares(sub, more).amin(1).tolist()
         still = []
         for j, (i, c, share) in enumerate(zip(growing, criterion(more), shares)):

@@ -190,3 +190,67 @@ def test_segment_residuals_place_a_light_of_unknown_albedo_over_textures():
         fit = albedo_free.search(problem_of(scene, shadows="none"), 1)
         errors.append(_rel_error(fit.position[0], scene))
     assert max(errors) < 0.05, errors
+
+
+def _shading_log(problem, fit):
+    obs = albedo_free.observe(problem)
+    return albedo_free._log_model(albedo_free._transport(obs, fit.position), fit.log_weight)[0]
+
+
+def test_a_fit_without_a_light_keeps_the_others_shading_up_to_its_scale():
+    problem = problem_of(_unknown_albedo(_scene(11, n_lights=2)), shadows="none", dtype=torch.float64)
+    position = torch.tensor([[[0.3, -1.0, 2.0], [-0.5, -0.8, 2.5], [0.0, -1.2, 1.5]]], dtype=torch.float64)
+    fit = albedo_free.AlbedoFreeFit(position, torch.tensor([[-2.0, 0.0, 0.7, -0.4]], dtype=torch.float64),
+                                    torch.ones(1, dtype=torch.float64), torch.ones(1, dtype=torch.long))
+    for light in range(3):
+        kept = [i for i in range(3) if i != light]
+        alone = fit.without(light)
+        assert float(alone.log_weight[0, 1]) == 0.0  # the gauge: the new first light's
+        w = fit.log_weight.exp()[0]
+        transport = albedo_free._transport(albedo_free.observe(problem), position)[0]
+        expected = (w[0] + sum(w[1 + i] * transport[i] for i in kept)).log()
+        difference = _shading_log(problem, alone)[0] - expected
+        mask = problem.gbuffer.mask[0]
+        assert float(difference[mask].std()) < 1e-9  # one constant: the gauge's scale
+    with pytest.raises(ValueError, match="cannot leave light 3 out"):
+        fit.without(3)
+
+
+@pytest.mark.parametrize("lights", [1, 2])
+def test_split_starts_replace_each_light_by_two_that_shade_as_it_does_when_not_moved(lights):
+    problem = problem_of(_unknown_albedo(_scene(11, n_lights=2)), shadows="none", dtype=torch.float64)
+    position = torch.tensor([[[0.3, -1.0, 2.0], [-0.5, -0.8, 2.5]][:lights]], dtype=torch.float64)
+    log_weight = torch.tensor([[-2.0, 0.0, 0.7][: lights + 1]], dtype=torch.float64)
+    fixed = albedo_free.AlbedoFreeFit(position, log_weight, torch.ones(1), torch.ones(1, dtype=torch.long))
+    size = torch.tensor([2.0], dtype=torch.float64)
+    starts, weights = albedo_free.split_starts(fixed, size)
+    assert starts.shape == (1, 6 * lights, lights + 1, 3) and weights.shape == (1, 6 * lights, lights + 2)
+    for j in range(lights):  # each split light's two halves lie 0.15 x size either side of it
+        halves = starts[0, 6 * j : 6 * j + 6][:, [j, lights]]
+        torch.testing.assert_close((halves[:, 0] - halves[:, 1]).norm(dim=-1), torch.full((6,), 0.6, dtype=torch.float64))
+        torch.testing.assert_close(halves.mean(1), position[0, j].expand(6, 3))
+    assert bool((weights[..., 1] == 0).all())  # the gauge
+    unmoved, _ = albedo_free.split_starts(fixed, size, step=0.0)
+    reference = _shading_log(problem, fixed)[0]
+    mask = problem.gbuffer.mask[0]
+    for s in range(6 * lights):
+        split = albedo_free.AlbedoFreeFit(unmoved[:, s], weights[:, s], fixed.loss, fixed.pairs)
+        assert float((_shading_log(problem, split)[0] - reference)[mask].std()) < 1e-9
+
+
+def test_searching_each_light_again_frees_a_light_held_between_two():
+    # The first light fitted alone lands between the two; the second searched with it held
+    # there cannot undo that. Searched again with the second held, it finds its place.
+    scene = _scene(11, n_lights=2, config=MEDIUM)
+    problem = problem_of(_unknown_albedo(scene), shadows="none")
+    truth = scene.light_pos[None]
+    between = truth.mean(1, keepdim=True)
+    held = albedo_free.refine_positions(albedo_free.observe(problem), torch.cat([between, truth[:, 1:]], 1),
+                                        torch.tensor([[-3.0, 0.0, 0.0]]), iterations=0)
+
+    def worst_error(fit):
+        return max(float((fit.position[0] - light).norm(dim=-1).min() / scene.scene_scale) for light in scene.light_pos)
+
+    assert worst_error(held) > 0.1
+    fit = albedo_free.search_each(problem, held)
+    assert worst_error(fit) < 0.05 and float(fit.loss[0]) < float(held.loss[0])
