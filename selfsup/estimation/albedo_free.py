@@ -8,7 +8,11 @@ constant, which drops out of the logarithm's deviation from its mean over the re
     log(I_p / kd_p) - mean_s log(I / kd) = log S_p - mean_s log S,   S = a + sum_i L_i D_i
 
 with ``D_i`` the unit-intensity diffuse transport of light ``i`` (shading alone, no cast
-shadows) and ``a`` the ambient. The regions (``residuals="segments"``, the default) are
+shadows) and ``a`` the ambient. The fit takes each segment's offset not as the mean but
+as a robust (Cauchy) location of ``log(I / kd) - log S`` over it (:meth:`LogShading.offsets`):
+a segment that holds a second albedo in a few of its pixels, or a shadow its model lacks,
+keeps the offset of the rest, where a mean would shift every residual in it. The grid
+search ranks its candidates with the mean (the cheaper view). The regions (``residuals="segments"``, the default) are
 the geometry's smooth surfaces cut by the image's edges (:func:`albedo_segments`);
 ``residuals="pairs"`` takes neighbouring pixels instead (differences to the right and
 below). Either is fitted under a Cauchy loss, whose outliers are what the regions miss:
@@ -59,6 +63,13 @@ SPLIT_STEP = 0.15
 # at 0.15 s a frame against 0.22 (8 Mitsuba captures, 2-core CPU; 2026-11-26).
 EACH_STARTS = 2
 EACH_ITERATIONS = (10, 10)
+# The robust segment offsets (:meth:`LogShading.offsets`): reweighted means from the plain
+# mean, the Cauchy scale times these factors (wide first, so that a start pulled towards a
+# minority of a segment's pixels still finds the majority). On the 24 two-light Mitsuba
+# captures (direct) the fitted second light moved from 0.08-0.25 to 0.01-0.07 of the scene
+# in six rooms where the mean left it; a median start instead of the wide steps did the
+# same at twice the time (ad hoc, 2026-11-26).
+OFFSET_SCALES = (8.0, 4.0, 2.0, 1.0, 1.0)
 
 
 @dataclass
@@ -99,6 +110,23 @@ class LogShading:
         counts = self.counts if flat.dim() == 2 else self.counts[:, None]
         mean = sums / counts.clamp_min(1)
         return (flat - mean.gather(-1, index)) * valid
+
+    def offsets(self, x: Tensor) -> Tensor:
+        """Each segment's robust location of ``x (B, P)`` (a log ratio of the
+        observation to a model), at each of its pixels ``(B, P)``: means reweighted
+        under the Cauchy loss at ``scale`` times :data:`OFFSET_SCALES` in turn, from the
+        plain mean. Segments only."""
+        if self.segments is None:
+            raise ValueError("offsets are a segment view's; pairs have none")
+        valid = self.pairs.to(x.dtype)
+        buckets = x.new_zeros(x.shape[0], x.shape[1] + 1)
+        centre = buckets.scatter_add(1, self.segments, x * valid) / self.counts.clamp_min(1)
+        for factor in OFFSET_SCALES:
+            weight = valid / (1 + ((x - centre.gather(1, self.segments)) / (factor * self.scale[:, None])) ** 2)
+            total = buckets.scatter_add(1, self.segments, weight)
+            centre = torch.where(total > 0, buckets.scatter_add(1, self.segments, weight * x) / total.clamp_min(1e-30),
+                                 centre)
+        return centre.gather(1, self.segments)
 
 
 @dataclass
@@ -266,19 +294,30 @@ def _cauchy_weights(obs: LogShading, residual: Tensor) -> Tensor:
     return obs.pairs / (1 + (residual / obs.scale[:, None]) ** 2)
 
 
-def _residual(obs: LogShading, log_model: Tensor) -> Tensor:
-    return torch.where(obs.pairs, obs.observed - obs.differences(log_model), torch.zeros_like(obs.observed))
+def _residual(obs: LogShading, log_model: Tensor, robust: bool = True) -> Tensor:
+    # (B, P): pairs' differences, or each pixel's log ratio to the model less its segment's
+    # offset (robust: :meth:`LogShading.offsets`; else the mean, :meth:`LogShading.differences`).
+    if obs.segments is None or not robust:
+        return torch.where(obs.pairs, obs.observed - obs.differences(log_model), torch.zeros_like(obs.observed))
+    ratio = (obs.log_shading - log_model).flatten(1)
+    return torch.where(obs.pairs, ratio - obs.offsets(ratio), torch.zeros_like(ratio))
 
 
-def _evaluate(obs: LogShading, position: Tensor, log_weight: Tensor) -> Tensor:
+def _evaluate(obs: LogShading, position: Tensor, log_weight: Tensor) -> tuple[Tensor, Tensor]:
+    # The loss (B,) and the residual (B, P) it sums.
     log_model, _ = _log_model(_transport(obs, position), log_weight)
-    return shading_loss(obs, _residual(obs, log_model))
+    residual = _residual(obs, log_model)
+    return shading_loss(obs, residual), residual
 
 
-def _jacobian(obs: LogShading, position: Tensor, log_weight: Tensor) -> tuple[Tensor, Tensor]:
+def _jacobian(obs: LogShading, position: Tensor, log_weight: Tensor, robust: bool = True,
+              residual: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Residual ``(B, P)`` and its Jacobian ``(B, k, P)`` with respect to the free
     parameters: each light's position (3L), the ambient's log weight, and the log
-    weights of lights 2.. (the first light's is the gauge)."""
+    weights of lights 2.. (the first light's is the gauge). With ``robust`` segment
+    offsets the Jacobian is the reweighting's (each offset a weighted mean whose weights
+    are held): exact where the residuals lie well inside the Cauchy scale. ``residual``:
+    the one at these parameters when known (:func:`_evaluate`'s)."""
     B, L, _ = position.shape
     jac = light_transport_jacobian(obs.gbuffer, obs.material, position, 1.0, falloff=obs.falloff, shadows="none",
                                    specular=False)
@@ -290,7 +329,18 @@ def _jacobian(obs: LogShading, position: Tensor, log_weight: Tensor) -> tuple[Te
     d_ambient = w[:, :1, None, None].expand(B, 1, *diffuse.shape[-2:])
     d_lights = w[:, 2:, None, None] * diffuse[:, 1:]
     d_log = torch.cat([d_pos, d_ambient, d_lights], 1) / shading[:, None]
-    return _residual(obs, log_model), -obs.differences(d_log) * obs.pairs[:, None]
+    residual = _residual(obs, log_model, robust) if residual is None else residual
+    if obs.segments is None or not robust:
+        return residual, -obs.differences(d_log) * obs.pairs[:, None]
+    # The offsets move with the model: each is a weighted mean (the Cauchy weights of its
+    # pixels' residuals), so a residual's derivative is the model's less that mean of it.
+    weight = _cauchy_weights(obs, residual)
+    d_log = d_log.flatten(2)  # (B, k, P)
+    index = obs.segments[:, None].expand_as(d_log)
+    sums = d_log.new_zeros(*d_log.shape[:2], d_log.shape[-1] + 1).scatter_add_(-1, index, d_log * weight[:, None])
+    total = weight.new_zeros(weight.shape[0], weight.shape[1] + 1).scatter_add_(1, obs.segments, weight)
+    mean = (sums / total[:, None].clamp_min(1e-30)).gather(-1, index)
+    return residual, -(d_log - mean) * obs.pairs[:, None]
 
 
 def _unpack(step: Tensor, L: int) -> tuple[Tensor, Tensor]:
@@ -310,13 +360,13 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
     B, L, _ = position.shape
     centre, lo, hi = obs.gbuffer.extent()
     reach = RUNAWAY_SIZES * (hi - lo).norm(dim=-1).clamp_min(1e-6)  # (B,)
-    loss = _evaluate(obs, position, log_weight)
+    loss, residual = _evaluate(obs, position, log_weight)
     damping = torch.full((B,), 1e-3, dtype=position.dtype, device=position.device)
     active = torch.ones(B, dtype=torch.bool, device=position.device)
     for _ in range(iterations):
         if not bool(active.any()):
             break
-        residual, jac = _jacobian(obs, position, log_weight)
+        residual, jac = _jacobian(obs, position, log_weight, residual=residual)
         weights = _cauchy_weights(obs, residual)
         weighted = jac * weights[:, None]
         jtj = (weighted @ jac.transpose(1, 2)).double()
@@ -331,7 +381,7 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
         step = torch.where(finite[:, None], step, torch.zeros_like(step))
         d_pos, d_u = _unpack(step, L)
         trial_pos, trial_u = position + d_pos, log_weight + d_u
-        trial = _evaluate(obs, trial_pos, trial_u)
+        trial, trial_residual = _evaluate(obs, trial_pos, trial_u)
         # A step that takes a light beyond RUNAWAY_SIZES scene sizes fits a direction, not a
         # point (the log shading of a far light flattens towards it): it is not taken.
         inside = (trial_pos - centre[:, None]).norm(dim=-1).amax(-1) <= reach
@@ -340,6 +390,7 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
         position = torch.where(better[:, None, None], trial_pos, position)
         log_weight = torch.where(better[:, None], trial_u, log_weight)
         loss = torch.where(better, trial, loss)
+        residual = torch.where(better[:, None], trial_residual, residual)
         damping = torch.where(better, damping * 0.3, damping * 10).clamp(1e-9, 1e9)
         active &= ~((better & (rel < tol)) | (damping >= 1e9))
     return AlbedoFreeFit(position, log_weight, loss, obs.pairs.sum(1))
@@ -363,7 +414,7 @@ def _grid_losses(obs: LogShading, fixed: AlbedoFreeFit | None, cands: Tensor) ->
     losses, weights = [], []
     for u in steps:
         log_model, _ = _log_model(diffuse, u)
-        losses.append(shading_loss(tiled, _residual(tiled, log_model)))
+        losses.append(shading_loss(tiled, _residual(tiled, log_model, robust=False)))  # ranking only
         weights.append(u)
     losses, weights = torch.stack(losses, 1), torch.stack(weights, 1)  # (B G, K), (B G, K, L + 1)
     best = losses.argmin(1)
@@ -419,16 +470,16 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
 def split_starts(fixed: AlbedoFreeFit, size: Tensor, step: float = SPLIT_STEP) -> tuple[Tensor, Tensor]:
     """Starts for one light more than ``fixed`` (``L - 1`` lights): each of its lights
     split in two, ``step x size (B,)`` either side of where it was along each axis, each
-    half as bright. Returns positions ``(B, 6 (L - 1), L, 3)`` (the new light last) and
-    log weights ``(B, 6 (L - 1), L + 1)``."""
+    half as bright (a split along ``-x`` is the one along ``x``, its halves swapped).
+    Returns positions ``(B, 3 (L - 1), L, 3)`` (the new light last) and log weights
+    ``(B, 3 (L - 1), L + 1)``."""
     B, M, _ = fixed.position.shape
-    eye = torch.eye(3, dtype=fixed.position.dtype, device=fixed.position.device)
-    offsets = torch.cat([eye, -eye])[None] * (step * size)[:, None, None]  # (B, 6, 3)
+    offsets = torch.eye(3, dtype=fixed.position.dtype, device=fixed.position.device)[None] * (step * size)[:, None, None]
     positions, weights = [], []
     for j in range(M):
-        moved = fixed.position[:, None].repeat(1, 6, 1, 1)  # (B, 6, M, 3)
+        moved = fixed.position[:, None].repeat(1, 3, 1, 1)  # (B, 3, M, 3)
         moved[:, :, j] += offsets
-        other = fixed.position[:, None, j] - offsets  # (B, 6, 3)
+        other = fixed.position[:, None, j] - offsets  # (B, 3, 3)
         positions.append(torch.cat([moved, other[:, :, None]], 2))
         u = fixed.log_weight.clone()  # (B, M + 1): ambient, then each light; the first light's is 0
         if j == 0:  # halving the gauge light: everything else doubles relative to it
@@ -437,7 +488,7 @@ def split_starts(fixed: AlbedoFreeFit, size: Tensor, step: float = SPLIT_STEP) -
         else:
             u[:, j + 1] -= math.log(2.0)
             new = u[:, j + 1 : j + 2]
-        weights.append(torch.cat([u, new], 1)[:, None].expand(B, 6, M + 2))
+        weights.append(torch.cat([u, new], 1)[:, None].expand(B, 3, M + 2))
     return torch.cat(positions, 1), torch.cat(weights, 1)
 
 
