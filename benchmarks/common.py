@@ -1,4 +1,4 @@
-"""Shared helpers of the benchmark scripts: device naming, timing, results files."""
+"""Shared helpers of the benchmark scripts: device naming, timing, results files, image errors."""
 
 from __future__ import annotations
 
@@ -14,6 +14,15 @@ from render import GBuffer
 from selfsup.metrics import inside_two_sigma, light_errors
 
 RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def diffuse_relative_l1(image: torch.Tensor, scene, mask: torch.Tensor) -> float:
+    """``sum |image - scene.image| / sum scene.image`` over the valid (``mask (H, W)``) diffuse
+    (ks = 0) pixels of ``image (3, H, W)``."""
+    diffuse = mask if scene.ks is None else mask & (scene.ks.amax(-1) == 0)
+    observed = scene.image.permute(2, 0, 1)
+    pixels = diffuse[None].expand_as(observed)
+    return float((image - observed).abs()[pixels].sum() / observed[pixels].sum().clamp_min(1e-12))
 
 
 def score_record(record: dict, scene):

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import write_results
+from benchmarks.common import diffuse_relative_l1, write_results
 from benchmarks.shadow_accuracy import procedural_rooms, setting_agreement, shares
 from render import PointLights, render
 from render.shadows import CubeShadowOptions, EpipolarShadowOptions
@@ -59,15 +59,6 @@ def errors(files: list[Path], method: str, options, device: torch.device) -> tup
         times.append(time.perf_counter() - started)
         rel.append(diffuse_relative_l1(image[0], scene, gbuffer.mask[0]))
     return rel, 1000 * statistics.median(times)
-
-
-def diffuse_relative_l1(image: torch.Tensor, scene, mask: torch.Tensor) -> float:
-    """``sum |image - scene.image| / sum scene.image`` over the valid (``mask (H, W)``) diffuse
-    (ks = 0) pixels of ``image (3, H, W)``."""
-    diffuse = mask if scene.ks is None else mask & (scene.ks.amax(-1) == 0)
-    observed = scene.image.permute(2, 0, 1)
-    pixels = diffuse[None].expand_as(observed)
-    return float((image - observed).abs()[pixels].sum() / observed[pixels].sum().clamp_min(1e-12))
 
 
 def agreement(runs: dict[str, tuple[str, object]], rooms: int, seed: int = 9100) -> dict[str, dict]:

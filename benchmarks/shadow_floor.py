@@ -27,8 +27,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import write_results
-from benchmarks.layer_vs_mitsuba import diffuse_relative_l1
+from benchmarks.common import diffuse_relative_l1, write_results
 from render import GBuffer, PointLights, light_transport, render
 from selfsup.scenes.io import read_scene, render_inputs
 from selfsup.scenes.raycast import cast_rays

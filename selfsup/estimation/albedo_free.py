@@ -59,20 +59,20 @@ RATIO_STEPS = (0.1, 0.3, 1.0, 3.0)
 # either side of it along each axis, each with half its intensity. Where two lights lie a
 # scene's third apart, the one-light fit lands between them and a grid search with it held
 # there finds no second light that lowers the loss much; split, they move apart
-# (docs/decisions.md, 2026-11-26: two devset and two Mitsuba captures).
+# (ad hoc, docs/decisions.md 2026-11-26; the whole effect: `python -m benchmarks.captures run`).
 SPLIT_STEP = 0.15
 # Each light searched again with the others held (:func:`search_each`): fewer starts and
-# LM steps than the first search (the others are right by then); on the 18 devset captures
-# it reaches the losses of four starts of 15 steps within 1% (both frames it rescues alike),
-# at 0.15 s a frame against 0.22 (8 Mitsuba captures, 2-core CPU; 2026-11-26).
+# LM steps than the first search (the others are right by then). Ad hoc, 2026-11-26, with
+# the segments' means: on the 18 devset captures it reached the losses of four starts of 15
+# steps within 1%, at 0.15 s a frame against 0.22 (8 Mitsuba captures, 2-core CPU).
 EACH_STARTS = 2
 EACH_ITERATIONS = (10, 10)
 # The robust segment offsets (:meth:`LogShading.offsets`): reweighted means from the plain
 # mean, the Cauchy scale times these factors (wide first, so that a start pulled towards a
-# minority of a segment's pixels still finds the majority). On the 24 two-light Mitsuba
-# captures (direct) the fitted second light moved from 0.08-0.25 to 0.01-0.07 of the scene
-# in six rooms where the mean left it; a median start instead of the wide steps did the
-# same at twice the time (ad hoc, 2026-11-26).
+# minority of a segment's pixels still finds the majority). Ad hoc, 2026-11-26, on the 24
+# two-light Mitsuba captures (direct): the worst light error fell from 0.09-0.25 to
+# 0.04-0.07 of the scene in five rooms (and rose 0.11 -> 0.12 in one); a median start instead of the wide steps gave the
+# same fits at twice the time.
 OFFSET_SCALES = (8.0, 4.0, 2.0, 1.0, 1.0)
 
 
@@ -89,7 +89,6 @@ class LogShading:
         gbuffer, material, falloff: the geometry and renderer settings of the transport.
         scale: ``(B,)`` Cauchy scale of the residuals (log units).
         segments: ``(B, H W)`` each pixel's albedo segment (``H W``: none), or None for pairs.
-        counts: ``(B, H W + 1)`` valid pixels of each segment, with ``segments``.
     """
 
     log_shading: Tensor
@@ -100,7 +99,6 @@ class LogShading:
     falloff: str
     scale: Tensor
     segments: Tensor | None = None
-    counts: Tensor | None = None
 
     def differences(self, x: Tensor) -> Tensor:
         """The albedo-free view of log images ``x (B, [k,] H, W)`` -> ``(B, [k,] P)``: pair
@@ -108,29 +106,30 @@ class LogShading:
         if self.segments is None:
             return pair_differences(x)
         flat = x.flatten(-2)
-        index = self.segments if flat.dim() == 2 else self.segments[:, None].expand(-1, flat.shape[1], -1)
-        valid = self.pairs if flat.dim() == 2 else self.pairs[:, None].expand_as(flat)
-        sums = flat.new_zeros(*flat.shape[:-1], flat.shape[-1] + 1).scatter_add_(-1, index, flat * valid)
-        counts = self.counts if flat.dim() == 2 else self.counts[:, None]
-        mean = sums / counts.clamp_min(1)
-        return (flat - mean.gather(-1, index)) * valid
+        valid = self.pairs.to(flat.dtype)
+        return (flat - self.segment_means(flat, valid)) * (valid if flat.dim() == 2 else valid[:, None])
+
+    def segment_means(self, x: Tensor, weight: Tensor) -> Tensor:
+        """Each pixel's segment's ``weight (B, P)``-weighted mean of ``x (B, [k,] P)``, at
+        every pixel (the shape of ``x``; 0 where a segment weighs nothing). Segments only."""
+        if self.segments is None:
+            raise ValueError("segment means are a segment view's; pairs have none")
+        index = self.segments if x.dim() == 2 else self.segments[:, None].expand_as(x)
+        w = weight if x.dim() == 2 else weight[:, None]
+        sums = x.new_zeros(*x.shape[:-1], x.shape[-1] + 1).scatter_add_(-1, index, x * w)
+        totals = weight.new_zeros(weight.shape[0], weight.shape[1] + 1).scatter_add_(1, self.segments, weight)
+        return (sums / (totals if x.dim() == 2 else totals[:, None]).clamp_min(1e-30)).gather(-1, index)
 
     def offsets(self, x: Tensor) -> Tensor:
         """Each segment's robust location of ``x (B, P)`` (a log ratio of the
         observation to a model), at each of its pixels ``(B, P)``: means reweighted
         under the Cauchy loss at ``scale`` times :data:`OFFSET_SCALES` in turn, from the
         plain mean. Segments only."""
-        if self.segments is None:
-            raise ValueError("offsets are a segment view's; pairs have none")
         valid = self.pairs.to(x.dtype)
-        buckets = x.new_zeros(x.shape[0], x.shape[1] + 1)
-        centre = buckets.scatter_add(1, self.segments, x * valid) / self.counts.clamp_min(1)
+        centre = self.segment_means(x, valid)
         for factor in OFFSET_SCALES:
-            weight = valid / (1 + ((x - centre.gather(1, self.segments)) / (factor * self.scale[:, None])) ** 2)
-            total = buckets.scatter_add(1, self.segments, weight)
-            centre = torch.where(total > 0, buckets.scatter_add(1, self.segments, weight * x) / total.clamp_min(1e-30),
-                                 centre)
-        return centre.gather(1, self.segments)
+            centre = self.segment_means(x, valid / (1 + ((x - centre) / (factor * self.scale[:, None])) ** 2))
+        return centre
 
 
 @dataclass
@@ -220,14 +219,13 @@ def albedo_segments(problem: FitProblem, scale: float = 50.0, geometry: Tensor |
     return torch.from_numpy(out).to(g.mask.device).view(B, H, W)
 
 
-def _usable(labels: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+def _usable(labels: Tensor, valid: Tensor) -> Tensor:
     # (B, H, W) labels -> (B, H*W) segment of each valid pixel of a segment of at least
-    # MIN_SEGMENT_PIXELS valid ones, H*W (none) elsewhere; and each segment's valid pixels
-    # (B, H*W + 1) (a kept segment keeps them all; the none bucket's count is never read).
+    # MIN_SEGMENT_PIXELS valid ones, H*W (none) elsewhere.
     B, N = valid.shape[0], valid[0].numel()
     flat = torch.where(valid & (labels >= 0), labels, N).flatten(1).clamp_max(N)
     counts = torch.zeros(B, N + 1, dtype=torch.long, device=flat.device).scatter_add_(1, flat, torch.ones_like(flat))
-    return torch.where((flat < N) & (counts.gather(1, flat) >= MIN_SEGMENT_PIXELS), flat, N), counts
+    return torch.where((flat < N) & (counts.gather(1, flat) >= MIN_SEGMENT_PIXELS), flat, N)
 
 
 def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float = 1.0, residuals: str = "segments",
@@ -250,15 +248,14 @@ def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float 
     log_shading = torch.log(torch.where(valid, grey, median[:, None, None]))
     relative_noise = problem.noise_level() / problem.median_observed().clamp_min(1e-30)
     scale = torch.clamp_min(noise_floor * relative_noise, robust_scale)
-    segments = counts = None
+    segments = None
     if residuals == "segments":
-        segments, counts = _usable(albedo_segments(problem, segment_scale) if labels is None else labels, valid)
+        segments = _usable(albedo_segments(problem, segment_scale) if labels is None else labels, valid)
         pairs = segments < segments.shape[1]
-        counts = counts.to(grey.dtype)
     else:
         pairs = _pair_mask(valid)
     obs = LogShading(log_shading, pairs, log_shading, problem.gbuffer, Material(kd=problem.material.kd),
-                     problem.falloff, scale.to(grey.dtype), segments, counts)
+                     problem.falloff, scale.to(grey.dtype), segments)
     obs.observed = obs.differences(log_shading)  # the same view of the data as of every model
     return obs
 
@@ -268,8 +265,7 @@ def _tiled(obs: LogShading, count: int) -> LogShading:
     rep = lambda x: None if x is None else x.repeat_interleave(count, 0)  # noqa: E731
     rows = torch.arange(obs.gbuffer.batch_size, device=obs.gbuffer.points.device).repeat_interleave(count)
     return LogShading(rep(obs.log_shading), rep(obs.pairs), rep(obs.observed), obs.gbuffer.select(rows),
-                      Material(kd=rep(obs.material.kd)), obs.falloff, rep(obs.scale), rep(obs.segments),
-                      rep(obs.counts))
+                      Material(kd=rep(obs.material.kd)), obs.falloff, rep(obs.scale), rep(obs.segments))
 
 
 def _transport(obs: LogShading, position: Tensor) -> Tensor:
@@ -338,12 +334,8 @@ def _jacobian(obs: LogShading, position: Tensor, log_weight: Tensor, robust: boo
         return residual, -obs.differences(d_log) * obs.pairs[:, None]
     # The offsets move with the model: each is a weighted mean (the Cauchy weights of its
     # pixels' residuals), so a residual's derivative is the model's less that mean of it.
-    weight = _cauchy_weights(obs, residual)
     d_log = d_log.flatten(2)  # (B, k, P)
-    index = obs.segments[:, None].expand_as(d_log)
-    sums = d_log.new_zeros(*d_log.shape[:2], d_log.shape[-1] + 1).scatter_add_(-1, index, d_log * weight[:, None])
-    total = weight.new_zeros(weight.shape[0], weight.shape[1] + 1).scatter_add_(1, obs.segments, weight)
-    mean = (sums / total[:, None].clamp_min(1e-30)).gather(-1, index)
+    mean = obs.segment_means(d_log, _cauchy_weights(obs, residual))
     return residual, -(d_log - mean) * obs.pairs[:, None]
 
 

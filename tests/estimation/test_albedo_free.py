@@ -62,7 +62,7 @@ def test_robust_offsets_keep_a_segments_majority_where_a_mean_moves():
     _, problem = _exact_problem()
     obs = albedo_free.observe(problem)
     ratio = torch.zeros_like(obs.observed)
-    biggest = int(obs.counts[0, :-1].argmax())
+    biggest = int(torch.bincount(obs.segments[0][obs.pairs[0]]).argmax())
     members = ((obs.segments[0] == biggest) & obs.pairs[0]).nonzero()[:, 0]
     ratio[0, members[: len(members) // 5]] = 1.0
     offsets = obs.offsets(ratio)[0, members]
