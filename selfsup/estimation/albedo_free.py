@@ -49,7 +49,7 @@ from selfsup.estimation.solvers import RUNAWAY_SIZES, grid_candidates, spread_be
 from selfsup.estimation.uncertainty import position_blocks
 
 __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "shading_loss", "search", "search_each",
-           "split_starts", "refine_positions", "light_shares", "position_covariance"]
+           "split_starts", "refine_positions", "light_shares", "mirror_lobes", "position_covariance"]
 
 # Contrasts tried in the grid search: the ambient at exp(g) x the median unit-light shading.
 AMBIENT_STEPS = (-4.0, -2.0, -1.0, 0.0, 1.0)
@@ -512,6 +512,19 @@ def light_shares(problem: FitProblem, fit: AlbedoFreeFit) -> Tensor:
                               falloff=problem.falloff, shadows="none", specular=False).diffuse
     direct = (fit.log_weight[:, 1:].exp()[..., None, None] * diffuse * problem.gbuffer.mask[:, None]).flatten(2).sum(2)
     return direct / direct.sum(1, keepdim=True).clamp_min(1e-30)
+
+
+def mirror_lobes(gbuffer: GBuffer, position: Tensor, max_angle_deg: float) -> Tensor:
+    """``(B, H, W)`` bool: valid pixels whose normal lies within ``max_angle_deg`` of the
+    half vector between the view and the direction to any light at ``position (B, L, 3)``:
+    where a glossy surface shows that light's highlight (a Blinn-Phong lobe of shininess
+    30 keeps 0.15 of its peak 20 degrees out)."""
+    points = gbuffer.points.unsqueeze(1)  # (B, 1, H, W, 3)
+    view = torch.nn.functional.normalize(-points, dim=-1)
+    to_light = torch.nn.functional.normalize(position[:, :, None, None] - points, dim=-1)
+    half = torch.nn.functional.normalize(to_light + view, dim=-1)
+    cosine = (gbuffer.normals.unsqueeze(1) * half).sum(-1)  # (B, L, H, W)
+    return (cosine > math.cos(math.radians(max_angle_deg))).any(1) & gbuffer.mask
 
 
 def position_covariance(obs: LogShading, fit: AlbedoFreeFit, correlation_px: float = 1.0) -> Tensor:

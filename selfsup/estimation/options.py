@@ -118,6 +118,11 @@ class Tuning:
             scale and block; ``albedo_free_residuals``: ``segments`` (each pixel's log
             shading against its albedo segment's mean; segments cut at the image's
             edges, Felzenszwalb scale ``albedo_segment_scale``) | ``pairs`` (neighbours).
+            ``albedo_free_lobe_deg``: one more light is taken only if it wins on the
+            segments' pixels outside the lights' mirror lobes (normal within this many
+            degrees of the half vector of the lights before it: where a glossy surface
+            shows their highlight, which the diffuse-only fit cannot explain and a
+            light beside it can; 0: every pixel).
         reflectance_gains: rounds re-estimating with each smooth surface's albedo
             rescaled by the last fit.
     Uncertainty:
@@ -153,6 +158,7 @@ class Tuning:
     albedo_free_block_width: float = 0.05
     albedo_free_residuals: str = "segments"
     albedo_segment_scale: float = 50.0
+    albedo_free_lobe_deg: float = 20.0
     albedo_error: float = 0.0
     indirect_variation: float = 0.7
     indirect_length: float = 0.15
@@ -203,6 +209,7 @@ def _check_tuning(t: Tuning) -> None:
          "a finite length > 0 (of the scene size)")
     need(t.albedo_free_scale > 0, "albedo_free_scale", "> 0")
     need(t.albedo_segment_scale > 0, "albedo_segment_scale", "> 0")
+    need(0 <= t.albedo_free_lobe_deg < 90, "albedo_free_lobe_deg", "in [0, 90) degrees")
     need(t.normal_noise_threshold >= 0, "normal_noise_threshold", ">= 0 degrees")
     need(0 < t.plane_window < 1, "plane_window", "in (0, 1) (of the focal length)")
     need(all(0 < f <= 1 for f in t.plane_shifts), "plane_shifts", "fractions in (0, 1] of the plane window")

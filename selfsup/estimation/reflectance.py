@@ -23,6 +23,8 @@ from selfsup.estimation.solvers import refine
 
 __all__ = ["reflectance_unknown", "albedo_free_images", "estimate_albedo_free", "segment_gains"]
 
+MIN_RESIDUALS = 100  # the fewest residuals an albedo-free fit or count decision rests on
+
 
 def reflectance_unknown(problem: FitProblem, rel_tol: float = 1e-6) -> Tensor:
     """``(B,)``: the image's kd is one constant on its valid pixels (every channel within
@@ -62,10 +64,10 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
     found = albedo_free.search(problem, 1, robust_scale=options.tuning.albedo_free_scale, labels=labels,
                                **_residuals(options))
     pairs = found.pairs.tolist()
-    if min(pairs) < 100:
+    if min(pairs) < MIN_RESIDUALS:
         raise ValueError(f"kd is one constant, so the lights are fitted albedo-free, but image {pairs.index(min(pairs))} "
                          f"has {min(pairs)} usable residuals (lit pixels of albedo segments, or pairs of neighbouring "
-                         "pixels with kd > 0 and light; at least 100 needed)")
+                         f"pixels with kd > 0 and light; at least {MIN_RESIDUALS} needed)")
 
     def criterion(fit: albedo_free.AlbedoFreeFit) -> list[float]:
         n_params = 4 * fit.position.shape[1]  # position, and a contrast per light (the ambient's for the first)
@@ -84,10 +86,15 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
                       **_residuals(options))
         more = albedo_free.search_each(sub, albedo_free.search(sub, n_lights, fixed=before, **kwargs), **kwargs)
         shares = albedo_free.light_shares(sub, more).amin(1).tolist()
+        fewer_value, more_value = [best[i][2] for i in growing], criterion(more)
+        if kwargs["labels"] is not None and options.tuning.albedo_free_lobe_deg > 0:
+            fewer_value, more_value = _outside_lobes(sub, before, more, kwargs["labels"], options, criterion,
+                                                     fewer_value, more_value)
         still = []
-        for j, (i, c, share) in enumerate(zip(growing, criterion(more), shares)):
+        for j, (i, c, share) in enumerate(zip(growing, more_value, shares)):
+            tried[i][-1] = (n_lights - 1, fewer_value[j])  # the records keep the values compared
             tried[i].append((n_lights, c))
-            if c < best[i][2] and share >= options.tuning.min_light_share:
+            if c < fewer_value[j] and share >= options.tuning.min_light_share:
                 best[i] = (more, j, c)
                 still.append(i)
         growing = still
@@ -110,6 +117,30 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
             others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
             results[i] = (candidate, others)
     return results
+
+
+def _outside_lobes(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
+                   labels: Tensor, options: EstimateOptions, criterion, fewer_value: list[float],
+                   more_value: list[float]) -> tuple[list[float], list[float]]:
+    """The criteria of ``fewer`` and ``more`` (fits of n - 1 and n lights, positions as
+    found on every pixel) on the segments' pixels outside the mirror lobes of
+    ``fewer``'s lights (:func:`albedo_free.mirror_lobes`). A glossy surface beside a
+    light shows a highlight the diffuse-only fit cannot explain; a second light next to
+    the first widens the modelled peak towards it and lowers the loss (one-light
+    capture sequences with a glossy wall 0.05 of the scene from the light took such a
+    pair on every frame). Away from the lobes the pair has nothing to explain. An image
+    with fewer than :data:`MIN_RESIDUALS` residuals outside its lobes keeps
+    ``fewer_value`` and ``more_value`` (its criteria on every pixel)."""
+    lobes = albedo_free.mirror_lobes(problem.gbuffer, fewer.position, options.tuning.albedo_free_lobe_deg)
+    outside = albedo_free.observe(problem, options.tuning.albedo_free_scale,
+                                  labels=torch.where(lobes, torch.full_like(labels, -1), labels), **_residuals(options))
+    # No iterations: the loss of each fit at its positions and log weights, on these pixels.
+    fewer_there = albedo_free.refine_positions(outside, fewer.position, fewer.log_weight, 0)
+    more_there = albedo_free.refine_positions(outside, more.position, more.log_weight, 0)
+    enough = (more_there.pairs >= MIN_RESIDUALS).tolist()
+    fewer_out = [c if ok else value for c, ok, value in zip(criterion(fewer_there), enough, fewer_value)]
+    more_out = [c if ok else value for c, ok, value in zip(criterion(more_there), enough, more_value)]
+    return fewer_out, more_out
 
 
 def segment_gains(image: Tensor, model: Tensor, segments: Tensor, min_pixels: int = 30, lit_share: float = 0.2,
