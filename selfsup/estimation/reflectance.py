@@ -52,7 +52,8 @@ def _residuals(options: EstimateOptions) -> dict:
 def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
     """Lights fitted to the log shading with each albedo segment's mean taken out (or its
     neighbour differences; :mod:`selfsup.estimation.albedo_free`), 1 .. ``max_lights`` while
-    :func:`bic` of their Cauchy loss falls and each light
+    :func:`bic` of their Cauchy loss falls (with segments, on the pixels outside the
+    mirror lobes of the lights before: :func:`_outside_lobes`) and each light
     carries ``min_light_share`` of the fitted shading; intensities and ambient then
     solved against the image with the file's kd (diffuse only: a constant ks says
     nothing of the highlights either)."""
