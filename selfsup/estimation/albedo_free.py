@@ -49,7 +49,8 @@ from selfsup.estimation.solvers import RUNAWAY_SIZES, grid_candidates, spread_be
 from selfsup.estimation.uncertainty import position_blocks
 
 __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "shading_loss", "search", "search_each",
-           "split_starts", "refine_positions", "light_shares", "mirror_lobes", "position_covariance"]
+           "split_starts", "refine_positions", "light_shares", "mirror_lobes", "highlight_pixels",
+           "position_covariance"]
 
 # Contrasts tried in the grid search: the ambient at exp(g) x the median unit-light shading.
 AMBIENT_STEPS = (-4.0, -2.0, -1.0, 0.0, 1.0)
@@ -525,6 +526,18 @@ def mirror_lobes(gbuffer: GBuffer, position: Tensor, max_angle_deg: float) -> Te
     half = torch.nn.functional.normalize(to_light + view, dim=-1)
     cosine = (gbuffer.normals.unsqueeze(1) * half).sum(-1)  # (B, L, H, W)
     return (cosine > math.cos(math.radians(max_angle_deg))).any(1) & gbuffer.mask
+
+
+def highlight_pixels(obs: LogShading, fit: AlbedoFreeFit, max_angle_deg: float) -> Tensor:
+    """``(B, H, W)`` bool: the pixels of ``fit``'s lights' :func:`mirror_lobes` that are
+    brighter than its model (a positive residual against their segment's offset): where
+    a glossy surface may show a highlight the diffuse-only fit does not explain.
+    Segment residuals only."""
+    if obs.segments is None:
+        raise ValueError("highlight pixels are found on segment residuals; pairs have no pixel of their own")
+    _, residual = _evaluate(obs, fit.position, fit.log_weight)
+    lobes = mirror_lobes(obs.gbuffer, fit.position, max_angle_deg)
+    return lobes & (residual.view_as(lobes) > 0)
 
 
 def position_covariance(obs: LogShading, fit: AlbedoFreeFit, correlation_px: float = 1.0) -> Tensor:

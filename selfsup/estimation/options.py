@@ -118,11 +118,11 @@ class Tuning:
             scale and block; ``albedo_free_residuals``: ``segments`` (each pixel's log
             shading against its albedo segment's mean; segments cut at the image's
             edges, Felzenszwalb scale ``albedo_segment_scale``) | ``pairs`` (neighbours).
-            ``albedo_free_lobe_deg``: one more light is taken only if it wins on the
-            segments' pixels outside the lights' mirror lobes (normal within this many
-            degrees of the half vector of the lights before it: where a glossy surface
-            shows their highlight, which the diffuse-only fit cannot explain and a
-            light beside it can; 0: every pixel).
+            ``albedo_free_lobe_deg``: one more light is taken only if it wins without
+            the pixels of the lights before it's mirror lobes (normal within this many
+            degrees of their half vector) that are brighter than their model: where a
+            glossy surface shows their highlight, which the diffuse-only fit cannot
+            explain and a light beside it can (0: every pixel).
         reflectance_gains: rounds re-estimating with each smooth surface's albedo
             rescaled by the last fit.
     Uncertainty:

@@ -52,8 +52,8 @@ def _residuals(options: EstimateOptions) -> dict:
 def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
     """Lights fitted to the log shading with each albedo segment's mean taken out (or its
     neighbour differences; :mod:`selfsup.estimation.albedo_free`), 1 .. ``max_lights`` while
-    :func:`bic` of their Cauchy loss falls (with segments, on the pixels outside the
-    mirror lobes of the lights before: :func:`_outside_lobes`) and each light
+    :func:`bic` of their Cauchy loss falls (with segments, without the pixels of the
+    lights before's mirror lobes brighter than their model: :func:`_outside_lobes`) and each light
     carries ``min_light_share`` of the fitted shading; intensities and ambient then
     solved against the image with the file's kd (diffuse only: a constant ks says
     nothing of the highlights either)."""
@@ -124,17 +124,18 @@ def _outside_lobes(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: 
                    labels: Tensor, options: EstimateOptions, criterion, fewer_value: list[float],
                    more_value: list[float]) -> tuple[list[float], list[float]]:
     """The criteria of ``fewer`` and ``more`` (fits of n - 1 and n lights, positions as
-    found on every pixel) on the segments' pixels outside the mirror lobes of
-    ``fewer``'s lights (:func:`albedo_free.mirror_lobes`). A glossy surface beside a
-    light shows a highlight the diffuse-only fit cannot explain; a second light next to
-    the first widens the modelled peak towards it and lowers the loss (one-light
-    capture sequences with a glossy wall 0.05 of the scene from the light took such a
-    pair on every frame). Away from the lobes the pair has nothing to explain. An image
-    with fewer than :data:`MIN_RESIDUALS` residuals outside its lobes keeps
-    ``fewer_value`` and ``more_value`` (its criteria on every pixel)."""
-    lobes = albedo_free.mirror_lobes(problem.gbuffer, fewer.position, options.tuning.albedo_free_lobe_deg)
+    found on every pixel) on the segments' pixels less those of ``fewer``'s mirror
+    lobes that are brighter than its model (:func:`albedo_free.highlight_pixels`). A
+    glossy surface beside a light shows a highlight the diffuse-only fit cannot
+    explain; a second light next to the first widens the modelled peak towards it and
+    lowers the loss (one-light capture sequences with a glossy wall 0.05 of the scene
+    from the light took such a pair on every frame). Without the highlight the pair has
+    nothing to explain. An image with fewer than :data:`MIN_RESIDUALS` residuals left
+    keeps ``fewer_value`` and ``more_value`` (its criteria on every pixel)."""
+    every_pixel = albedo_free.observe(problem, options.tuning.albedo_free_scale, labels=labels, **_residuals(options))
+    held_out = albedo_free.highlight_pixels(every_pixel, fewer, options.tuning.albedo_free_lobe_deg)
     outside = albedo_free.observe(problem, options.tuning.albedo_free_scale,
-                                  labels=torch.where(lobes, torch.full_like(labels, -1), labels), **_residuals(options))
+                                  labels=torch.where(held_out, torch.full_like(labels, -1), labels), **_residuals(options))
     # No iterations: the loss of each fit at its positions and log weights, on these pixels.
     fewer_there = albedo_free.refine_positions(outside, fewer.position, fewer.log_weight, 0)
     more_there = albedo_free.refine_positions(outside, more.position, more.log_weight, 0)
