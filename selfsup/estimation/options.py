@@ -119,7 +119,7 @@ class Tuning:
             shading against its albedo segment's mean; segments cut at the image's
             edges, Felzenszwalb scale ``albedo_segment_scale``) | ``pairs`` (neighbours).
             ``albedo_free_lobe_deg``: one more light is taken only if it wins without
-            the pixels of the lights before it's mirror lobes (normal within this many
+            the pixels of the mirror lobes of the lights before it (normal within this many
             degrees of their half vector) that are brighter than their model: where a
             glossy surface shows their highlight, which the diffuse-only fit cannot
             explain and a light beside it can (0: every pixel).

@@ -326,6 +326,20 @@ def test_mirror_lobes_lie_where_a_flat_wall_mirrors_the_light_into_the_camera():
     assert not albedo_free.mirror_lobes(gbuffer, torch.zeros(1, 1, 3), 20.0)[0, 24, 32]
 
 
+def test_highlight_pixels_are_the_lobes_pixels_brighter_than_the_model():
+    scene, problem = _exact_problem()
+    fit = albedo_free.refine_positions(albedo_free.observe(problem), scene.light_pos[None].double() + 0.05,
+                                       torch.tensor([[-3.0, 0.0]], dtype=torch.float64), iterations=0)
+    obs = albedo_free.observe(problem)
+    lobes = albedo_free.mirror_lobes(problem.gbuffer, fit.position, 30.0)
+    _, residual = albedo_free._evaluate(obs, fit.position, fit.log_weight)
+    brighter = residual.view_as(lobes) > 0
+    highlights = albedo_free.highlight_pixels(obs, fit, 30.0)
+    assert torch.equal(highlights, lobes & brighter) and 0 < int(highlights.sum()) < int(lobes.sum())
+    with pytest.raises(ValueError, match="segment residuals"):
+        albedo_free.highlight_pixels(albedo_free.observe(problem, residuals="pairs"), fit, 30.0)
+
+
 def test_a_highlight_is_not_taken_for_a_second_light():
     # A glossy one-light room (ks 0.6, shininess 7-30), albedo unknown: the diffuse-only
     # fit leaves the highlights unexplained and a second light lowers the loss on every
