@@ -24,10 +24,11 @@ ambient's), not their overall scale. The observation is the mean over the channe
 
 Measured (docs/estimation.md, "Camera captures"): on 48 Mitsuba captures a set, one-light
 success 100% direct, 83% path traced, 100% sensor-noisy with segments and their robust
-offsets (96/83/100% with their means), against 71/71/50% with pairs, whose differences are
-small beside 8-bit quantisation and millimetre depth. A second light is found in a third
-of the two-light captures at most (:func:`search_each` and :func:`split_starts` find the
-fits; the criterion rarely takes them).
+offsets (96/83/100% with their means; 100/88/100% with the count decided without the
+lights' highlights, :func:`highlight_pixels`), against 71/71/50% with pairs, whose
+differences are small beside 8-bit quantisation and millimetre depth. A second light is
+found in a third of the two-light captures at most (:func:`search_each` and
+:func:`split_starts` find the fits; the criterion rarely takes them).
 It is no substitute where kd is right: the image fit of a file with its albedo uses
 every pixel's brightness, which this fit throws away.
 """
