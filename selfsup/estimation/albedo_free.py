@@ -44,6 +44,7 @@ from torch import Tensor
 
 from render import GBuffer, Material
 from render.functional import light_transport, light_transport_jacobian
+from render.shading import blinn_phong_lobe, light_geometry
 from selfsup.estimation.options import ALBEDO_FREE_RESIDUALS
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
 from selfsup.estimation.solvers import RUNAWAY_SIZES, grid_candidates, spread_best
@@ -521,11 +522,8 @@ def mirror_lobes(gbuffer: GBuffer, position: Tensor, max_angle_deg: float) -> Te
     half vector between the view and the direction to any light at ``position (B, L, 3)``:
     where a glossy surface shows that light's highlight (a Blinn-Phong lobe of shininess
     30 keeps 0.15 of its peak 20 degrees out)."""
-    points = gbuffer.points.unsqueeze(1)  # (B, 1, H, W, 3)
-    view = torch.nn.functional.normalize(-points, dim=-1)
-    to_light = torch.nn.functional.normalize(position[:, :, None, None] - points, dim=-1)
-    half = torch.nn.functional.normalize(to_light + view, dim=-1)
-    cosine = (gbuffer.normals.unsqueeze(1) * half).sum(-1)  # (B, L, H, W)
+    geometry = light_geometry(gbuffer.points[:, None], position[:, :, None, None])
+    cosine = blinn_phong_lobe(gbuffer.normals[:, None], geometry.to_light, geometry.to_viewer, 1.0)  # n.h (B, L, H, W)
     return (cosine > math.cos(math.radians(max_angle_deg))).any(1) & gbuffer.mask
 
 

@@ -52,8 +52,8 @@ def _residuals(options: EstimateOptions) -> dict:
 def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
     """Lights fitted to the log shading with each albedo segment's mean taken out (or its
     neighbour differences; :mod:`selfsup.estimation.albedo_free`), 1 .. ``max_lights`` while
-    :func:`bic` of their Cauchy loss falls (with segments, without the pixels of the
-    lights before's mirror lobes brighter than their model: :func:`_outside_lobes`) and each light
+    :func:`bic` of their Cauchy loss falls (with segments, judged without the highlights
+    of the lights before, :func:`_without_highlights`, where :data:`MIN_RESIDUALS` are left) and each light
     carries ``min_light_share`` of the fitted shading; intensities and ambient then
     solved against the image with the file's kd (diffuse only: a constant ks says
     nothing of the highlights either)."""
@@ -89,8 +89,11 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         shares = albedo_free.light_shares(sub, more).amin(1).tolist()
         fewer_value, more_value = [best[i][2] for i in growing], criterion(more)
         if kwargs["labels"] is not None and options.tuning.albedo_free_lobe_deg > 0:
-            fewer_value, more_value = _outside_lobes(sub, before, more, kwargs["labels"], options, criterion,
-                                                     fewer_value, more_value)
+            # The count judged without the highlights, where enough residuals are left.
+            fewer_there, more_there = _without_highlights(sub, before, more, kwargs["labels"], options)
+            kept = (more_there.pairs >= MIN_RESIDUALS).tolist()
+            fewer_value = [c if ok else v for c, ok, v in zip(criterion(fewer_there), kept, fewer_value)]
+            more_value = [c if ok else v for c, ok, v in zip(criterion(more_there), kept, more_value)]
         still = []
         for j, (i, c, share) in enumerate(zip(growing, more_value, shares)):
             tried[i][-1] = (n_lights - 1, fewer_value[j])  # the records keep the values compared
@@ -120,29 +123,22 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
     return results
 
 
-def _outside_lobes(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
-                   labels: Tensor, options: EstimateOptions, criterion, fewer_value: list[float],
-                   more_value: list[float]) -> tuple[list[float], list[float]]:
-    """The criteria of ``fewer`` and ``more`` (fits of n - 1 and n lights, positions as
-    found on every pixel) on the segments' pixels less those of ``fewer``'s mirror
-    lobes that are brighter than its model (:func:`albedo_free.highlight_pixels`). A
-    glossy surface beside a light shows a highlight the diffuse-only fit cannot
-    explain; a second light next to the first widens the modelled peak towards it and
-    lowers the loss (one-light capture sequences with a glossy wall 0.05 of the scene
-    from the light took such a pair on every frame). Without the highlight the pair has
-    nothing to explain. An image with fewer than :data:`MIN_RESIDUALS` residuals left
-    keeps ``fewer_value`` and ``more_value`` (its criteria on every pixel)."""
+def _without_highlights(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
+                        labels: Tensor, options: EstimateOptions) -> tuple[albedo_free.AlbedoFreeFit, albedo_free.AlbedoFreeFit]:
+    """``fewer`` and ``more`` (fits of n - 1 and n lights, as found on every pixel) with
+    their losses on the segments' pixels less those of ``fewer``'s mirror lobes that are
+    brighter than its model (:func:`albedo_free.highlight_pixels`). A glossy surface
+    beside a light shows a highlight the diffuse-only fit cannot explain; a second light
+    next to the first widens the modelled peak towards it and lowers the loss (one-light
+    capture sequences with a glossy wall 0.05 of the scene from the light took such a pair
+    on almost every frame). Without the highlight the pair has nothing to explain."""
     every_pixel = albedo_free.observe(problem, options.tuning.albedo_free_scale, labels=labels, **_residuals(options))
     held_out = albedo_free.highlight_pixels(every_pixel, fewer, options.tuning.albedo_free_lobe_deg)
     outside = albedo_free.observe(problem, options.tuning.albedo_free_scale,
                                   labels=torch.where(held_out, torch.full_like(labels, -1), labels), **_residuals(options))
     # No iterations: the loss of each fit at its positions and log weights, on these pixels.
-    fewer_there = albedo_free.refine_positions(outside, fewer.position, fewer.log_weight, 0)
-    more_there = albedo_free.refine_positions(outside, more.position, more.log_weight, 0)
-    enough = (more_there.pairs >= MIN_RESIDUALS).tolist()
-    fewer_out = [c if ok else value for c, ok, value in zip(criterion(fewer_there), enough, fewer_value)]
-    more_out = [c if ok else value for c, ok, value in zip(criterion(more_there), enough, more_value)]
-    return fewer_out, more_out
+    return (albedo_free.refine_positions(outside, fewer.position, fewer.log_weight, 0),
+            albedo_free.refine_positions(outside, more.position, more.log_weight, 0))
 
 
 def segment_gains(image: Tensor, model: Tensor, segments: Tensor, min_pixels: int = 30, lit_share: float = 0.2,
