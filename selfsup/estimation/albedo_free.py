@@ -77,6 +77,17 @@ EACH_ITERATIONS = (10, 10)
 # 0.04-0.07 of the scene in five rooms (and rose 0.11 -> 0.12 in one); a median start instead of the wide steps gave the
 # same fits at twice the time.
 OFFSET_SCALES = (8.0, 4.0, 2.0, 1.0, 1.0)
+# The second light's search also starts from pairs found together (:func:`anchor_pairs`):
+# each anchor of this grid held as one light, each candidate of PAIR_GRID tried as the
+# other at these intensity ratios, ANCHOR_STARTS best pairs kept. Ad hoc, 2026-11-26
+# (docs/decisions.md): devset captures 14 -> 16 of 18 (direct 031 and gi 031 found their two lights
+# 0.42 of the scene apart, which the one-light fit between them hid); a 7x7x7 pair grid
+# with four ratios gave the same at twice the cost.
+ANCHOR_GRID = (3, 3, 3)
+PAIR_GRID = (5, 5, 5)
+PAIR_RATIOS = (0.3, 1.0, 3.0)
+ANCHOR_STARTS = 4
+PAIR_PIXELS = 1200  # the pairs are ranked on about this many pixels (a 160x120 image's every 4th)
 
 
 @dataclass
@@ -424,7 +435,8 @@ def _grid_losses(obs: LogShading, fixed: AlbedoFreeFit | None, cands: Tensor) ->
 def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None = None, robust_scale: float = 0.02,
            per_axis: tuple[int, int, int] = (7, 7, 7), starts: int = 4, rank_stride: int = 4, start_stride: int = 2,
            iterations: tuple[int, int] = (15, 15), residuals: str = "segments",
-           segment_scale: float = 50.0, labels: Tensor | None = None, split: bool = True) -> AlbedoFreeFit:
+           segment_scale: float = 50.0, labels: Tensor | None = None, split: bool = True, pairs: bool = True
+           ) -> AlbedoFreeFit:
     """Fit ``n_lights`` lights to the log shading of ``problem``, every image at once.
 
     The last light is searched, the others (``fixed``, the fit of ``n_lights - 1``)
@@ -432,7 +444,9 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     with a few contrast steps is scored at every ``rank_stride``-th pixel, the
     ``starts`` best well-spread ones (with ``split``, also :func:`split_starts` of
     ``fixed``) run ``iterations[0]`` LM steps at
-    ``start_stride``, and the best of those ``iterations[1]`` at full resolution;
+    ``start_stride``, and the best of those ``iterations[1]`` at full resolution (with
+    ``split`` and ``pairs``, the second light's search of segments also starts from
+    :func:`anchor_pairs`, both lights moved);
     ``residuals``, ``segment_scale``, ``labels``: as :func:`observe` (the segments are
     found once, at full resolution).
     """
@@ -456,6 +470,15 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     if fixed is not None and split:
         more_position, more_weight = split_starts(fixed, size)
         position, log_weight = torch.cat([position, more_position], 1), torch.cat([log_weight, more_weight], 1)
+    if fixed is not None and split and pairs and fixed.position.shape[1] == 1 and residuals == "segments":
+        # Ranked on about PAIR_PIXELS pixels: its cost grows with their number times the segments'.
+        stride = rank_stride * max(1, round(math.sqrt(ranked.pairs.shape[1] / PAIR_PIXELS)))
+        paired = subsample(problem, stride)
+        with torch.no_grad():
+            pair_position, pair_weight = anchor_pairs(
+                ranked if stride == rank_stride else observe(paired, robust_scale, residuals=residuals, labels=at(stride)),
+                paired, size, ANCHOR_STARTS)
+        position, log_weight = torch.cat([position, pair_position], 1), torch.cat([log_weight, pair_weight], 1)
     S = position.shape[1]
     coarse = _tiled(observe(subsample(problem, start_stride), robust_scale, residuals=residuals,
                             labels=at(start_stride)), S)
@@ -464,6 +487,44 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     pick = torch.arange(B, device=best.device) * S + best
     full = observe(problem, robust_scale, residuals=residuals, labels=at(1))
     return refine_positions(full, fit.position[pick], fit.log_weight[pick], iterations[1])
+
+
+def anchor_pairs(ranked: LogShading, coarse: FitProblem, size: Tensor, count: int) -> tuple[Tensor, Tensor]:
+    """Starts for two lights found together: every anchor of :data:`ANCHOR_GRID` held as
+    the first light (at its ambient contrast alone), every candidate of :data:`PAIR_GRID`
+    tried as the second at each of :data:`PAIR_RATIOS`, all ranked like :func:`_grid_losses`
+    (the segments' mean view); the ``count`` best pairs, well spread. Where neither light
+    lies near where one light alone fits best, holding that one fit finds no second light
+    (devset capture direct 031: lights 0.42 of the scene apart, the one-light fit 0.33-0.37
+    from both). Returns positions ``(B, count, 2, 3)`` and log weights ``(B, count, 3)``."""
+    anchors = grid_candidates(coarse, ANCHOR_GRID)  # (B, K, 3)
+    cands = grid_candidates(coarse, PAIR_GRID)  # (B, G, 3)
+    (B, K, _), G = anchors.shape, cands.shape[1]
+    _, alone = _grid_losses(ranked, None, anchors)  # (B, K, 2): each anchor's ambient contrast alone
+    anchor_shading = alone[..., :1].exp() + _transport(ranked, anchors).flatten(2)  # (B, K, P)
+    candidate = _transport(ranked, cands).flatten(2)  # (B, G, P)
+    ratios = torch.tensor(PAIR_RATIOS, dtype=candidate.dtype, device=candidate.device)
+    # Each segment's mean as a product with its members' weights (one column per segment).
+    valid = ranked.pairs.to(candidate.dtype)  # (B, P)
+    compact = torch.stack([torch.unique(row, return_inverse=True)[1] for row in ranked.segments])  # (B, P): 0 .. S - 1
+    member = torch.nn.functional.one_hot(compact, int(compact.max()) + 1).to(candidate.dtype) * valid[..., None]
+    to_mean = member / member.sum(1, keepdim=True).clamp_min(1e-30)  # (B, P, S)
+    observed = ranked.log_shading.flatten(1)
+    observed = (observed - (observed[:, None] @ to_mean @ member.transpose(1, 2))[:, 0]) * valid  # (B, P)
+    c2 = (ranked.scale**2)[:, None, None]
+    losses = []
+    for k in range(K):
+        log_model = torch.log(anchor_shading[:, k, None, None] + ratios[:, None] * candidate[:, :, None]).flatten(1, 2)
+        residual = observed[:, None] - (log_model - log_model @ to_mean @ member.transpose(1, 2)) * valid[:, None]
+        losses.append((c2 * torch.log1p(residual.square_() / c2)).sum(-1))  # (B, G R)
+    losses = torch.stack(losses, 1).view(B, K, G, len(PAIR_RATIOS))
+    loss, step = losses.min(-1)  # (B, K, G)
+    pairs = torch.cat([anchors[:, :, None].expand(B, K, G, 3), cands[:, None].expand(B, K, G, 3)], -1)
+    index, _ = spread_best(pairs.reshape(B, K * G, 6), loss.reshape(B, K * G), size, count, 0.15)
+    rows = torch.arange(B, device=index.device)[:, None]
+    step = step.reshape(B, K * G)[rows, index]
+    log_weight = torch.stack([alone[..., 0][rows, index // G], torch.zeros_like(ratios[step]), ratios.log()[step]], -1)
+    return pairs.reshape(B, K * G, 2, 3)[rows, index], log_weight
 
 
 def split_starts(fixed: AlbedoFreeFit, size: Tensor, step: float = SPLIT_STEP) -> tuple[Tensor, Tensor]:

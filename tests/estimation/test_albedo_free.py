@@ -307,6 +307,47 @@ def test_searching_each_light_again_frees_a_light_held_between_two():
     assert worst_error(fit) < 0.05 and float(fit.loss[0]) < float(held.loss[0])
 
 
+def _held_away(problem, scene):
+    # One light fitted where neither is: half a scene in front of the two, towards the camera.
+    away = scene.light_pos.mean(0) + 0.5 * scene.scene_scale * torch.tensor([0.0, 0.0, -1.0])
+    return albedo_free.refine_positions(albedo_free.observe(problem), away[None, None], torch.tensor([[-3.0, 0.0]]),
+                                        iterations=0)
+
+
+def _worst_error(fit, scene):
+    return max(float((fit.position[0] - light).norm(dim=-1).min() / scene.scene_scale) for light in scene.light_pos)
+
+
+def test_pairs_found_together_free_two_lights_that_a_wrong_single_light_hides():
+    # Held where the one-light fit wrongly lies, the first light keeps the second's search
+    # from both lights; the anchor pairs move both (devset capture direct 031's case).
+    scene = _scene(4, n_lights=2, config=MEDIUM)
+    problem = problem_of(_unknown_albedo(scene), shadows="none")
+    held = _held_away(problem, scene)
+    alone = albedo_free.search(problem, 2, fixed=held, pairs=False)
+    together = albedo_free.search(problem, 2, fixed=held)
+    assert _worst_error(alone, scene) > 0.1
+    assert _worst_error(together, scene) < 0.01 and float(together.loss[0]) < 0.5 * float(alone.loss[0])
+
+
+def test_anchor_pairs_rank_each_image_of_a_batch_as_alone():
+    from selfsup.estimation.prepare import problems_of
+    from selfsup.estimation.problem import centre_and_size, subsample
+
+    def pairs(problem, count=3):
+        coarse = subsample(problem, 4)
+        return albedo_free.anchor_pairs(albedo_free.observe(coarse), coarse, centre_and_size(problem)[1], count)
+
+    scenes = [_unknown_albedo(_scene(seed, n_lights=2)) for seed in (4, 8)]
+    position, log_weight = pairs(problems_of(scenes, shadows="none"))
+    assert position.shape == (2, 3, 2, 3) and log_weight.shape == (2, 3, 3)
+    assert bool((log_weight[..., 1] == 0).all())  # the gauge: the anchor's
+    for i, scene in enumerate(scenes):  # each image's segments are its own
+        alone = pairs(problem_of(scene, shadows="none"))
+        torch.testing.assert_close(position[i : i + 1], alone[0])
+        torch.testing.assert_close(log_weight[i : i + 1], alone[1])
+
+
 def test_mirror_lobes_lie_where_a_flat_wall_mirrors_the_light_into_the_camera():
     # A wall at z = 2 facing the camera. A light at the camera: the lobe is the disc of
     # pixels seen within 20 degrees of the wall's normal. A light to the right of the
