@@ -27,8 +27,9 @@ success 100% direct, 83% path traced, 100% sensor-noisy with segments and their 
 offsets (96/83/100% with their means; 100/88/100% with the count decided without the
 lights' highlights, :func:`highlight_pixels`), against 71/71/50% with pairs, whose
 differences are small beside 8-bit quantisation and millimetre depth. A second light is
-found in a third of the two-light captures at most (:func:`search_each` and
-:func:`split_starts` find the fits; the criterion rarely takes them).
+found in a third of the two-light captures of our Mitsuba rooms at most (:func:`search_each`,
+:func:`split_starts` and :func:`anchor_pairs` find the fits; the criterion rarely takes
+them), and in every two-light devset capture.
 It is no substitute where kd is right: the image fit of a file with its albedo uses
 every pixel's brightness, which this fit throws away.
 """
@@ -80,14 +81,20 @@ OFFSET_SCALES = (8.0, 4.0, 2.0, 1.0, 1.0)
 # The second light's search also starts from pairs found together (:func:`anchor_pairs`):
 # each anchor of this grid held as one light, each candidate of PAIR_GRID tried as the
 # other at these intensity ratios, ANCHOR_STARTS best pairs kept. Ad hoc, 2026-11-26
-# (docs/decisions.md): devset captures 14 -> 16 of 18 (direct 031 and gi 031 found their two lights
-# 0.42 of the scene apart, which the one-light fit between them hid); a 7x7x7 pair grid
-# with four ratios gave the same at twice the cost.
+# (docs/decisions.md), 306 capture frames: devset direct 031 finds its two lights 0.42 of the
+# scene apart, which a one-light fit 0.33-0.37 from both hid, and two procedural frames
+# theirs; a 7x7x7 pair grid with four ratios gave the same at twice the cost, one ratio
+# or two starts lost frames.
 ANCHOR_GRID = (3, 3, 3)
 PAIR_GRID = (5, 5, 5)
 PAIR_RATIOS = (0.3, 1.0, 3.0)
 ANCHOR_STARTS = 4
 PAIR_PIXELS = 1200  # the pairs are ranked on about this many pixels (a 160x120 image's every 4th)
+# Where a search has more starts than its ``starts`` (the second light's: grid, split and
+# anchor-pair starts), every start runs this many LM steps at ``start_stride`` and the best
+# ``starts`` of them the rest. Ad hoc, 2026-11-26: 0.05-0.1 s a frame less on 2 cores; on 306
+# capture frames one borderline frame lost (devset gi 031, 0.040 -> 0.053 of the scene), 5 steps the same.
+PRUNE_ITERATIONS = 3
 
 
 @dataclass
@@ -480,9 +487,17 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
                 paired, size, ANCHOR_STARTS)
         position, log_weight = torch.cat([position, pair_position], 1), torch.cat([log_weight, pair_weight], 1)
     S = position.shape[1]
-    coarse = _tiled(observe(subsample(problem, start_stride), robust_scale, residuals=residuals,
-                            labels=at(start_stride)), S)
-    fit = refine_positions(coarse, position.flatten(0, 1), log_weight.flatten(0, 1), iterations[0])
+    started = observe(subsample(problem, start_stride), robust_scale, residuals=residuals, labels=at(start_stride))
+    if S > starts and iterations[0] > PRUNE_ITERATIONS:
+        # Every start a few steps, then the best ``starts`` of them the rest of the way.
+        fit = refine_positions(_tiled(started, S), position.flatten(0, 1), log_weight.flatten(0, 1), PRUNE_ITERATIONS)
+        keep = fit.loss.reshape(B, S).topk(starts, dim=1, largest=False).indices  # (B, starts)
+        rows = (torch.arange(B, device=keep.device)[:, None] * S + keep).flatten()
+        position, log_weight = fit.position[rows].view(B, starts, -1, 3), fit.log_weight[rows].view(B, starts, -1)
+        S, remaining = starts, iterations[0] - PRUNE_ITERATIONS
+    else:
+        remaining = iterations[0]
+    fit = refine_positions(_tiled(started, S), position.flatten(0, 1), log_weight.flatten(0, 1), remaining)
     best = fit.loss.reshape(B, S).argmin(1)
     pick = torch.arange(B, device=best.device) * S + best
     full = observe(problem, robust_scale, residuals=residuals, labels=at(1))

@@ -382,13 +382,15 @@ def test_highlight_pixels_are_the_lobes_pixels_brighter_than_the_model():
 
 
 def test_a_highlight_is_not_taken_for_a_second_light():
-    # A glossy one-light room (ks 0.6, shininess 7-30), albedo unknown: the diffuse-only
-    # fit leaves the highlights unexplained and a second light lowers the loss on every
-    # pixel; outside the light's mirror lobes it does not pay for itself.
+    # A glossy one-light room (ks up to 0.65, shininess 7-190), albedo unknown: the
+    # diffuse-only fit leaves the highlights unexplained and a second light lowers the loss
+    # on every pixel; outside the light's mirror lobes it does not pay for itself. (Seed 18
+    # until the second light's search pruned its starts, 2026-11-26: its spurious pair is
+    # no longer found at all.)
     config = dataclasses.replace(MEDIUM, specular_prob=1.0)
-    scene = _unknown_albedo(_scene(18, config=config))
+    scene = _unknown_albedo(_scene(35, config=config))
     everywhere = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_lobe_deg=0.0)))
     assert len(everywhere["lights"]) == 2
     record = estimate_scene(scene, EstimateOptions())
     assert len(record["lights"]) == 1
-    assert _rel_error(torch.tensor([record["lights"][0]["position"]]), scene) < 0.01  # 0.0009 (2026-11-26)
+    assert _rel_error(torch.tensor([record["lights"][0]["position"]]), scene) < 0.01  # 0.0021 (2026-11-26)
