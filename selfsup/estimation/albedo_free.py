@@ -80,8 +80,8 @@ EACH_ITERATIONS = (10, 10)
 OFFSET_SCALES = (8.0, 4.0, 2.0, 1.0, 1.0)
 # The second light's search also starts from pairs found together (:func:`anchor_pairs`):
 # each anchor of this grid held as one light, each candidate of PAIR_GRID tried as the
-# other at these intensity ratios, ANCHOR_STARTS best pairs kept. Ad hoc, 2026-11-26
-# (docs/decisions.md), 306 capture frames: devset direct 031 finds its two lights 0.42 of the
+# other at these intensity ratios, ANCHOR_STARTS best pairs kept. Ad hoc (docs/decisions.md,
+# 2026-11-27), 306 capture frames: devset direct 031 finds its two lights 0.42 of the
 # scene apart, which a one-light fit 0.33-0.37 from both hid, and two procedural frames
 # theirs; a 7x7x7 pair grid with four ratios gave the same at twice the cost, one ratio
 # or two starts lost frames.
@@ -92,7 +92,7 @@ ANCHOR_STARTS = 4
 PAIR_PIXELS = 1200  # the pairs are ranked on about this many pixels (a 160x120 image's every 4th)
 # Where a search has more starts than its ``starts`` (the second light's: grid, split and
 # anchor-pair starts), every start runs this many LM steps at ``start_stride`` and the best
-# ``starts`` of them the rest. Ad hoc, 2026-11-26: 0.05-0.1 s a frame less on 2 cores; on 306
+# ``starts`` of them the rest. Ad hoc, 2026-11-27: 0.05-0.1 s a frame less on 2 cores; on 306
 # capture frames one borderline frame lost (devset gi 031, 0.040 -> 0.053 of the scene), 5 steps the same.
 PRUNE_ITERATIONS = 3
 
@@ -442,7 +442,7 @@ def _grid_losses(obs: LogShading, fixed: AlbedoFreeFit | None, cands: Tensor) ->
 def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None = None, robust_scale: float = 0.02,
            per_axis: tuple[int, int, int] = (7, 7, 7), starts: int = 4, rank_stride: int = 4, start_stride: int = 2,
            iterations: tuple[int, int] = (15, 15), residuals: str = "segments",
-           segment_scale: float = 50.0, labels: Tensor | None = None, split: bool = True, pairs: bool = True
+           segment_scale: float = 50.0, labels: Tensor | None = None, split: bool = True, anchors: bool = True
            ) -> AlbedoFreeFit:
     """Fit ``n_lights`` lights to the log shading of ``problem``, every image at once.
 
@@ -452,8 +452,9 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     ``starts`` best well-spread ones (with ``split``, also :func:`split_starts` of
     ``fixed``) run ``iterations[0]`` LM steps at
     ``start_stride``, and the best of those ``iterations[1]`` at full resolution (with
-    ``split`` and ``pairs``, the second light's search of segments also starts from
-    :func:`anchor_pairs`, both lights moved);
+    ``split`` and ``anchors``, the second light's search of segments also starts from
+    :func:`anchor_pairs`, both lights moved; with more starts than ``starts``, each runs
+    :data:`PRUNE_ITERATIONS` steps first and the best ``starts`` go on);
     ``residuals``, ``segment_scale``, ``labels``: as :func:`observe` (the segments are
     found once, at full resolution).
     """
@@ -477,7 +478,7 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     if fixed is not None and split:
         more_position, more_weight = split_starts(fixed, size)
         position, log_weight = torch.cat([position, more_position], 1), torch.cat([log_weight, more_weight], 1)
-    if fixed is not None and split and pairs and fixed.position.shape[1] == 1 and residuals == "segments":
+    if fixed is not None and split and anchors and fixed.position.shape[1] == 1 and residuals == "segments":
         # Ranked on about PAIR_PIXELS pixels: its cost grows with their number times the segments'.
         stride = rank_stride * max(1, round(math.sqrt(ranked.pairs.shape[1] / PAIR_PIXELS)))
         paired = subsample(problem, stride)

@@ -324,7 +324,7 @@ def test_pairs_found_together_free_two_lights_that_a_wrong_single_light_hides():
     scene = _scene(4, n_lights=2, config=MEDIUM)
     problem = problem_of(_unknown_albedo(scene), shadows="none")
     held = _held_away(problem, scene)
-    alone = albedo_free.search(problem, 2, fixed=held, pairs=False)
+    alone = albedo_free.search(problem, 2, fixed=held, anchors=False)
     together = albedo_free.search(problem, 2, fixed=held)
     assert _worst_error(alone, scene) > 0.1
     assert _worst_error(together, scene) < 0.01 and float(together.loss[0]) < 0.5 * float(alone.loss[0])
