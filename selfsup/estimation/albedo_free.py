@@ -479,13 +479,14 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
         more_position, more_weight = split_starts(fixed, size)
         position, log_weight = torch.cat([position, more_position], 1), torch.cat([log_weight, more_weight], 1)
     if fixed is not None and split and anchors and fixed.position.shape[1] == 1 and residuals == "segments":
-        # Ranked on about PAIR_PIXELS pixels: its cost grows with their number times the segments'.
+        # Ranked on about PAIR_PIXELS pixels, whatever the image's size.
         stride = rank_stride * max(1, round(math.sqrt(ranked.pairs.shape[1] / PAIR_PIXELS)))
-        paired = subsample(problem, stride)
+        paired, seen = coarsest, ranked
+        if stride != rank_stride:
+            paired = subsample(problem, stride)
+            seen = observe(paired, robust_scale, residuals=residuals, labels=at(stride))
         with torch.no_grad():
-            pair_position, pair_weight = anchor_pairs(
-                ranked if stride == rank_stride else observe(paired, robust_scale, residuals=residuals, labels=at(stride)),
-                paired, size, ANCHOR_STARTS)
+            pair_position, pair_weight = anchor_pairs(seen, paired, size, ANCHOR_STARTS)
         position, log_weight = torch.cat([position, pair_position], 1), torch.cat([log_weight, pair_weight], 1)
     S = position.shape[1]
     started = observe(subsample(problem, start_stride), robust_scale, residuals=residuals, labels=at(start_stride))
@@ -520,18 +521,12 @@ def anchor_pairs(ranked: LogShading, coarse: FitProblem, size: Tensor, count: in
     anchor_shading = alone[..., :1].exp() + _transport(ranked, anchors).flatten(2)  # (B, K, P)
     candidate = _transport(ranked, cands).flatten(2)  # (B, G, P)
     ratios = torch.tensor(PAIR_RATIOS, dtype=candidate.dtype, device=candidate.device)
-    # Each segment's mean as a product with its members' weights (one column per segment).
-    valid = ranked.pairs.to(candidate.dtype)  # (B, P)
-    compact = torch.stack([torch.unique(row, return_inverse=True)[1] for row in ranked.segments])  # (B, P): 0 .. S - 1
-    member = torch.nn.functional.one_hot(compact, int(compact.max()) + 1).to(candidate.dtype) * valid[..., None]
-    to_mean = member / member.sum(1, keepdim=True).clamp_min(1e-30)  # (B, P, S)
-    observed = ranked.log_shading.flatten(1)
-    observed = (observed - (observed[:, None] @ to_mean @ member.transpose(1, 2))[:, 0]) * valid  # (B, P)
+    H, W = ranked.log_shading.shape[-2:]
     c2 = (ranked.scale**2)[:, None, None]
     losses = []
-    for k in range(K):
-        log_model = torch.log(anchor_shading[:, k, None, None] + ratios[:, None] * candidate[:, :, None]).flatten(1, 2)
-        residual = observed[:, None] - (log_model - log_model @ to_mean @ member.transpose(1, 2)) * valid[:, None]
+    for k in range(K):  # the view _residual(robust=False) takes, every candidate and ratio at once
+        log_model = torch.log(anchor_shading[:, k, None, None] + ratios[:, None] * candidate[:, :, None])  # (B, G, R, P)
+        residual = ranked.observed[:, None] - ranked.differences(log_model.view(B, -1, H, W))  # (B, G R, P)
         losses.append((c2 * torch.log1p(residual.square_() / c2)).sum(-1))  # (B, G R)
     losses = torch.stack(losses, 1).view(B, K, G, len(PAIR_RATIOS))
     loss, step = losses.min(-1)  # (B, K, G)
