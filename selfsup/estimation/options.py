@@ -123,6 +123,9 @@ class Tuning:
             degrees of their half vector) that are brighter than their model: where a
             glossy surface shows their highlight, which the diffuse-only fit cannot
             explain and a light beside it can (0: every pixel).
+            ``unlit_evidence``: one more light is also taken where the capture's black
+            pixels need it (:mod:`selfsup.estimation.unlit`: the fewer lights' shadows
+            shown lit), judged under the criterion's cast shadows.
         reflectance_gains: rounds re-estimating with each smooth surface's albedo
             rescaled by the last fit.
     Uncertainty:
@@ -159,6 +162,7 @@ class Tuning:
     albedo_free_residuals: str = "segments"
     albedo_segment_scale: float = 50.0
     albedo_free_lobe_deg: float = 20.0
+    unlit_evidence: bool = True
     albedo_error: float = 0.0
     indirect_variation: float = 0.7
     indirect_length: float = 0.15

@@ -15,8 +15,8 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
-from selfsup.estimation import albedo_free
-from selfsup.estimation.criterion import Candidate, bic, block_px, fit_row
+from selfsup.estimation import albedo_free, unlit
+from selfsup.estimation.criterion import Candidate, bic, block_px, criterion_light, fit_row
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import FitProblem
 from selfsup.estimation.solvers import refine
@@ -87,6 +87,11 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
                       **_residuals(options))
         more = albedo_free.search_each(sub, albedo_free.search(sub, n_lights, fixed=before, **kwargs), **kwargs)
         shares = albedo_free.light_shares(sub, more).amin(1).tolist()
+        needed = [False] * len(growing)
+        if options.tuning.unlit_evidence:
+            judged = criterion_light(sub, options)
+            needed = unlit.needs_another_light(judged, (before.position, before.log_weight[:, 1:].exp()),
+                                               (more.position, more.log_weight[:, 1:].exp())).tolist()
         fewer_value, more_value = [best[i][2] for i in growing], criterion(more)
         if kwargs["labels"] is not None and options.tuning.albedo_free_lobe_deg > 0:
             # The count judged without the highlights, where enough residuals are left.
@@ -98,7 +103,7 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         for j, (i, c, share) in enumerate(zip(growing, more_value, shares)):
             tried[i][-1] = (n_lights - 1, fewer_value[j])  # the records keep the values compared
             tried[i].append((n_lights, c))
-            if c < fewer_value[j] and share >= options.tuning.min_light_share:
+            if (c < fewer_value[j] and share >= options.tuning.min_light_share) or needed[j]:
                 best[i] = (more, j, c)
                 still.append(i)
         growing = still

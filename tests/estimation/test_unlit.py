@@ -1,0 +1,89 @@
+"""Black pixels as evidence of the light count (selfsup/estimation/unlit.py)."""
+
+import dataclasses
+
+import torch
+
+from render.shadows import EpipolarShadowOptions
+from selfsup.estimation import unlit
+from selfsup.estimation.options import EstimateOptions, Tuning
+from selfsup.estimation.prepare import problem_of
+from selfsup.estimation.stages import estimate_scene
+from selfsup.scenes.exact import render_spec
+from selfsup.scenes.sampler import SamplerConfig, sample_scene
+
+# Direct light alone (no ambient), matte, as a capture of direct light is.
+MEDIUM = SamplerConfig(height=96, width=128, specular_prob=0.0, ambient_zero_prob=1.0)
+# A two-light room whose second light the albedo-free criterion misses (kd unknown).
+MISSED_SEED = 10
+
+
+def _capture_like(scene, ambient=0.0):
+    # kd unknown (0.5 wherever there is a surface), and optionally light everywhere the
+    # lights leave dark, as a room's indirect light gives.
+    surface = scene.depth[..., None] > 0
+    image = scene.image + ambient * scene.kd * float(scene.image[surface.expand_as(scene.image)].median())
+    return dataclasses.replace(scene, image=image, kd=torch.where(surface, torch.full_like(scene.kd, 0.5), 0.0))
+
+
+def _scene(seed, n_lights):
+    return render_spec(sample_scene(seed, MEDIUM, n_lights=n_lights), samples=1).scene
+
+
+def _judged(scene):
+    problem = problem_of(scene, shadows="epipolar")
+    return problem.with_shadows("epipolar", EpipolarShadowOptions(scene_thickness=Tuning.criterion_thickness))
+
+
+def _model(scene, lights):
+    intensity = scene.light_intensity.mean(-1)
+    return scene.light_pos[None, lights], (intensity[lights] / intensity[lights[0]])[None]
+
+
+def test_dark_pixels_are_the_black_ones_at_any_exposure():
+    image = 0.2 + 0.8 * torch.rand(1, 3, 20, 30, generator=torch.Generator().manual_seed(0))
+    image[..., 5:9, 10:20] = 0.0
+    mask = torch.ones(1, 20, 30, dtype=torch.bool)
+    mask[..., 0, :] = False
+    expected = torch.zeros(1, 20, 30, dtype=torch.bool)
+    expected[..., 5:9, 10:20] = True
+    for exposure in (1.0, 1e-3, 50.0):
+        assert torch.equal(unlit.dark_pixels(image * exposure, mask), expected)
+    assert not unlit.dark_pixels(image, torch.zeros_like(mask)).any()
+
+
+def test_black_pixels_ask_for_the_light_that_lights_the_first_ones_shadows():
+    scene = _scene(MISSED_SEED, 2)
+    brighter = int(scene.light_intensity.mean(-1).argmax())
+    problem = _judged(_capture_like(scene))
+    alone, both = _model(scene, [brighter]), _model(scene, [brighter, 1 - brighter])
+    assert bool(unlit.needs_another_light(problem, alone, both)[0])
+    # The model of both lights leaves nothing to a third.
+    stray = (torch.cat([both[0], scene.light_pos[None, :1] + 0.3 * float(scene.scene_scale)], 1),
+             torch.cat([both[1], torch.ones(1, 1)], 1))
+    assert not bool(unlit.needs_another_light(problem, both, stray)[0])
+    # Indirect light fills every shadow: no black pixel, no evidence either way.
+    lit_everywhere = _judged(_capture_like(scene, ambient=0.3))
+    assert not unlit.dark_pixels(lit_everywhere.image, lit_everywhere.gbuffer.mask).any()
+    assert not bool(unlit.needs_another_light(lit_everywhere, alone, both)[0])
+
+
+def test_a_one_light_room_needs_no_second_light_from_its_black_pixels():
+    for seed in (0, 1, 2):
+        scene = _scene(seed, 1)
+        problem = _judged(_capture_like(scene))
+        truth = _model(scene, [0])
+        for offset in (-0.25, 0.25):
+            stray = (torch.cat([truth[0], truth[0] + offset * float(scene.scene_scale)], 1), torch.ones(1, 2))
+            assert not bool(unlit.needs_another_light(problem, truth, stray)[0]), (seed, offset)
+
+
+def test_a_second_light_the_criterion_misses_is_found_by_the_black_pixels():
+    scene = _capture_like(_scene(MISSED_SEED, 2))
+    without = estimate_scene(scene, EstimateOptions(tuning=Tuning(unlit_evidence=False)))
+    found = estimate_scene(scene, EstimateOptions())
+    assert len(without["lights"]) == 1
+    assert len(found["lights"]) == 2
+    position = torch.tensor([light["position"] for light in found["lights"]])
+    error = max(float((position - p).norm(dim=-1).min()) for p in scene.light_pos) / float(scene.scene_scale)
+    assert error < 0.01
