@@ -124,7 +124,15 @@ def needs_another_light(problem: FitProblem, fewer: tuple[Tensor, Tensor], more:
     """
     mask = problem.gbuffer.mask
     dark = dark_pixels(problem.image, mask)
-    unlit_fewer, unlit_more = unlit_pixels(problem, *fewer), unlit_pixels(problem, *more)
+    needed = torch.zeros(problem.batch, dtype=torch.bool, device=mask.device)
+    # Only images black on MIN_DARK_SHARE of their pixels can pass shadow_lit_only: the
+    # others (a capture with indirect light) cast no shadows here.
+    maybe = (dark.flatten(1).sum(1) >= MIN_DARK_SHARE * mask.flatten(1).sum(1)).nonzero()[:, 0]
+    if not maybe.numel():
+        return needed
+    problem, dark, mask = problem.select(maybe), dark[maybe], mask[maybe]
+    unlit_fewer, unlit_more = unlit_pixels(problem, *(x[maybe] for x in fewer)), unlit_pixels(problem, *(x[maybe] for x in more))
     before, after = mismatch(dark, unlit_fewer, mask), mismatch(dark, unlit_more, mask)
-    return (shadow_lit_only(dark, unlit_fewer, mask) & unlit_black(dark, unlit_more, mask)
-            & (after <= MISMATCH_RATIO * before) & (before - after >= MISMATCH_GAIN))
+    needed[maybe] = (shadow_lit_only(dark, unlit_fewer, mask) & unlit_black(dark, unlit_more, mask)
+                     & (after <= MISMATCH_RATIO * before) & (before - after >= MISMATCH_GAIN))
+    return needed
