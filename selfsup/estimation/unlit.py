@@ -131,7 +131,8 @@ def needs_another_light(problem: FitProblem, fewer: tuple[Tensor, Tensor], more:
     if not maybe.numel():
         return needed
     problem, dark, mask = problem.select(maybe), dark[maybe], mask[maybe]
-    unlit_fewer, unlit_more = unlit_pixels(problem, *(x[maybe] for x in fewer)), unlit_pixels(problem, *(x[maybe] for x in more))
+    unlit_fewer = unlit_pixels(problem, *(x[maybe] for x in fewer))
+    unlit_more = unlit_pixels(problem, *(x[maybe] for x in more))
     before, after = mismatch(dark, unlit_fewer, mask), mismatch(dark, unlit_more, mask)
     needed[maybe] = (shadow_lit_only(dark, unlit_fewer, mask) & unlit_black(dark, unlit_more, mask)
                      & (after <= MISMATCH_RATIO * before) & (before - after >= MISMATCH_GAIN))
