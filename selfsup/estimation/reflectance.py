@@ -54,7 +54,9 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
     neighbour differences; :mod:`selfsup.estimation.albedo_free`), 1 .. ``max_lights`` while
     :func:`bic` of their Cauchy loss falls (with segments, judged without the highlights
     of the lights before, :func:`_without_highlights`, where :data:`MIN_RESIDUALS` are left) and each light
-    carries ``min_light_share`` of the fitted shading; intensities and ambient then
+    carries ``min_light_share`` of the fitted shading, or while the capture's black pixels need
+    one light more (``unlit_evidence``, :func:`selfsup.estimation.unlit.needs_another_light`:
+    then the records' criteria may favour the fewer lights); intensities and ambient then
     solved against the image with the file's kd (diffuse only: a constant ks says
     nothing of the highlights either)."""
     B, device = problem.batch, problem.image.device
