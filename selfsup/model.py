@@ -39,7 +39,7 @@ from render.shading import Falloff
 from render.types import GBuffer
 from selfsup.linear import single_light_costs
 
-__all__ = ["LightNet", "LightPrediction", "SceneFrame", "scene_frame", "network_inputs"]
+__all__ = ["LightNet", "LightPrediction", "SceneFrame", "scene_frame", "brightest_percentile", "network_inputs"]
 
 IN_CHANNELS = 14
 
@@ -96,18 +96,26 @@ def scene_frame(image: Tensor, gbuffer: GBuffer) -> SceneFrame:
         raise ValueError(f"image(s) {(count == 0).nonzero().flatten().tolist()} have no valid pixel")
     centre, lo, hi = gbuffer.extent()
     size = (hi - lo).norm(dim=-1).clamp_min(1e-6)
-    # The 99th percentile of the valid pixels' brightest channel, linearly interpolated
-    # between order statistics (as torch.nanquantile), from the top 1% alone (topk, not a sort).
+    return SceneFrame(centre=centre, size=size, exposure=brightest_percentile(image, mask).clamp_min(1e-8))
+
+
+def brightest_percentile(image: Tensor, mask: Tensor, q: float = 0.99) -> Tensor:
+    """``(B,)``: the ``q`` quantile of the valid pixels' brightest channel of ``image
+    (B, 3, H, W)`` over ``mask (B, H, W)``, linearly interpolated between order statistics
+    (as :func:`torch.nanquantile`), from the top ``1 - q`` alone (topk, not a sort); 0 for
+    an image without a valid pixel."""
+    count = mask.flatten(1).sum(1)
     brightest = image.amax(1).flatten(1)
     brightest = torch.where(mask.flatten(1), brightest, torch.full_like(brightest, float("-inf")))
-    position = 0.99 * (count - 1).to(image.dtype)
+    last = (count - 1).clamp_min(0)
+    position = q * last.to(image.dtype)
     below = position.floor().long()
-    above = torch.minimum(below + 1, count - 1)
-    low_rank, high_rank = count - 1 - below, count - 1 - above  # ranks from the top
+    above = torch.minimum(below + 1, last)
+    low_rank, high_rank = last - below, last - above  # ranks from the top
     top = brightest.topk(int(low_rank.max()) + 1, dim=1).values
     low, high = top.gather(1, low_rank[:, None])[:, 0], top.gather(1, high_rank[:, None])[:, 0]
-    exposure = (low + (high - low) * (position - below.to(image.dtype))).clamp_min(1e-8)
-    return SceneFrame(centre=centre, size=size, exposure=exposure)
+    value = low + (high - low) * (position - below.to(image.dtype))
+    return torch.where(count > 0, value, torch.zeros_like(value))
 
 
 def _average_to(x: Tensor, size: int) -> Tensor:

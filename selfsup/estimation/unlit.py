@@ -26,6 +26,7 @@ from torch import Tensor
 
 from render.functional import light_transport
 from selfsup.estimation.problem import FitProblem
+from selfsup.model import brightest_percentile
 
 __all__ = ["dark_pixels", "unlit_pixels", "mismatch", "shadow_lit_only", "unlit_black", "needs_another_light"]
 
@@ -60,10 +61,8 @@ def dark_pixels(image: Tensor, mask: Tensor, level: float = DARK_LEVEL) -> Tenso
     Args:
         image: ``(B, 3, H, W)`` linear; mask: ``(B, H, W)`` valid pixels.
     """
-    brightest = image.amax(1)
-    inside = torch.where(mask, brightest, torch.full_like(brightest, float("nan"))).flatten(1)
-    top = torch.nan_to_num(torch.nanquantile(inside, 0.99, dim=1), nan=0.0)
-    return mask & (brightest <= level * top[:, None, None])
+    top = brightest_percentile(image, mask)  # the network's exposure (selfsup.model.scene_frame)
+    return mask & (image.amax(1) <= level * top[:, None, None])
 
 
 def unlit_pixels(problem: FitProblem, position: Tensor, intensity: Tensor, level: float = UNLIT_LEVEL) -> Tensor:
