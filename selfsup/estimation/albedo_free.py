@@ -73,12 +73,6 @@ SPLIT_STEP = 0.15
 # steps within 1%, at 0.15 s a frame against 0.22 (8 Mitsuba captures, 2-core CPU).
 EACH_STARTS = 2
 EACH_ITERATIONS = (10, 10)
-# ... and a coarser grid: 5x5x5 candidates instead of the first search's 7x7x7. Ad hoc,
-# 2026-11-27 (docs/decisions.md): 0.45 against 0.52-0.55 s a frame over 48 Mitsuba
-# captures (same machine, two runs each, 2-core CPU), 246 against 247 successes of 402
-# capture frames (one light of a closed sensor-noisy room 0.035 -> 0.093 of the scene off;
-# no one-light frame changed).
-EACH_GRID = (5, 5, 5)
 # The robust segment offsets (:meth:`LogShading.offsets`): reweighted means from the plain
 # mean, the Cauchy scale times these factors (wide first, so that a start pulled towards a
 # minority of a segment's pixels still finds the majority). Ad hoc, 2026-11-26, on the 24
@@ -572,7 +566,7 @@ def split_starts(fixed: AlbedoFreeFit, size: Tensor, step: float = SPLIT_STEP) -
 
 
 def search_each(problem: FitProblem, fit: AlbedoFreeFit, robust_scale: float = 0.02, residuals: str = "segments",
-                segment_scale: float = 50.0, labels: Tensor | None = None, per_axis: tuple[int, int, int] = EACH_GRID,
+                segment_scale: float = 50.0, labels: Tensor | None = None, per_axis: tuple[int, int, int] = (7, 7, 7),
                 starts: int = EACH_STARTS, iterations: tuple[int, int] = EACH_ITERATIONS) -> AlbedoFreeFit:
     """Each light of ``fit`` (two or more) searched again with the others held where they
     are (:func:`search`), one after the other, each image keeping whichever fit has the
