@@ -89,11 +89,6 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
                       **_residuals(options))
         more = albedo_free.search_each(sub, albedo_free.search(sub, n_lights, fixed=before, **kwargs), **kwargs)
         shares = albedo_free.light_shares(sub, more).amin(1).tolist()
-        needed = [False] * len(growing)
-        if options.tuning.unlit_evidence:
-            judged = criterion_light(sub, options)
-            needed = unlit.needs_another_light(judged, (before.position, before.log_weight[:, 1:].exp()),
-                                               (more.position, more.log_weight[:, 1:].exp())).tolist()
         fewer_value, more_value = [best[i][2] for i in growing], criterion(more)
         if kwargs["labels"] is not None and options.tuning.albedo_free_lobe_deg > 0:
             # The count judged without the highlights, where enough residuals are left.
@@ -101,11 +96,15 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
             kept = (more_there.pairs >= MIN_RESIDUALS).tolist()
             fewer_value = [c if ok else v for c, ok, v in zip(criterion(fewer_there), kept, fewer_value)]
             more_value = [c if ok else v for c, ok, v in zip(criterion(more_there), kept, more_value)]
+        taken = [c < f and share >= options.tuning.min_light_share
+                 for c, f, share in zip(more_value, fewer_value, shares)]
+        if options.tuning.unlit_evidence:
+            taken = _or_black_pixels_need(sub, options, before, more, taken)
         still = []
-        for j, (i, c, share) in enumerate(zip(growing, more_value, shares)):
+        for j, (i, c) in enumerate(zip(growing, more_value)):
             tried[i][-1] = (n_lights - 1, fewer_value[j])  # the records keep the values compared
             tried[i].append((n_lights, c))
-            if (c < fewer_value[j] and share >= options.tuning.min_light_share) or needed[j]:
+            if taken[j]:
                 best[i] = (more, j, c)
                 still.append(i)
         growing = still
@@ -128,6 +127,24 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
             others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
             results[i] = (candidate, others)
     return results
+
+
+def _or_black_pixels_need(problem: FitProblem, options: EstimateOptions, fewer: albedo_free.AlbedoFreeFit,
+                          more: albedo_free.AlbedoFreeFit, taken: list[bool]) -> list[bool]:
+    """``taken`` (one light more, per image of ``problem``) or, where the criterion did not
+    take it, the capture's black pixels need it (:func:`selfsup.estimation.unlit.needs_another_light`
+    under the criterion's cast shadows). Only the images not taken already are rendered."""
+    rest = [j for j, t in enumerate(taken) if not t]
+    if not rest:
+        return taken
+    rows = torch.tensor(rest, dtype=torch.long, device=problem.image.device)
+    needed = unlit.needs_another_light(criterion_light(problem.select(rows), options),
+                                       (fewer.position[rows], fewer.log_weight[rows, 1:].exp()),
+                                       (more.position[rows], more.log_weight[rows, 1:].exp())).tolist()
+    out = list(taken)
+    for j, need in zip(rest, needed):
+        out[j] = need
+    return out
 
 
 def _without_highlights(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
