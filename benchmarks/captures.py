@@ -47,9 +47,10 @@ COLUMNS = ["root", "set", "scenes", "success", "one_light_success", "two_light_r
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def command_seconds(folder: Path) -> float:
-    """Wall time of ``python train.py mode=estimate`` on ``folder``, Python's start-up and
-    the network's load included, over its frames (the defaults: 2 workers on 2 cores)."""
+def command_seconds(folder: Path, device: str = "cpu") -> float:
+    """Wall time of ``python train.py mode=estimate estimate.device=<device>`` on ``folder``,
+    Python's start-up and the network's load included, over its frames (the other
+    settings as by default: on 2 cores, 2 workers)."""
     import subprocess
     import sys
 
@@ -58,7 +59,7 @@ def command_seconds(folder: Path) -> float:
     with tempfile.TemporaryDirectory() as tmp:
         started = time.perf_counter()
         subprocess.run([sys.executable, "train.py", "mode=estimate", f"estimate.input={folder.resolve()}",
-                        f"estimate.output={tmp}/o.jsonl", "estimate.progress=false", f"hydra.run.dir={tmp}/run"],
+                        f"estimate.output={tmp}/o.jsonl", "estimate.progress=false", f"estimate.device={device}", f"hydra.run.dir={tmp}/run"],
                        cwd=ROOT, check=False, capture_output=True)
         return round((time.perf_counter() - started) / max(len(capture_frames(folder)), 1), 3)
 
@@ -183,9 +184,9 @@ def summary(root: str, set_name: str, rows: list[dict], frames: int, wall: float
 
 
 def run(roots: list[Path], sets=SETS, write: bool = True, options=None, name: str = "capture_estimate",
-        command_time: bool = False) -> tuple[list[dict], Path | None]:
+        command_time: bool = False, device: str = "cpu") -> tuple[list[dict], Path | None]:
     """Estimate every set of each captures root (``mode=estimate``'s defaults, or
-    ``options``) and score it; one row per set."""
+    ``options``) on ``device`` and score it; one row per set."""
     from selfsup.estimation import EstimateOptions, estimate_files
     from selfsup.scenes.capture import capture_frames
 
@@ -199,11 +200,11 @@ def run(roots: list[Path], sets=SETS, write: bool = True, options=None, name: st
             with tempfile.TemporaryDirectory() as tmp:
                 output = Path(tmp) / "lights.jsonl"
                 started = time.perf_counter()
-                estimate_files(folder, output, options, progress=False, batch=4, workers="auto")
+                estimate_files(folder, output, options, progress=False, batch=4, workers="auto", device=device)
                 wall = time.perf_counter() - started
                 scored = score(folder, output) if output.exists() else []
             rows.append(summary(root.name, set_name, scored, len(capture_frames(folder)), wall))
-            rows[-1]["command_seconds_per_frame"] = command_seconds(folder) if command_time else ""
+            rows[-1]["command_seconds_per_frame"] = command_seconds(folder, device) if command_time else ""
             print(rows[-1], flush=True)
     path = None
     if write:
@@ -216,7 +217,7 @@ def run(roots: list[Path], sets=SETS, write: bool = True, options=None, name: st
                   "Python's start not); command seconds per frame (with --command-time) = `python train.py "
                   "mode=estimate` on the folder, start-up included, over its frames."
                   + (f" Settings changed: {options.changed_settings()}." if options.changed_settings() else ""))
-        path = write_results(name, torch.device("cpu"), rows, header, COLUMNS)
+        path = write_results(name, torch.device(device), rows, header, COLUMNS)
     return rows, path
 
 
@@ -237,6 +238,7 @@ def main() -> None:
     r.add_argument("--no-write", action="store_true")
     r.add_argument("--name", default="capture_estimate", help="the results file's name")
     r.add_argument("--command-time", action="store_true", help="also time the command itself on each folder")
+    r.add_argument("--device", default="cpu", help="cpu or cuda[:i]: where the estimator and the command run")
     r.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                    help="an estimate setting or tuned constant, e.g. coat='never' (repeatable)")
     args = parser.parse_args()
@@ -250,7 +252,7 @@ def main() -> None:
 
         options = EstimateOptions.from_settings(**parse_options(args.option))
         print(run(args.captures, args.sets, write=not args.no_write, options=options, name=args.name,
-                  command_time=args.command_time)[1])
+                  command_time=args.command_time, device=args.device)[1])
 
 
 if __name__ == "__main__":

@@ -147,15 +147,16 @@ def _recovery(frames: list[dict]) -> list[int]:
     return waits
 
 
-def track_sequence(folder: Path, options=None, tuning=None, refresh: int = 30) -> dict:
-    """Track and independently estimate every frame of one sequence folder; per-frame scores
-    and latencies. Each frame is read once, timed apart, and given to both in memory."""
+def track_sequence(folder: Path, options=None, tuning=None, refresh: int = 30, device: str = "cpu") -> dict:
+    """Track and independently estimate every frame of one sequence folder on ``device``;
+    per-frame scores and latencies. Each frame is read once, timed apart, and given to
+    both in memory."""
     from selfsup.estimation import EstimateOptions, estimate_scene
     from selfsup.scenes.capture import read_input
     from selfsup.tracking import Tracker, TrackTuning
 
     options = options or EstimateOptions()
-    tracker = Tracker(options, tuning or TrackTuning(), refresh)
+    tracker = Tracker(options, tuning or TrackTuning(), refresh, device)
     tracked, independent, warm, full, alone, reads = [], [], [], [], [], []
     for item in _inputs(folder):
         started = time.perf_counter()
@@ -166,7 +167,7 @@ def track_sequence(folder: Path, options=None, tuning=None, refresh: int = 30) -
         tracked.append(_scored(record, truth))
         (full if record["full"] else warm).append(record["latency_ms"])
         started = time.perf_counter()
-        own = estimate_scene(scene, options)
+        own = estimate_scene(scene, options, device)
         alone.append(1000 * (time.perf_counter() - started))
         independent.append(_scored(own, truth))
     return {"tracked": tracked, "independent": independent, "warm_ms": warm, "full_ms": full, "alone_ms": alone,
@@ -211,7 +212,7 @@ def summary(root: str, set_name: str, kind: str, runs: list[dict]) -> dict:
 
 
 def run(roots: list[Path], sets=SETS, write: bool = True, name: str = "tracking", kinds=SEQUENCE_KINDS,
-        refresh: int = 30) -> tuple[list[dict], Path | None]:
+        refresh: int = 30, device: str = "cpu") -> tuple[list[dict], Path | None]:
     """Score every sequence under ``roots/<set>/<kind>_<seed>`` (the ``kinds`` given), the
     tracker's ``refresh`` as ``track.refresh``; one row per root, set and kind."""
     rows = []
@@ -221,7 +222,7 @@ def run(roots: list[Path], sets=SETS, write: bool = True, name: str = "tracking"
                 continue
             folders = sorted(p for p in (root / set_name).iterdir() if p.is_dir())
             for kind in kinds:
-                runs = [track_sequence(p, refresh=refresh) for p in folders if p.name.rsplit("_", 1)[0] == kind]
+                runs = [track_sequence(p, refresh=refresh, device=device) for p in folders if p.name.rsplit("_", 1)[0] == kind]
                 if runs:
                     rows.append(summary(root.name, set_name, kind, runs))
                     print(json.dumps(rows[-1]), flush=True)
@@ -237,7 +238,7 @@ def run(roots: list[Path], sets=SETS, write: bool = True, name: str = "tracking"
                   "tracker's warm steps; full: its full estimates; independent: mode=estimate's pipeline on the "
                   f"frame); read = reading the frame from its files, apart. track.refresh = {refresh} (sequences of 24 "
                   "frames, Mitsuba 16: the default 30 never comes due).")
-        path = write_results(name, torch.device("cpu"), rows, header, COLUMNS)
+        path = write_results(name, torch.device(device), rows, header, COLUMNS)
     return rows, path
 
 
@@ -298,6 +299,7 @@ def main() -> None:
     r.add_argument("--name", default="tracking")
     r.add_argument("--kinds", nargs="+", default=list(SEQUENCE_KINDS), choices=SEQUENCE_KINDS)
     r.add_argument("--refresh", type=int, default=30, help="track.refresh")
+    r.add_argument("--device", default="cpu", help="cpu or cuda[:i]: where the tracker and the estimator run")
     args = parser.parse_args()
     if args.command == "make":
         make(args.out, args.seeds, args.frames)
@@ -307,7 +309,7 @@ def main() -> None:
         animate(args.sequence, args.out, args.size, tuple(args.pixel), args.object)
     else:
         print(run(args.sequences, args.sets, write=not args.no_write, name=args.name, kinds=args.kinds,
-                  refresh=args.refresh)[1])
+                  refresh=args.refresh, device=args.device)[1])
 
 
 if __name__ == "__main__":

@@ -349,8 +349,8 @@ def estimate_given(problem: FitProblem, options: EstimateOptions) -> list[Result
     return results
 
 
-def estimate_scene(scene: Scene, options: EstimateOptions) -> dict:
-    """Estimate the lights of one scene; returns the JSON-ready record (no ``seconds``).
+def estimate_scene(scene: Scene, options: EstimateOptions, device: str | torch.device = "cpu") -> dict:
+    """Estimate the lights of one scene on ``device``; returns the JSON-ready record (no ``seconds``).
 
     Models tried: one light (searched with the specular term if the file has ks),
     the same light refined without it, then more lights with the better of the two
@@ -362,5 +362,5 @@ def estimate_scene(scene: Scene, options: EstimateOptions) -> dict:
     refinement). :func:`estimate_batch` does the work; batches of scenes go there.
     """
     scene, factor = working_range(within_pixels(scene, options))
-    problem = prepare([scene], options)
+    problem = prepare([scene], options, torch.device(device))
     return in_file_units(records([scene.id], problem, estimate_batch(problem, options), options)[0], factor)
