@@ -141,6 +141,8 @@ class _Measured:
     # One frame's lights as measured (working units): positions (L, 3), their covariances
     # (L, 3, 3), intensities (L, 3), ambient (3,), the model image (1, 3, H, W), the
     # albedo-free log weights (L + 1,); a warm fit's loss per residual and each light's share (L,).
+    # All but the model image are float64 on the CPU, where the filter keeps its states,
+    # whatever device the fit ran on; the model image stays on the fit's device.
     position: Tensor
     covariance: Tensor
     intensity: Tensor
@@ -149,6 +151,11 @@ class _Measured:
     log_weight: Tensor | None = None
     loss: float | None = None
     share: Tensor | None = None
+
+
+def _host(values: Tensor) -> Tensor:
+    # A fit's small result as the filter keeps it: float64 on the CPU.
+    return values.detach().to("cpu", torch.float64)
 
 
 @dataclass
@@ -409,8 +416,8 @@ class Tracker:
         solved = refine(problem, fit.position, solve)
         share = albedo_free.light_shares(problem, fit)
         loss = float(fit.loss[0]) / max(float(fit.pairs[0]), 1.0)
-        return _Measured(fit.position[0].double(), cov[0].double(), solved.intensity[0].double(),
-                         solved.ambient[0].double(), solved.model, fit.log_weight[0].double(), loss, share[0].double())
+        return _Measured(_host(fit.position[0]), _host(cov[0]), _host(solved.intensity[0]), _host(solved.ambient[0]),
+                         solved.model, _host(fit.log_weight[0]), loss, _host(share[0]))
 
     def _warm_given(self, problem: FitProblem, start: Tensor) -> _Measured:
         tuning, model = self.options.tuning, self._model
@@ -426,8 +433,8 @@ class Tracker:
                                   indirect_length=tuning.indirect_length, normal_error=tuning.normal_error)
         share = light_shares(problem, fit, model.specular)
         loss = float(fit.cost[0]) / max(float(fit.n[0]), 1.0)
-        return _Measured(fit.position[0].double(), cov[0].double(), fit.intensity[0].double(),
-                         fit.ambient[0].double(), fit.model, loss=loss, share=share[0].double())
+        return _Measured(_host(fit.position[0]), _host(cov[0]), _host(fit.intensity[0]), _host(fit.ambient[0]),
+                         fit.model, loss=loss, share=_host(share[0]))
 
     def _log_ratio(self, problem: FitProblem, model: Tensor) -> Tensor:
         # (H, W) log(image / model) of the grey values; NaN where the pixel is invalid or
