@@ -43,7 +43,7 @@ from selfsup.scenes.io import read_scene
 SETS = ("direct", "gi", "noisy")
 EXPOSURE_RANGE = (0.5, 2.0)  # the 99th percentile of the valid values lands in this share of full scale
 COLUMNS = ["root", "set", "scenes", "success", "one_light_success", "two_light_right_count", "median_worst_error",
-           "seconds_per_frame", "command_seconds_per_frame"]
+           "two_sigma_coverage", "placed_two_sigma_coverage", "seconds_per_frame", "command_seconds_per_frame"]
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -156,14 +156,27 @@ def read_truth(path: Path) -> SimpleNamespace:
 
 def score(folder: Path, estimates: Path) -> list[dict]:
     """One row per frame of ``estimates`` against ``folder/truth``: found and true light
-    counts, the worst position error, success, seconds."""
+    counts, the worst position error, success, seconds; how many true lights lie inside
+    the 2-sigma ellipsoid (``position_cov``) of the estimate paired with them, and of the
+    true lights placed (paired within 0.05 of the scene size), how many and how many inside."""
+    from selfsup.metrics import CHI2_3D_2SIGMA, pair_lights
+
     rows = []
     for line in estimates.read_text().splitlines():
         record = json.loads(line)
         truth = read_truth(folder / "truth" / f"{record['id']}.npz")
-        errors, _ = score_record(record, truth)
+        errors, inside = score_record(record, truth)
+        found = torch.tensor([light["position"] for light in record["lights"]], dtype=torch.float64).reshape(-1, 3)
+        cov = torch.tensor([light["position_cov"] for light in record["lights"]], dtype=torch.float64)
+        placed = placed_inside = 0
+        for e, t in pair_lights(found, truth.light_pos):
+            delta = truth.light_pos[t].double() - found[e]
+            if float(delta.norm()) < 0.05 * float(truth.scene_scale):
+                placed += 1
+                placed_inside += float(delta @ torch.linalg.pinv(cov[e]) @ delta) < CHI2_3D_2SIGMA
         rows.append({"id": record["id"], "found": len(record["lights"]), "true": truth.light_pos.shape[0],
-                     "worst": max(errors.position), "success": errors.success, "seconds": record["seconds"]})
+                     "worst": max(errors.position), "success": errors.success, "seconds": record["seconds"],
+                     "inside": inside, "placed": placed, "placed_inside": placed_inside})
     return rows
 
 
@@ -180,6 +193,8 @@ def summary(root: str, set_name: str, rows: list[dict], frames: int, wall: float
             "one_light_success": share(sum(r["success"] for r in one), len(one)),
             "two_light_right_count": share(sum(r["found"] == 2 for r in two), len(two)),
             "median_worst_error": round(statistics.median([r["worst"] for r in rows]), 4) if rows else "",
+            "two_sigma_coverage": share(sum(r["inside"] for r in rows), sum(r["true"] for r in rows)),
+            "placed_two_sigma_coverage": share(sum(r["placed_inside"] for r in rows), sum(r["placed"] for r in rows)),
             "seconds_per_frame": round(wall / max(frames, 1), 3)}
 
 
@@ -213,7 +228,9 @@ def run(roots: list[Path], sets=SETS, write: bool = True, options=None, name: st
                   "files, estimated by `mode=estimate` with the default settings (batch 4, workers auto) and scored "
                   "against truth/: success = every light within 0.05 of the scene size; one-light success; two-light "
                   "right count = two lights found in the two-light scenes; median worst position error (of the scene "
-                  "size); seconds per frame = estimate_files' wall time over the frames (the network's load included, "
+                  "size); two-sigma coverage = true lights inside the 2-sigma ellipsoid (95.4%) of the estimate paired with "
+                  "them (`position_cov`; an unpaired light is outside), of all true lights; placed two-sigma coverage = "
+                  "the same of the true lights placed within 0.05; seconds per frame = estimate_files' wall time over the frames (the network's load included, "
                   "Python's start not); command seconds per frame (with --command-time) = `python train.py "
                   "mode=estimate` on the folder, start-up included, over its frames."
                   + (f" Settings changed: {options.changed_settings()}." if options.changed_settings() else ""))

@@ -51,7 +51,7 @@ from render.shading import blinn_phong_lobe, light_geometry
 from selfsup.estimation.options import ALBEDO_FREE_RESIDUALS
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
 from selfsup.estimation.solvers import RUNAWAY_SIZES, grid_candidates, spread_best
-from selfsup.estimation.uncertainty import position_blocks
+from selfsup.estimation.uncertainty import block_sums, position_blocks, tilt_axes
 
 __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "shading_loss", "search", "search_each",
            "split_starts", "refine_positions", "light_shares", "mirror_lobes", "highlight_pixels",
@@ -613,12 +613,91 @@ def highlight_pixels(obs: LogShading, fit: AlbedoFreeFit, max_angle_deg: float) 
     return lobes & (residual.view_as(lobes) > 0)
 
 
-def position_covariance(obs: LogShading, fit: AlbedoFreeFit, correlation_px: float = 1.0) -> Tensor:
+def position_covariance(obs: LogShading, fit: AlbedoFreeFit, correlation_px: float = 1.0,
+                        indirect_variation: float = 0.0, indirect_length: float = 0.15, block_px: int = 8,
+                        normal_tilt: Tensor | None = None) -> Tensor:
     """Gauss-Newton covariance ``(B, L, 3, 3)`` of each light's position under the pair
     residuals' Cauchy weights (the albedo edges' pairs weigh nothing); the noise
-    variance is the weighted residual's, inflated by ``correlation_px``."""
+    variance is the weighted residual's, inflated by ``correlation_px``.
+
+    Two error sources the residual cannot show are added as the given-albedo covariance
+    adds them (``uncertainty.position_covariance``), one value per square block of
+    ``block_px`` pixels:
+
+    - ``indirect_variation > 0``: a smooth relative variation of the ambient over the
+      scene (the indirect light a constant ambient leaves out), a Gaussian field of that
+      standard deviation and correlation length ``indirect_length`` (of the scene size);
+    - ``normal_tilt (B, H, W)``: the variance (radians^2 per tilt axis) of normals fitted
+      to noisy depth, every block tilted as one, independently between blocks and axes.
+    """
     residual, jac = _jacobian(obs, fit.position, fit.log_weight)
     weights = _cauchy_weights(obs, residual)
     sigma2 = (weights * residual**2).sum(1) / (weights.sum(1) - jac.shape[1]).clamp_min(1) * correlation_px
     info = ((jac * weights[:, None]) @ jac.transpose(1, 2)).double()
-    return position_blocks(info, sigma2.double(), fit.position.shape[1]).to(fit.position.dtype)
+    weighted = jac * weights[:, None]
+    extras = []
+    if indirect_variation > 0:
+        extras.append(_indirect_field_scores(obs, fit, weighted, indirect_variation, indirect_length, block_px))
+    if normal_tilt is not None:
+        for change in _tilt_changes(obs, fit, normal_tilt):
+            scores = block_scores_of(obs, weighted, change, block_px)
+            extras.append(scores @ scores.transpose(1, 2))
+    return position_blocks(info, sigma2.double(), fit.position.shape[1],
+                           sum(extras) if extras else None).to(fit.position.dtype)
+
+
+def _indirect_field_scores(obs: LogShading, fit: AlbedoFreeFit, weighted_jac: Tensor, variation: float,
+                           length: float, block_px: int) -> Tensor:
+    # Score covariance (B, k, k) of a field e over the blocks' 3D centres that scales the
+    # ambient by (1 + e): S K S^T, S the blocks' scores of the change d log S = ambient / S
+    # (block_scores_of), K the field's covariance between the blocks' centres.
+    _, shading = _log_model(_transport(obs, fit.position), fit.log_weight)
+    scores = block_scores_of(obs, weighted_jac, fit.log_weight[:, :1, None].exp() / shading, block_px)
+    g = obs.gbuffer
+    points = torch.where(g.mask[..., None], g.points, torch.zeros_like(g.points)).permute(0, 3, 1, 2)
+    sums = block_sums(torch.cat([points, g.mask[:, None].to(points.dtype)], 1).double(), block_px)
+    centre = (sums[:, :3] / sums[:, 3:].clamp_min(1)).transpose(1, 2)  # (B, blocks, 3); empty blocks score 0
+    _, lo, hi = g.extent()
+    size = (hi - lo).norm(dim=-1).clamp_min(1e-6).double()
+    distance2 = torch.cdist(centre, centre).square() / (length * size)[:, None, None].square()
+    kernel = variation**2 * torch.exp(-0.5 * distance2)
+    return scores @ kernel @ scores.transpose(1, 2)
+
+
+def _tilt_changes(obs: LogShading, fit: AlbedoFreeFit, normal_tilt: Tensor, step: float = 1e-3) -> list[Tensor]:
+    # The log shading's change (B, H, W) under a tilt of one standard deviation
+    # (sqrt(normal_tilt), at most 1 radian) of every normal about each of its two
+    # tilt axes: forward differences of ``step`` radians through the shading.
+    g = obs.gbuffer
+    log_model, _ = _log_model(_transport(obs, fit.position), fit.log_weight)
+    size = normal_tilt.to(log_model.dtype).clamp(0, 1).sqrt()
+    changes = []
+    for axis in tilt_axes(g.normals):
+        tilted = dataclasses.replace(obs, gbuffer=dataclasses.replace(
+            g, normals=torch.nn.functional.normalize(g.normals + step * axis, dim=-1)))
+        moved, _ = _log_model(_transport(tilted, fit.position), fit.log_weight)
+        changes.append((moved - log_model) / step * size)
+    return changes
+
+
+def block_scores_of(obs: LogShading, weighted_jac: Tensor, change: Tensor, block_px: int) -> Tensor:
+    """``J^T W`` times the observation's log shading changed by ``change (B, H, W)`` over one
+    square block of ``block_px`` pixels, for each block: ``(B, k, blocks)`` float64,
+    row-major blocks; ``weighted_jac (B, k, P)`` is the Jacobian of :func:`_jacobian`
+    times the Cauchy weights. To first order such a change, times ``e``, moves the fit by
+    ``-info^-1 scores e``. The segment offsets absorb their mean of the change, which the
+    Jacobian's rows (their own offsets' means taken out, under the same weights) do not
+    see; the pairs view is mapped back to its pixels by the differences' adjoint."""
+    B, k = weighted_jac.shape[:2]
+    H, W = obs.log_shading.shape[-2:]
+    if obs.segments is None:
+        across, down = weighted_jac.split([H * (W - 1), (H - 1) * W], -1)
+        across, down = across.reshape(B, k, H, W - 1), down.reshape(B, k, H - 1, W)
+        per_pixel = weighted_jac.new_zeros(B, k, H, W)
+        per_pixel[..., :, 1:] += across
+        per_pixel[..., :, :-1] -= across
+        per_pixel[..., 1:, :] += down
+        per_pixel[..., :-1, :] -= down
+    else:
+        per_pixel = weighted_jac.reshape(B, k, H, W)
+    return block_sums((per_pixel * change[:, None]).double(), block_px)

@@ -120,7 +120,11 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         fit = refine(sub, chosen.position, solve)
         observed = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=None if labels is None else
                                        labels[rows], **_residuals(options))
-        cov = albedo_free.position_covariance(observed, chosen, correlation_px=float(block**2)).cpu()
+        cov = albedo_free.position_covariance(observed, chosen, correlation_px=float(block**2),
+                                              indirect_variation=options.tuning.indirect_variation,
+                                              indirect_length=options.tuning.indirect_length, block_px=block,
+                                              normal_tilt=sub.normal_tilt if options.tuning.normal_error else None
+                                              ).cpu()
         for j, i in enumerate(group):
             candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free")
             # The records keep the tried models' counts and criteria only.

@@ -57,6 +57,51 @@ def test_jacobian_matches_finite_differences(residuals):
         torch.testing.assert_close(jac[0, k], (moved - residual)[0] / h, atol=1e-5, rtol=1e-4)
 
 
+@pytest.mark.parametrize("residuals", ["segments", "pairs"])
+def test_ambient_block_scores_predict_how_more_ambient_over_a_block_moves_the_fit(residuals):
+    # The image the model's own with an ambient; to first order, more ambient over one
+    # block (e times the ambient there) moves the refitted light by -info^-1 s e.
+    scene, problem = _exact_problem()
+    obs = albedo_free.observe(problem, residuals=residuals)
+    truth = scene.light_pos[None].double()
+    log_weight = torch.tensor([[-1.5, 0.0]], dtype=torch.float64)
+    log_model, shading = albedo_free._log_model(albedo_free._transport(obs, truth), log_weight)
+    obs.log_shading, obs.observed = log_model, obs.differences(log_model)
+    fit = albedo_free.refine_positions(obs, truth, log_weight, iterations=30, tol=1e-14)
+    torch.testing.assert_close(fit.position, truth)
+    residual, jac = albedo_free._jacobian(obs, fit.position, fit.log_weight)
+    weighted = jac * albedo_free._cauchy_weights(obs, residual)[:, None]
+    info = weighted @ jac.transpose(1, 2)
+    block = 8
+    scores = albedo_free.block_scores_of(obs, weighted, fit.log_weight[:, :1, None].exp() / shading, block)
+    index = int(scores[0, :3].norm(dim=0).argmax())
+    row, col = divmod(index, -(-obs.log_shading.shape[-1] // block))
+    rows, columns = slice(row * block, (row + 1) * block), slice(col * block, (col + 1) * block)
+    e = 2e-3
+    moved_log = obs.log_shading.clone()
+    moved_log[:, rows, columns] += e * (fit.log_weight[0, 0].exp() / shading)[:, rows, columns]
+    moved_obs = dataclasses.replace(obs, log_shading=moved_log, observed=obs.differences(moved_log))
+    moved = albedo_free.refine_positions(moved_obs, fit.position, fit.log_weight, iterations=30, tol=1e-14)
+    predicted = -(torch.linalg.pinv(info[0]) @ scores[0, :, index])[:3] * e
+    measured = (moved.position - fit.position)[0, 0]
+    assert float(measured.norm()) > 1e-6 * float(scene.scene_scale)
+    torch.testing.assert_close(measured, predicted, rtol=0.03, atol=0.03 * float(predicted.norm()))
+
+
+def test_an_unknown_ambient_widens_the_albedo_free_covariance_by_the_indirect_field():
+    _, problem = _exact_problem()
+    obs = albedo_free.observe(problem)
+    scene = _scene(1)
+    fit = albedo_free.refine_positions(obs, scene.light_pos[None].double(), torch.tensor([[-1.5, 0.0]],
+                                       dtype=torch.float64), iterations=30)
+    plain = albedo_free.position_covariance(obs, fit, correlation_px=16.0)
+    wider = albedo_free.position_covariance(obs, fit, correlation_px=16.0, indirect_variation=0.7,
+                                            indirect_length=0.15, block_px=4)
+    difference = wider[0, 0] - plain[0, 0]
+    assert bool((torch.linalg.eigvalsh(difference) > -1e-12 * float(plain[0, 0].trace())).all())  # only grows
+    assert float(difference.trace()) > 0.1 * float(plain[0, 0].trace())
+
+
 def test_robust_offsets_keep_a_segments_majority_where_a_mean_moves():
     # A segment whose log ratio is 0 on 80% of its pixels and 1 on the rest: the mean
     # says 0.2, the robust offset the majority's 0.

@@ -177,3 +177,24 @@ def test_a_light_the_albedo_free_fit_pushes_towards_infinity_stays_within_reach(
     position = torch.tensor(record["lights"][0]["position"])
     assert float(position.norm()) < 2 * RUNAWAY_SIZES * float(truth.scene_scale) + float(points.max())
     assert all(np.isfinite(record["lights"][0]["position_std"]))
+
+
+def test_the_capture_benchmark_scores_the_covariance_of_the_placed_lights(tmp_path):
+    from benchmarks.captures import score, summary
+
+    _capture(tmp_path, seeds=(3, 4))
+    cap = tmp_path / "cap"
+    records = []
+    for frame_id, offset, std in (("frame_003", 0.01, 0.01), ("frame_004", 0.01, 0.001)):  # 1 sigma; 10 sigma off
+        truth = read_truth(cap / "truth" / f"{frame_id}.npz")
+        size = float(truth.scene_scale)
+        position = truth.light_pos[0].double() + torch.tensor([offset * size, 0.0, 0.0], dtype=torch.float64)
+        cov = (torch.eye(3, dtype=torch.float64) * (std * size) ** 2).tolist()
+        records.append({"id": frame_id, "lights": [{"position": position.tolist(), "intensity": [1.0, 1.0, 1.0],
+                                                    "position_cov": cov}], "seconds": 0.1})
+    estimates = tmp_path / "o.jsonl"
+    estimates.write_text("".join(json.dumps(r) + "\n" for r in records))
+    rows = score(cap, estimates)
+    assert [(r["placed"], r["placed_inside"], r["inside"]) for r in rows] == [(1, 1, 1), (1, 0, 0)]
+    row = summary("cap", "direct", rows, 2, 1.0)
+    assert row["two_sigma_coverage"] == row["placed_two_sigma_coverage"] == "1/2 (50%)"
