@@ -130,10 +130,10 @@ class Tuning:
             rescaled by the last fit.
     Uncertainty:
         albedo_error: std of the file's kd error (0: exact).
-        indirect_variation, indirect_length: files without ambient add a smooth field
-            of unaccounted light, this std x the fitted ambient, this correlation
-            length (of the scene size); 0: off.
-        normal_error: refitted normals add their plane fits' tilt error.
+        indirect_variation, indirect_length: files without ambient (every capture, the
+            albedo-free fit too) add a smooth field of unaccounted light, this std x the
+            fitted ambient, this correlation length (of the scene size); 0: off.
+        normal_error: refitted normals add their plane fits' tilt error (both fits).
     refine: the optimiser (:class:`RefineOptions`).
     """
 
