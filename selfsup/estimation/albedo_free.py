@@ -51,11 +51,11 @@ from render.shading import blinn_phong_lobe, light_geometry
 from selfsup.estimation.options import ALBEDO_FREE_RESIDUALS
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
 from selfsup.estimation.solvers import RUNAWAY_SIZES, grid_candidates, spread_best
-from selfsup.estimation.uncertainty import block_sums, position_blocks, tilt_axes
+from selfsup.estimation.uncertainty import block_sums, field_covariance, position_blocks, tilt_axes
 
 __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "shading_loss", "search", "search_each",
            "split_starts", "refine_positions", "light_shares", "mirror_lobes", "highlight_pixels",
-           "position_covariance"]
+           "position_covariance", "block_scores_of"]
 
 # Contrasts tried in the grid search: the ambient at exp(g) x the median unit-light shading.
 AMBIENT_STEPS = (-4.0, -2.0, -1.0, 0.0, 1.0)
@@ -653,14 +653,7 @@ def _indirect_field_scores(obs: LogShading, fit: AlbedoFreeFit, weighted_jac: Te
     # (block_scores_of), K the field's covariance between the blocks' centres.
     _, shading = _log_model(_transport(obs, fit.position), fit.log_weight)
     scores = block_scores_of(obs, weighted_jac, fit.log_weight[:, :1, None].exp() / shading, block_px)
-    g = obs.gbuffer
-    points = torch.where(g.mask[..., None], g.points, torch.zeros_like(g.points)).permute(0, 3, 1, 2)
-    sums = block_sums(torch.cat([points, g.mask[:, None].to(points.dtype)], 1).double(), block_px)
-    centre = (sums[:, :3] / sums[:, 3:].clamp_min(1)).transpose(1, 2)  # (B, blocks, 3); empty blocks score 0
-    _, lo, hi = g.extent()
-    size = (hi - lo).norm(dim=-1).clamp_min(1e-6).double()
-    distance2 = torch.cdist(centre, centre).square() / (length * size)[:, None, None].square()
-    kernel = variation**2 * torch.exp(-0.5 * distance2)
+    kernel = field_covariance(obs.gbuffer, block_px, variation, length).double()
     return scores @ kernel @ scores.transpose(1, 2)
 
 

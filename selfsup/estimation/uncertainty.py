@@ -14,7 +14,7 @@ import math
 import torch
 from torch import Tensor
 
-from render import light_transport
+from render import GBuffer, light_transport
 from selfsup.estimation.options import RefineOptions
 from selfsup.estimation.problem import Fit, FitProblem, basis_columns, centre_and_size
 from selfsup.estimation.solvers import jacobians, normal_equations
@@ -114,17 +114,27 @@ def indirect_field_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Te
     the ambient by its own value in one block (every channel alike, :func:`block_scores`),
     ``K`` the field's covariance between the blocks' 3D centres,
     ``variation^2 exp(-|x - x'|^2 / (2 (length x scene size)^2))``."""
-    g = problem.gbuffer
     derivative = problem.material.kd.permute(0, 3, 1, 2) * fit.ambient[:, :, None, None] * weights
     scores = block_scores(problem, j_pos, cols, derivative, block_px, shared_channels=True)  # (B, n, blocks)
+    kernel = field_covariance(problem.gbuffer, block_px, variation, length)
+    return scores @ kernel.to(scores.dtype) @ scores.transpose(1, 2)
+
+
+def field_covariance(gbuffer: GBuffer, block_px: int, variation: float, length: float) -> Tensor:
+    """Covariance ``(B, blocks, blocks)`` between the square blocks of ``block_px`` pixels
+    (row-major, :func:`block_sums`) of a Gaussian random field over the 3D points:
+    ``variation^2 exp(-|x - x'|^2 / (2 (length x scene size)^2))`` at the blocks' centres
+    (the mean of their valid points; the scene size the valid points' bounding-box
+    diagonal); in the points' dtype."""
+    g = gbuffer
     valid = g.mask.to(g.points.dtype)[:, None]  # (B, 1, H, W)
     points = torch.where(g.mask[..., None], g.points, torch.zeros_like(g.points)).permute(0, 3, 1, 2)
     sums = block_sums(torch.cat([points, valid], 1), block_px)  # (B, 4, blocks)
     centre = (sums[:, :3] / sums[:, 3:].clamp_min(1)).transpose(1, 2)  # (B, blocks, 3); empty blocks score 0
-    _, size = centre_and_size(problem)
+    _, lo, hi = g.extent()
+    size = (hi - lo).norm(dim=-1).clamp_min(1e-6)
     distance2 = torch.cdist(centre, centre).square() / (length * size)[:, None, None].square()
-    kernel = variation**2 * torch.exp(-0.5 * distance2)
-    return scores @ kernel.to(scores.dtype) @ scores.transpose(1, 2)
+    return variation**2 * torch.exp(-0.5 * distance2)
 
 
 def tilt_axes(normals: Tensor) -> tuple[Tensor, Tensor]:
