@@ -159,24 +159,21 @@ def score(folder: Path, estimates: Path) -> list[dict]:
     counts, the worst position error, success, seconds; how many true lights lie inside
     the 2-sigma ellipsoid (``position_cov``) of the estimate paired with them, and of the
     true lights placed (paired within 0.05 of the scene size), how many and how many inside."""
-    from selfsup.metrics import CHI2_3D_2SIGMA, pair_lights
+    from selfsup.metrics import SUCCESS_THRESHOLD, paired_inside_two_sigma
 
     rows = []
     for line in estimates.read_text().splitlines():
         record = json.loads(line)
         truth = read_truth(folder / "truth" / f"{record['id']}.npz")
-        errors, inside = score_record(record, truth)
+        errors, _ = score_record(record, truth)
         found = torch.tensor([light["position"] for light in record["lights"]], dtype=torch.float64).reshape(-1, 3)
         cov = torch.tensor([light["position_cov"] for light in record["lights"]], dtype=torch.float64)
-        placed = placed_inside = 0
-        for e, t in pair_lights(found, truth.light_pos):
-            delta = truth.light_pos[t].double() - found[e]
-            if float(delta.norm()) < 0.05 * float(truth.scene_scale):
-                placed += 1
-                placed_inside += float(delta @ torch.linalg.pinv(cov[e]) @ delta) < CHI2_3D_2SIGMA
+        paired = paired_inside_two_sigma(found, cov.reshape(-1, 3, 3), truth.light_pos)
+        placed = [inside for distance, inside in paired if distance < SUCCESS_THRESHOLD * float(truth.scene_scale)]
         rows.append({"id": record["id"], "found": len(record["lights"]), "true": truth.light_pos.shape[0],
                      "worst": max(errors.position), "success": errors.success, "seconds": record["seconds"],
-                     "inside": inside, "placed": placed, "placed_inside": placed_inside})
+                     "inside": sum(inside for _, inside in paired), "placed": len(placed),
+                     "placed_inside": sum(placed)})
     return rows
 
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["LightErrors", "light_errors", "pair_lights", "inside_two_sigma", "SUCCESS_THRESHOLD",
+__all__ = ["LightErrors", "light_errors", "pair_lights", "inside_two_sigma", "paired_inside_two_sigma", "SUCCESS_THRESHOLD",
            "CHI2_3D_2SIGMA"]
 
 SUCCESS_THRESHOLD = 0.05
@@ -91,8 +91,15 @@ def inside_two_sigma(est_pos: Tensor, est_cov: Tensor, true_pos: Tensor) -> int:
     """How many true lights ``(T, 3)`` fall inside the 2-sigma ellipsoid of the estimate
     they are paired with (:func:`pair_lights`); estimates ``(E, 3)``, their position
     covariances ``(E, 3, 3)``. An unpaired true light is not inside."""
-    inside = 0
+    return sum(inside for _, inside in paired_inside_two_sigma(est_pos, est_cov, true_pos))
+
+
+def paired_inside_two_sigma(est_pos: Tensor, est_cov: Tensor, true_pos: Tensor) -> list[tuple[float, bool]]:
+    """For each true light paired with an estimate (:func:`pair_lights`; shapes as
+    :func:`inside_two_sigma`): its distance to that estimate, and whether it lies inside
+    the estimate's 2-sigma ellipsoid."""
+    out = []
     for e, t in pair_lights(est_pos, true_pos):
         delta = (true_pos[t] - est_pos[e]).double()
-        inside += float(delta @ torch.linalg.pinv(est_cov[e].double()) @ delta) < CHI2_3D_2SIGMA
-    return inside
+        out.append((float(delta.norm()), float(delta @ torch.linalg.pinv(est_cov[e].double()) @ delta) < CHI2_3D_2SIGMA))
+    return out

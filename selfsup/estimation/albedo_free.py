@@ -51,7 +51,7 @@ from render.shading import blinn_phong_lobe, light_geometry
 from selfsup.estimation.options import ALBEDO_FREE_RESIDUALS
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
 from selfsup.estimation.solvers import RUNAWAY_SIZES, grid_candidates, spread_best
-from selfsup.estimation.uncertainty import block_sums, field_covariance, position_blocks, tilt_axes
+from selfsup.estimation.uncertainty import block_sums, field_covariance, position_blocks, tilted_normals
 
 __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "shading_loss", "search", "search_each",
            "split_starts", "refine_positions", "light_shares", "mirror_lobes", "highlight_pixels",
@@ -613,16 +613,15 @@ def highlight_pixels(obs: LogShading, fit: AlbedoFreeFit, max_angle_deg: float) 
     return lobes & (residual.view_as(lobes) > 0)
 
 
-def position_covariance(obs: LogShading, fit: AlbedoFreeFit, correlation_px: float = 1.0,
-                        indirect_variation: float = 0.0, indirect_length: float = 0.15, block_px: int = 8,
-                        normal_tilt: Tensor | None = None) -> Tensor:
+def position_covariance(obs: LogShading, fit: AlbedoFreeFit, block_px: int = 1, indirect_variation: float = 0.0,
+                        indirect_length: float = 0.15, normal_tilt: Tensor | None = None) -> Tensor:
     """Gauss-Newton covariance ``(B, L, 3, 3)`` of each light's position under the pair
     residuals' Cauchy weights (the albedo edges' pairs weigh nothing); the noise
-    variance is the weighted residual's, inflated by ``correlation_px``.
+    variance is the weighted residual's, inflated by the ``block_px^2`` pixels of one
+    independent residual (the criterion's block).
 
     Two error sources the residual cannot show are added as the given-albedo covariance
-    adds them (``uncertainty.position_covariance``), one value per square block of
-    ``block_px`` pixels:
+    adds them (``uncertainty.position_covariance``), one value per block:
 
     - ``indirect_variation > 0``: a smooth relative variation of the ambient over the
       scene (the indirect light a constant ambient leaves out), a Gaussian field of that
@@ -632,43 +631,34 @@ def position_covariance(obs: LogShading, fit: AlbedoFreeFit, correlation_px: flo
     """
     residual, jac = _jacobian(obs, fit.position, fit.log_weight)
     weights = _cauchy_weights(obs, residual)
-    sigma2 = (weights * residual**2).sum(1) / (weights.sum(1) - jac.shape[1]).clamp_min(1) * correlation_px
+    sigma2 = (weights * residual**2).sum(1) / (weights.sum(1) - jac.shape[1]).clamp_min(1) * float(block_px**2)
     info = ((jac * weights[:, None]) @ jac.transpose(1, 2)).double()
     weighted = jac * weights[:, None]
     extras = []
+    if indirect_variation > 0 or normal_tilt is not None:
+        log_model, shading = _log_model(_transport(obs, fit.position), fit.log_weight)
     if indirect_variation > 0:
-        extras.append(_indirect_field_scores(obs, fit, weighted, indirect_variation, indirect_length, block_px))
+        # The ambient times (1 + e): d log S = ambient / S per unit e, e a field over the blocks.
+        scores = block_scores_of(obs, weighted, fit.log_weight[:, :1, None].exp() / shading, block_px)
+        kernel = field_covariance(obs.gbuffer, block_px, indirect_variation, indirect_length).double()
+        extras.append(scores @ kernel @ scores.transpose(1, 2))
     if normal_tilt is not None:
-        for change in _tilt_changes(obs, fit, normal_tilt):
+        for change in _tilt_changes(obs, fit, log_model, normal_tilt):
             scores = block_scores_of(obs, weighted, change, block_px)
             extras.append(scores @ scores.transpose(1, 2))
     return position_blocks(info, sigma2.double(), fit.position.shape[1],
                            sum(extras) if extras else None).to(fit.position.dtype)
 
 
-def _indirect_field_scores(obs: LogShading, fit: AlbedoFreeFit, weighted_jac: Tensor, variation: float,
-                           length: float, block_px: int) -> Tensor:
-    # Score covariance (B, k, k) of a field e over the blocks' 3D centres that scales the
-    # ambient by (1 + e): S K S^T, S the blocks' scores of the change d log S = ambient / S
-    # (block_scores_of), K the field's covariance between the blocks' centres.
-    _, shading = _log_model(_transport(obs, fit.position), fit.log_weight)
-    scores = block_scores_of(obs, weighted_jac, fit.log_weight[:, :1, None].exp() / shading, block_px)
-    kernel = field_covariance(obs.gbuffer, block_px, variation, length).double()
-    return scores @ kernel @ scores.transpose(1, 2)
-
-
-def _tilt_changes(obs: LogShading, fit: AlbedoFreeFit, normal_tilt: Tensor, step: float = 1e-3) -> list[Tensor]:
-    # The log shading's change (B, H, W) under a tilt of one standard deviation
-    # (sqrt(normal_tilt), at most 1 radian) of every normal about each of its two
+def _tilt_changes(obs: LogShading, fit: AlbedoFreeFit, log_model: Tensor, normal_tilt: Tensor,
+                  step: float = 1e-3) -> list[Tensor]:
+    # The log shading's change (B, H, W) from ``log_model`` under a tilt of one standard
+    # deviation (sqrt(normal_tilt), at most 1 radian) of every normal about each of its two
     # tilt axes: forward differences of ``step`` radians through the shading.
-    g = obs.gbuffer
-    log_model, _ = _log_model(_transport(obs, fit.position), fit.log_weight)
     size = normal_tilt.to(log_model.dtype).clamp(0, 1).sqrt()
     changes = []
-    for axis in tilt_axes(g.normals):
-        tilted = dataclasses.replace(obs, gbuffer=dataclasses.replace(
-            g, normals=torch.nn.functional.normalize(g.normals + step * axis, dim=-1)))
-        moved, _ = _log_model(_transport(tilted, fit.position), fit.log_weight)
+    for tilted in tilted_normals(obs.gbuffer, step):
+        moved, _ = _log_model(_transport(dataclasses.replace(obs, gbuffer=tilted), fit.position), fit.log_weight)
         changes.append((moved - log_model) / step * size)
     return changes
 

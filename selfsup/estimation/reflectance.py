@@ -120,9 +120,9 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         fit = refine(sub, chosen.position, solve)
         observed = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=None if labels is None else
                                        labels[rows], **_residuals(options))
-        cov = albedo_free.position_covariance(observed, chosen, correlation_px=float(block**2),
+        cov = albedo_free.position_covariance(observed, chosen, block_px=block,
                                               indirect_variation=options.tuning.indirect_variation,
-                                              indirect_length=options.tuning.indirect_length, block_px=block,
+                                              indirect_length=options.tuning.indirect_length,
                                               normal_tilt=sub.normal_tilt if options.tuning.normal_error else None
                                               ).cpu()
         for j, i in enumerate(group):

@@ -21,7 +21,7 @@ from selfsup.estimation.solvers import jacobians, normal_equations
 from selfsup.linear import intensity_design
 
 __all__ = ["position_covariance", "position_blocks", "albedo_scores", "normal_tilt_scores", "indirect_field_scores",
-           "tilt_axes", "block_scores", "block_sums"]
+           "field_covariance", "tilted_normals", "tilt_axes", "block_scores", "block_sums"]
 
 
 def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, correlation_px: float = 1.0,
@@ -91,14 +91,11 @@ def normal_tilt_scores(problem: FitProblem, fit: Fit, j_pos: Tensor, cols: Tenso
     ``specular``, specular; shadows do not move); such a tilt ``e`` of one block moves the
     fit by ``-info^-1 scores e`` (to first order), and the score covariance is
     ``scores scores^T``."""
-    g = problem.gbuffer
-    n = g.normals
     size = problem.normal_tilt.clamp(0, 1).sqrt()[:, None] * weights  # (B, 3, H, W)
     intensity = fit.intensity.transpose(1, 2)[..., None, None]  # (B, 3, L, 1, 1)
     model = (cols * intensity).sum(2)
     per_axis = []
-    for axis in tilt_axes(n):
-        tilted = dataclasses.replace(g, normals=torch.nn.functional.normalize(n + step * axis, dim=-1))
+    for tilted in tilted_normals(problem.gbuffer, step):
         t = light_transport(tilted, problem.material, fit.position, falloff=problem.falloff, shadows=problem.shadows,
                             shadow_options=problem.shadow_options, specular=specular)
         changed = (basis_columns(dataclasses.replace(problem, gbuffer=tilted), t.diffuse, t.specular) * intensity).sum(2)
@@ -135,6 +132,14 @@ def field_covariance(gbuffer: GBuffer, block_px: int, variation: float, length: 
     size = (hi - lo).norm(dim=-1).clamp_min(1e-6)
     distance2 = torch.cdist(centre, centre).square() / (length * size)[:, None, None].square()
     return variation**2 * torch.exp(-0.5 * distance2)
+
+
+def tilted_normals(gbuffer: GBuffer, step: float) -> list[GBuffer]:
+    """``gbuffer`` with every normal tilted by ``step`` radians about each of its two
+    :func:`tilt_axes` in turn (two G-buffers): the forward differences of a normal error."""
+    n = gbuffer.normals
+    return [dataclasses.replace(gbuffer, normals=torch.nn.functional.normalize(n + step * axis, dim=-1))
+            for axis in tilt_axes(n)]
 
 
 def tilt_axes(normals: Tensor) -> tuple[Tensor, Tensor]:

@@ -411,9 +411,9 @@ class Tracker:
         log_weight = log_weight.to(start.device, start.dtype)[None]
         fit = albedo_free.refine_positions(obs, start, log_weight, self.tuning.warm_iterations)
         block = block_px(self.options, problem.image.shape[-1], albedo_free=True)
-        cov = albedo_free.position_covariance(obs, fit, correlation_px=float(block**2),
+        cov = albedo_free.position_covariance(obs, fit, block_px=block,
                                               indirect_variation=tuning.indirect_variation,
-                                              indirect_length=tuning.indirect_length, block_px=block,
+                                              indirect_length=tuning.indirect_length,
                                               normal_tilt=problem.normal_tilt if tuning.normal_error else None)
         solve = replace(tuning.refine, specular=False, max_iters=(0,), strides=(1,))
         solved = refine(problem, fit.position, solve)

@@ -94,9 +94,8 @@ def test_an_unknown_ambient_widens_the_albedo_free_covariance_by_the_indirect_fi
     scene = _scene(1)
     fit = albedo_free.refine_positions(obs, scene.light_pos[None].double(), torch.tensor([[-1.5, 0.0]],
                                        dtype=torch.float64), iterations=30)
-    plain = albedo_free.position_covariance(obs, fit, correlation_px=16.0)
-    wider = albedo_free.position_covariance(obs, fit, correlation_px=16.0, indirect_variation=0.7,
-                                            indirect_length=0.15, block_px=4)
+    plain = albedo_free.position_covariance(obs, fit, block_px=4)
+    wider = albedo_free.position_covariance(obs, fit, block_px=4, indirect_variation=0.7, indirect_length=0.15)
     difference = wider[0, 0] - plain[0, 0]
     assert bool((torch.linalg.eigvalsh(difference) > -1e-12 * float(plain[0, 0].trace())).all())  # only grows
     assert float(difference.trace()) > 0.1 * float(plain[0, 0].trace())
