@@ -111,7 +111,9 @@ class LogShading:
         observed: ``(B, P)`` the observation's :meth:`differences`.
         gbuffer, material, falloff: the geometry and renderer settings of the transport.
         scale: ``(B,)`` Cauchy scale of the residuals (log units).
-        segments: ``(B, H W)`` each pixel's albedo segment (``H W``: none), or None for pairs.
+        segments: ``(B, H W)`` each pixel's albedo segment (``segment_count``: none), or None for pairs.
+        segment_count: how many segment ids there are (one more than the largest label; the
+            id of "none"): the segment sums' length, whatever the image's size.
     """
 
     log_shading: Tensor
@@ -122,6 +124,7 @@ class LogShading:
     falloff: str
     scale: Tensor
     segments: Tensor | None = None
+    segment_count: int = 0
 
     def differences(self, x: Tensor) -> Tensor:
         """The albedo-free view of log images ``x (B, [k,] H, W)`` -> ``(B, [k,] P)``: pair
@@ -139,8 +142,9 @@ class LogShading:
             raise ValueError("segment means are a segment view's; pairs have none")
         index = self.segments if x.dim() == 2 else self.segments[:, None].expand_as(x)
         w = weight if x.dim() == 2 else weight[:, None]
-        sums = x.new_zeros(*x.shape[:-1], x.shape[-1] + 1).scatter_add_(-1, index, x * w)
-        totals = weight.new_zeros(weight.shape[0], weight.shape[1] + 1).scatter_add_(1, self.segments, weight)
+        slots = self.segment_count + 1  # the segments and "none": a few hundred sums, not one per pixel
+        sums = x.new_zeros(*x.shape[:-1], slots).scatter_add_(-1, index, x * w)
+        totals = weight.new_zeros(weight.shape[0], slots).scatter_add_(1, self.segments, weight)
         return (sums / (totals if x.dim() == 2 else totals[:, None]).clamp_min(1e-30)).gather(-1, index)
 
     def offsets(self, x: Tensor) -> Tensor:
@@ -242,13 +246,15 @@ def albedo_segments(problem: FitProblem, scale: float = 50.0, geometry: Tensor |
     return torch.from_numpy(out).to(g.mask.device).view(B, H, W)
 
 
-def _usable(labels: Tensor, valid: Tensor) -> Tensor:
+def _usable(labels: Tensor, valid: Tensor) -> tuple[Tensor, int]:
     # (B, H, W) labels -> (B, H*W) segment of each valid pixel of a segment of at least
-    # MIN_SEGMENT_PIXELS valid ones, H*W (none) elsewhere.
-    B, N = valid.shape[0], valid[0].numel()
-    flat = torch.where(valid & (labels >= 0), labels, N).flatten(1).clamp_max(N)
-    counts = torch.zeros(B, N + 1, dtype=torch.long, device=flat.device).scatter_add_(1, flat, torch.ones_like(flat))
-    return torch.where((flat < N) & (counts.gather(1, flat) >= MIN_SEGMENT_PIXELS), flat, N)
+    # MIN_SEGMENT_PIXELS valid ones, ``count`` (none) elsewhere, and ``count``: one more than
+    # the largest label (a subsample's labels are its full image's).
+    count = int(labels.max()) + 1 if labels.numel() else 0
+    flat = torch.where(valid & (labels >= 0), labels, count).flatten(1)
+    sizes = torch.zeros(valid.shape[0], count + 1, dtype=torch.long, device=flat.device)
+    sizes.scatter_add_(1, flat, torch.ones_like(flat))
+    return torch.where((flat < count) & (sizes.gather(1, flat) >= MIN_SEGMENT_PIXELS), flat, count), count
 
 
 def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float = 1.0, residuals: str = "segments",
@@ -271,14 +277,14 @@ def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float 
     log_shading = torch.log(torch.where(valid, grey, median[:, None, None]))
     relative_noise = problem.noise_level() / problem.median_observed().clamp_min(1e-30)
     scale = torch.clamp_min(noise_floor * relative_noise, robust_scale)
-    segments = None
+    segments, count = None, 0
     if residuals == "segments":
-        segments = _usable(albedo_segments(problem, segment_scale) if labels is None else labels, valid)
-        pairs = segments < segments.shape[1]
+        segments, count = _usable(albedo_segments(problem, segment_scale) if labels is None else labels, valid)
+        pairs = segments < count
     else:
         pairs = _pair_mask(valid)
     obs = LogShading(log_shading, pairs, log_shading, problem.gbuffer, Material(kd=problem.material.kd),
-                     problem.falloff, scale.to(grey.dtype), segments)
+                     problem.falloff, scale.to(grey.dtype), segments, count)
     obs.observed = obs.differences(log_shading)  # the same view of the data as of every model
     return obs
 
@@ -288,7 +294,8 @@ def _tiled(obs: LogShading, count: int) -> LogShading:
     rep = lambda x: None if x is None else x.repeat_interleave(count, 0)  # noqa: E731
     rows = torch.arange(obs.gbuffer.batch_size, device=obs.gbuffer.points.device).repeat_interleave(count)
     return LogShading(rep(obs.log_shading), rep(obs.pairs), rep(obs.observed), obs.gbuffer.select(rows),
-                      Material(kd=rep(obs.material.kd)), obs.falloff, rep(obs.scale), rep(obs.segments))
+                      Material(kd=rep(obs.material.kd)), obs.falloff, rep(obs.scale), rep(obs.segments),
+                      obs.segment_count)
 
 
 def _transport(obs: LogShading, position: Tensor) -> Tensor:
@@ -417,28 +424,36 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
 
 def _grid_losses(obs: LogShading, fixed: AlbedoFreeFit | None, cands: Tensor) -> tuple[Tensor, Tensor]:
     """Loss ``(B, G)`` of each grid candidate ``(B, G, 3)`` as the searched light, at its
-    best contrast step, and that step's log weights ``(B, G, L + 1)``."""
+    best contrast step, and that step's log weights ``(B, G, L + 1)``. The candidates are
+    one image's lights side by side (no image repeated per candidate), the held lights'
+    shading summed once for all of them."""
     B, G, _ = cands.shape
-    tiled = _tiled(obs, G)
-    diffuse = _transport(tiled, cands.reshape(B * G, 1, 3))  # (B G, 1, H, W)
+    diffuse = _transport(obs, cands)  # (B, G, H, W)
+    pairs, c = obs.pairs[:, None], obs.scale[:, None, None]
+
+    def loss_of(shading: Tensor) -> Tensor:
+        # (B, G, H, W) shading -> (B, G): as _log_model's floor, _residual (means) and shading_loss.
+        shading = shading.clamp_min(1e-12 * shading.flatten(2).amax(2).clamp_min(1e-30)[..., None, None])
+        residual = torch.where(pairs, obs.observed[:, None] - obs.differences(shading.log()),
+                               torch.zeros((), dtype=shading.dtype, device=shading.device))
+        return (c**2 * torch.log1p((residual / c) ** 2) * pairs).sum(-1)
+
     if fixed is None:
-        unit = torch.where(tiled.gbuffer.mask, diffuse[:, 0], torch.full_like(diffuse[:, 0], float("nan")))
-        base = torch.nan_to_num(unit.flatten(1).nanmedian(1).values, nan=1.0).clamp_min(1e-30).log()
-        steps = [torch.stack([base + g, torch.zeros_like(base)], 1) for g in AMBIENT_STEPS]
+        unit = torch.where(obs.gbuffer.mask[:, None], diffuse, torch.full_like(diffuse, float("nan")))
+        base = torch.nan_to_num(unit.flatten(2).nanmedian(2).values, nan=1.0).clamp_min(1e-30).log()  # (B, G)
+        steps = [torch.stack([base + g, torch.zeros_like(base)], -1) for g in AMBIENT_STEPS]
+        losses = [loss_of(u[..., :1, None].exp() + u[..., 1:, None].exp() * diffuse) for u in steps]
     else:
-        before = _transport(obs, fixed.position).repeat_interleave(G, 0)  # the same for every candidate
-        diffuse = torch.cat([before, diffuse], 1)
-        u = fixed.log_weight.repeat_interleave(G, 0)
-        steps = [torch.cat([u, torch.full_like(u[:, :1], math.log(r))], 1) for r in RATIO_STEPS]
-    losses, weights = [], []
-    for u in steps:
-        log_model, _ = _log_model(diffuse, u)
-        losses.append(shading_loss(tiled, _residual(tiled, log_model, robust=False)))  # ranking only
-        weights.append(u)
-    losses, weights = torch.stack(losses, 1), torch.stack(weights, 1)  # (B G, K), (B G, K, L + 1)
-    best = losses.argmin(1)
-    rows = torch.arange(B * G, device=best.device)
-    return losses[rows, best].reshape(B, G), weights[rows, best].reshape(B, G, -1)
+        w = fixed.log_weight.exp()
+        held = (w[:, 1:, None, None] * _transport(obs, fixed.position)).sum(1)  # (B, H, W)
+        steps, losses = [], []
+        for r in RATIO_STEPS:
+            u = torch.cat([fixed.log_weight, torch.full_like(fixed.log_weight[:, :1], math.log(r))], 1)
+            steps.append(u[:, None].expand(B, G, -1))
+            losses.append(loss_of(w[:, :1, None, None] + (held[:, None] + u[:, -1:, None, None].exp() * diffuse)))
+    losses, weights = torch.stack(losses, -1), torch.stack(steps, -2)  # (B, G, K), (B, G, K, L + 1)
+    best = losses.argmin(-1, keepdim=True)
+    return losses.gather(-1, best)[..., 0], weights.gather(-2, best[..., None].expand(B, G, 1, weights.shape[-1]))[..., 0, :]
 
 
 def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None = None, robust_scale: float = 0.02,

@@ -1,6 +1,7 @@
 """The albedo-free fit (selfsup/estimation/albedo_free.py) and the estimator's reflectance switch."""
 
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -285,6 +286,68 @@ def test_segment_residuals_place_a_light_of_unknown_albedo_over_textures():
         fit = albedo_free.search(problem_of(scene, shadows="none"), 1)
         errors.append(_rel_error(fit.position[0], scene))
     assert max(errors) < 0.05, errors
+
+
+@pytest.mark.parametrize("residuals", ["segments", "pairs"])
+@pytest.mark.parametrize("held", [False, True])
+def test_grid_ranking_scores_each_candidate_as_its_own_model(residuals, held):
+    # The grid ranks every candidate of an image at once (no image repeated per candidate):
+    # each loss must be that of the candidate's own model at the contrast step returned,
+    # and no other step of the list lower.
+    from selfsup.estimation.prepare import problems_of
+    from selfsup.estimation.solvers import grid_candidates
+
+    scenes = [_unknown_albedo(_scene(seed, n_lights=2)) for seed in (4, 8)]
+    problem = problems_of(scenes, shadows="none", dtype=torch.float64)
+    obs = albedo_free.observe(problem, residuals=residuals)
+    cands = grid_candidates(problem, (3, 3, 2))
+    fixed = None
+    if held:
+        fixed = albedo_free.AlbedoFreeFit(torch.stack([s.light_pos[:1] for s in scenes]).double(),
+                                          torch.tensor([[-2.0, 0.0], [-1.0, 0.0]], dtype=torch.float64),
+                                          torch.ones(2, dtype=torch.float64), torch.ones(2, dtype=torch.long))
+    losses, weights = albedo_free._grid_losses(obs, fixed, cands)
+    assert losses.shape == cands.shape[:2] and weights.shape == (*cands.shape[:2], 3 if held else 2)
+    for b in range(2):
+        for g in (0, 7, cands.shape[1] - 1):
+            one = albedo_free.LogShading(*(getattr(obs, f.name)[b : b + 1] if isinstance(getattr(obs, f.name), torch.Tensor)
+                                           else getattr(obs, f.name) for f in dataclasses.fields(obs)))
+            one.gbuffer, one.material = obs.gbuffer.select(torch.tensor([b])), albedo_free.Material(kd=obs.material.kd[b : b + 1])
+            position = cands[b : b + 1, g : g + 1]
+            if held:
+                position = torch.cat([fixed.position[b : b + 1], position], 1)
+            diffuse = albedo_free._transport(one, position)
+            log_model, _ = albedo_free._log_model(diffuse, weights[b : b + 1, g])
+            own = albedo_free.shading_loss(one, albedo_free._residual(one, log_model, robust=False))
+            torch.testing.assert_close(losses[b, g], own[0])
+            # The step returned is the list's best: every other step of it loses more.
+            if held:
+                ratio = float(weights[b, g, -1].exp())
+                assert min(abs(ratio - r) for r in albedo_free.RATIO_STEPS) < 1e-9
+                others = [math.log(r) for r in albedo_free.RATIO_STEPS]
+            else:
+                unit = diffuse[0, 0][one.gbuffer.mask[0]].median().clamp_min(1e-30).log()
+                assert min(abs(float(weights[b, g, 0] - unit) - a) for a in albedo_free.AMBIENT_STEPS) < 1e-9
+                others = [float(unit) + a for a in albedo_free.AMBIENT_STEPS]
+            for value in others:
+                other = weights[b : b + 1, g].clone()
+                other[:, -1 if held else 0] = value
+                moved = albedo_free.shading_loss(one, albedo_free._residual(
+                    one, albedo_free._log_model(diffuse, other)[0], robust=False))
+                assert float(moved[0]) >= float(own[0]) - 1e-12
+
+
+def test_segment_ids_count_the_segments_not_the_pixels():
+    # The sums of a segment view have one slot per segment and one for "none"; a
+    # subsample's labels are its full image's, so an id may exceed its pixel count and must
+    # still be a segment of its own (not merged into "none").
+    labels = torch.tensor([[[0, 0, 0, 5000], [0, 0, 5000, 5000], [7, 0, -1, 5000]]]).repeat(1, 4, 1)
+    valid = torch.ones_like(labels, dtype=torch.bool)
+    segments, count = albedo_free._usable(labels, valid)
+    assert count == 5001
+    flat = labels.flatten(1)
+    assert bool((segments[flat == 5000] == 5000).all()) and bool((segments[flat == 0] == 0).all())
+    assert bool((segments[(flat == 7) | (flat == -1)] == count).all())  # 7: too few pixels; -1: no segment
 
 
 def _shading_log(problem, fit):
