@@ -201,8 +201,9 @@ def smooth_normals(
         padded_normals = torch.nn.functional.pad(current, pad)
         total = torch.zeros_like(current)
         for n_j, neighbour, neighbour_valid in _window([padded_normals, padded_points, padded_valid], radius, H, W):
-            plane = ((neighbour - points) * current).sum(-1, keepdim=True) / plane_scale
-            similarity = ((n_j - current) ** 2).sum(-1, keepdim=True) / normal_sigma**2
+            plane = dot3(neighbour - points, current)[..., None] / plane_scale
+            change = n_j - current
+            similarity = dot3(change, change)[..., None] / normal_sigma**2
             total = total + neighbour_valid * torch.exp(-similarity - plane**2) * n_j
         length = total.norm(dim=-1, keepdim=True)
         current = torch.where(mask[..., None] & (length > 0), total / length.clamp_min(1e-30), current)
