@@ -356,19 +356,24 @@ def _jacobian(obs: LogShading, position: Tensor, log_weight: Tensor, robust: boo
     diffuse = jac.transport.diffuse  # (B, L, H, W)
     log_model, shading = _log_model(diffuse, log_weight)
     w = log_weight.exp()
-    # d log S / d p_i = w_i dD_i/dp_i / S; d log S / d u_0 = w_0 / S; d log S / d u_i = w_i D_i / S.
-    d_pos = (w[:, 1:, None, None, None] * jac.diffuse).permute(0, 1, 4, 2, 3).reshape(B, 3 * L, *diffuse.shape[-2:])
-    d_ambient = w[:, :1, None, None].expand(B, 1, *diffuse.shape[-2:])
-    d_lights = w[:, 2:, None, None] * diffuse[:, 1:]
-    d_log = torch.cat([d_pos, d_ambient, d_lights], 1) / shading[:, None]
+    H, W = diffuse.shape[-2:]
+    # d log S / d p_i = w_i dD_i/dp_i / S; d log S / d u_0 = w_0 / S; d log S / d u_i = w_i D_i / S,
+    # each block written into one (B, k, H, W) array and divided by S there (no copies between).
+    d_log = diffuse.new_empty(B, 4 * L, H, W)
+    torch.mul(w[:, 1:, None, None, None], jac.diffuse.permute(0, 1, 4, 2, 3),
+              out=d_log[:, : 3 * L].view(B, L, 3, H, W))
+    d_log[:, 3 * L] = w[:, :1, None]
+    torch.mul(w[:, 2:, None, None], diffuse[:, 1:], out=d_log[:, 3 * L + 1 :])
+    d_log /= shading[:, None]
     residual = _residual(obs, log_model, robust) if residual is None else residual
     if obs.segments is None or not robust:
         return residual, -obs.differences(d_log) * obs.pairs[:, None]
     # The offsets move with the model: each is a weighted mean (the Cauchy weights of its
-    # pixels' residuals), so a residual's derivative is the model's less that mean of it.
+    # pixels' residuals), so a residual's derivative is the model's less that mean of it
+    # (mean - d, which is -(d - mean) exactly).
     d_log = d_log.flatten(2)  # (B, k, P)
     mean = obs.segment_means(d_log, _cauchy_weights(obs, residual))
-    return residual, -(d_log - mean) * obs.pairs[:, None]
+    return residual, mean.sub_(d_log).mul_(obs.pairs[:, None])
 
 
 def _unpack(step: Tensor, L: int) -> tuple[Tensor, Tensor]:
