@@ -308,17 +308,29 @@ def _transport(obs: LogShading, position: Tensor) -> Tensor:
 
 def _log_model(diffuse: Tensor, log_weight: Tensor) -> tuple[Tensor, Tensor]:
     # The model's shading S (B, H, W) and its log, of unit transport (B, L, H, W) and
-    # log weights (B, L + 1); S floored at 1e-12 of its peak (dark sides, no ambient).
+    # log weights (B, L + 1); S floored as _floored_log.
     w = log_weight.exp()
-    shading = w[:, :1, None] + (w[:, 1:, None, None] * diffuse).sum(1)
-    shading = shading.clamp_min(1e-12 * shading.flatten(1).amax(1).clamp_min(1e-30)[:, None, None])
+    return _floored_log(w[:, :1, None] + (w[:, 1:, None, None] * diffuse).sum(1))
+
+
+def _floored_log(shading: Tensor) -> tuple[Tensor, Tensor]:
+    # The log of shadings (..., H, W) and the shadings, each floored at 1e-12 of its peak
+    # (dark sides, no ambient).
+    shading = shading.clamp_min(1e-12 * shading.flatten(-2).amax(-1).clamp_min(1e-30)[..., None, None])
     return shading.log(), shading
 
 
+def _per_image(value: Tensor, like: Tensor) -> Tensor:
+    # A per-image value (B,) or (B, P) viewed to broadcast against ``like`` (B, [G,] P): a
+    # model per image, or G candidate models of each image side by side.
+    return value.view(value.shape[0], *[1] * (like.dim() - value.dim()), *value.shape[1:])
+
+
 def shading_loss(obs: LogShading, residual: Tensor) -> Tensor:
-    """Cauchy loss ``(B,)`` of pair residuals ``(B, P)``: ``sum c^2 log(1 + (r / c)^2)``."""
-    c = obs.scale[:, None]
-    return (c**2 * torch.log1p((residual / c) ** 2) * obs.pairs).sum(1)
+    """Cauchy loss ``(B,)`` of pair residuals ``(B, P)`` (or ``(B, G)`` of ``G`` models'
+    ``(B, G, P)``): ``sum c^2 log(1 + (r / c)^2)``."""
+    c = _per_image(obs.scale, residual)
+    return (c**2 * torch.log1p((residual / c) ** 2) * _per_image(obs.pairs, residual)).sum(-1)
 
 
 def _cauchy_weights(obs: LogShading, residual: Tensor) -> Tensor:
@@ -329,8 +341,11 @@ def _cauchy_weights(obs: LogShading, residual: Tensor) -> Tensor:
 def _residual(obs: LogShading, log_model: Tensor, robust: bool = True) -> Tensor:
     # (B, P): pairs' differences, or each pixel's log ratio to the model less its segment's
     # offset (robust: :meth:`LogShading.offsets`; else the mean, :meth:`LogShading.differences`).
+    # Not robust, log models (B, G, H, W) give (B, G, P).
     if obs.segments is None or not robust:
-        return torch.where(obs.pairs, obs.observed - obs.differences(log_model), torch.zeros_like(obs.observed))
+        model = obs.differences(log_model)
+        return torch.where(_per_image(obs.pairs, model), _per_image(obs.observed, model) - model,
+                           torch.zeros((), dtype=model.dtype, device=model.device))
     ratio = (obs.log_shading - log_model).flatten(1)
     return torch.where(obs.pairs, ratio - obs.offsets(ratio), torch.zeros_like(ratio))
 
@@ -436,14 +451,10 @@ def _grid_losses(obs: LogShading, fixed: AlbedoFreeFit | None, cands: Tensor) ->
     shading summed once for all of them."""
     B, G, _ = cands.shape
     diffuse = _transport(obs, cands)  # (B, G, H, W)
-    pairs, c = obs.pairs[:, None], obs.scale[:, None, None]
 
     def loss_of(shading: Tensor) -> Tensor:
-        # (B, G, H, W) shading -> (B, G): as _log_model's floor, _residual (means) and shading_loss.
-        shading = shading.clamp_min(1e-12 * shading.flatten(2).amax(2).clamp_min(1e-30)[..., None, None])
-        residual = torch.where(pairs, obs.observed[:, None] - obs.differences(shading.log()),
-                               torch.zeros((), dtype=shading.dtype, device=shading.device))
-        return (c**2 * torch.log1p((residual / c) ** 2) * pairs).sum(-1)
+        # (B, G, H, W) shadings -> (B, G) losses, with the segments' means (ranking only).
+        return shading_loss(obs, _residual(obs, _floored_log(shading)[0], robust=False))
 
     if fixed is None:
         unit = torch.where(obs.gbuffer.mask[:, None], diffuse, torch.full_like(diffuse, float("nan")))
