@@ -49,7 +49,7 @@ from render import GBuffer, Material
 from render.functional import light_transport, light_transport_jacobian
 from render.shading import blinn_phong_lobe, light_geometry
 from selfsup.estimation.options import ALBEDO_FREE_RESIDUALS
-from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
+from selfsup.estimation.problem import FitProblem, centre_and_size, gbuffer_centre_and_size, subsample
 from selfsup.estimation.solvers import RUNAWAY_SIZES, grid_candidates, spread_best
 from selfsup.estimation.uncertainty import block_sums, field_covariance, position_blocks, tilted_normals
 
@@ -141,7 +141,7 @@ class LogShading:
         if self.segments is None:
             raise ValueError("segment means are a segment view's; pairs have none")
         # An expanded index is read with stride 0, which scatter_add_ takes 1.6x as long over
-        # as over a copy of it (and the copy's cost included; 2-core CPU, (16, 8, 4800) sums).
+        # as over a copy of it (the copy's cost included; ad hoc, 2026-11-27, 2-core CPU, (16, 8, 4800) sums).
         index = self.segments if x.dim() == 2 else self.segments[:, None].expand_as(x).contiguous()
         w = weight if x.dim() == 2 else weight[:, None]
         slots = self.segment_count + 1  # the segments and "none": a few hundred sums, not one per pixel
@@ -406,8 +406,8 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
     (relative loss decrease below ``tol``, or damping run out)."""
     position, log_weight = position.detach().clone(), log_weight.detach().clone()
     B, L, _ = position.shape
-    centre, lo, hi = obs.gbuffer.extent()
-    reach = RUNAWAY_SIZES * (hi - lo).norm(dim=-1).clamp_min(1e-6)  # (B,)
+    centre, size = gbuffer_centre_and_size(obs.gbuffer)
+    reach = RUNAWAY_SIZES * size  # (B,)
     loss, residual = _evaluate(obs, position, log_weight)
     damping = torch.full((B,), 1e-3, dtype=position.dtype, device=position.device)
     active = torch.ones(B, dtype=torch.bool, device=position.device)

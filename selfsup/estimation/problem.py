@@ -22,7 +22,7 @@ from selfsup.estimation.indirect import indirect_columns
 from selfsup.estimation.options import RefineOptions
 from selfsup.linear import basis_images, intensity_design, solve_design
 
-__all__ = ["FitProblem", "Fit", "subsample", "centre_and_size", "solve_linear", "reweighted", "solve_at", "robust_loss",
+__all__ = ["FitProblem", "Fit", "subsample", "centre_and_size", "gbuffer_centre_and_size", "solve_linear", "reweighted", "solve_at", "robust_loss",
            "basis_columns", "cauchy_scale", "irls_weights", "design_columns", "transport_maps"]
 
 
@@ -207,7 +207,12 @@ class Fit:
 
 def centre_and_size(problem: FitProblem) -> tuple[Tensor, Tensor]:
     """Centroid ``(B, 3)`` and size ``(B,)`` (bounding-box diagonal, at least 1e-6) of the valid points."""
-    centre, lo, hi = problem.gbuffer.extent()
+    return gbuffer_centre_and_size(problem.gbuffer)
+
+
+def gbuffer_centre_and_size(gbuffer: GBuffer) -> tuple[Tensor, Tensor]:
+    """:func:`centre_and_size` of a G-buffer's valid points."""
+    centre, lo, hi = gbuffer.extent()
     return centre, (hi - lo).norm(dim=-1).clamp_min(1e-6)
 
 

@@ -21,7 +21,7 @@ from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import FitProblem
 from selfsup.estimation.solvers import refine
 
-__all__ = ["reflectance_unknown", "albedo_free_images", "estimate_albedo_free", "segment_gains"]
+__all__ = ["reflectance_unknown", "albedo_free_images", "estimate_albedo_free", "albedo_free_covariance", "segment_gains"]
 
 MIN_RESIDUALS = 100  # the fewest residuals an albedo-free fit or count decision rests on
 
@@ -120,17 +120,26 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         fit = refine(sub, chosen.position, solve)
         observed = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=None if labels is None else
                                        labels[rows], **_residuals(options))
-        cov = albedo_free.position_covariance(observed, chosen, block_px=block,
-                                              indirect_variation=options.tuning.indirect_variation,
-                                              indirect_length=options.tuning.indirect_length,
-                                              normal_tilt=sub.normal_tilt if options.tuning.normal_error else None
-                                              ).cpu()
+        cov = albedo_free_covariance(observed, chosen, sub, options).cpu()
         for j, i in enumerate(group):
             candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free")
             # The records keep the tried models' counts and criteria only.
             others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
             results[i] = (candidate, others)
     return results
+
+
+def albedo_free_covariance(observed: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFit, problem: FitProblem,
+                           options: EstimateOptions) -> Tensor:
+    """:func:`selfsup.estimation.albedo_free.position_covariance` ``(B, L, 3, 3)`` of ``fit``
+    to ``observed`` (the log shading of ``problem``) under ``options``: the criterion's block,
+    the indirect field and, where set, the refitted normals' tilt. The estimator's answer
+    and the tracker's warm steps take it alike."""
+    tuning = options.tuning
+    return albedo_free.position_covariance(observed, fit, block_px=block_px(options, problem.image.shape[-1], albedo_free=True),
+                                           indirect_variation=tuning.indirect_variation,
+                                           indirect_length=tuning.indirect_length,
+                                           normal_tilt=problem.normal_tilt if tuning.normal_error else None)
 
 
 def _or_black_pixels_need(problem: FitProblem, options: EstimateOptions, fewer: albedo_free.AlbedoFreeFit,

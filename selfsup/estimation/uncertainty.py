@@ -16,7 +16,7 @@ from torch import Tensor
 
 from render import GBuffer, light_transport
 from selfsup.estimation.options import RefineOptions
-from selfsup.estimation.problem import Fit, FitProblem, basis_columns, centre_and_size
+from selfsup.estimation.problem import Fit, FitProblem, basis_columns, centre_and_size, gbuffer_centre_and_size
 from selfsup.estimation.solvers import jacobians, normal_equations
 from selfsup.linear import intensity_design
 
@@ -128,8 +128,7 @@ def field_covariance(gbuffer: GBuffer, block_px: int, variation: float, length: 
     points = torch.where(g.mask[..., None], g.points, torch.zeros_like(g.points)).permute(0, 3, 1, 2)
     sums = block_sums(torch.cat([points, valid], 1), block_px)  # (B, 4, blocks)
     centre = (sums[:, :3] / sums[:, 3:].clamp_min(1)).transpose(1, 2)  # (B, blocks, 3); empty blocks score 0
-    _, lo, hi = g.extent()
-    size = (hi - lo).norm(dim=-1).clamp_min(1e-6)
+    _, size = gbuffer_centre_and_size(g)
     distance2 = torch.cdist(centre, centre).square() / (length * size)[:, None, None].square()
     return variation**2 * torch.exp(-0.5 * distance2)
 

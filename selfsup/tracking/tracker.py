@@ -33,6 +33,7 @@ from selfsup.estimation.prepare import prepare, saturated_pixels, within_pixels,
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
 from selfsup.estimation.records import records
+from selfsup.estimation.reflectance import albedo_free_covariance
 from selfsup.estimation.solvers import refine
 from selfsup.estimation.stages import estimate_batch, with_coat
 from selfsup.estimation.uncertainty import position_covariance
@@ -410,11 +411,7 @@ class Tracker:
         log_weight = torch.cat([self._ambient, torch.stack([t.log_weight for t in self._tracks])])
         log_weight = log_weight.to(start.device, start.dtype)[None]
         fit = albedo_free.refine_positions(obs, start, log_weight, self.tuning.warm_iterations)
-        block = block_px(self.options, problem.image.shape[-1], albedo_free=True)
-        cov = albedo_free.position_covariance(obs, fit, block_px=block,
-                                              indirect_variation=tuning.indirect_variation,
-                                              indirect_length=tuning.indirect_length,
-                                              normal_tilt=problem.normal_tilt if tuning.normal_error else None)
+        cov = albedo_free_covariance(obs, fit, problem, self.options)
         solve = replace(tuning.refine, specular=False, max_iters=(0,), strides=(1,))
         solved = refine(problem, fit.position, solve)
         share = albedo_free.light_shares(problem, fit)
