@@ -55,7 +55,7 @@ from selfsup.estimation.uncertainty import block_sums, field_covariance, positio
 
 __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "shading_loss", "search", "search_each",
            "split_starts", "refine_positions", "light_shares", "mirror_lobes", "highlight_pixels",
-           "position_covariance", "block_scores_of"]
+           "position_covariance", "block_scores_of", "albedo_classes", "refine_on_classes"]
 
 # Contrasts tried in the grid search: the ambient at exp(g) x the median unit-light shading.
 AMBIENT_STEPS = (-4.0, -2.0, -1.0, 0.0, 1.0)
@@ -97,6 +97,9 @@ PAIR_PIXELS = 1200  # the pairs are ranked on about this many pixels (a 160x120 
 # ``starts`` of them the rest. Ad hoc, 2026-11-27: 0.05-0.1 s a frame less on 2 cores; on 306
 # capture frames one borderline frame lost (devset gi 031, 0.040 -> 0.053 of the scene), 5 steps the same.
 PRUNE_ITERATIONS = 3
+# LM steps of the chosen model on its albedo classes (refine_on_classes): 8 and 15 placed our
+# 384 capture frames alike (2026-11-27, docs/decisions.md).
+CLASS_ITERATIONS = 8
 
 
 @dataclass
@@ -632,6 +635,91 @@ def mirror_lobes(gbuffer: GBuffer, position: Tensor, max_angle_deg: float) -> Te
     geometry = light_geometry(gbuffer.points[:, None], position[:, :, None, None])
     cosine = blinn_phong_lobe(gbuffer.normals[:, None], geometry.to_light, geometry.to_viewer, 1.0)  # n.h (B, L, H, W)
     return (cosine > math.cos(math.radians(max_angle_deg))).any(1) & gbuffer.mask
+
+
+def albedo_classes(problem: FitProblem, labels: Tensor, fit: AlbedoFreeFit, level_tolerance: float = 0.1,
+                   chroma_tolerance: float = 0.06, geometry: Tensor | None = None) -> Tensor:
+    """The albedo segments ``labels (B, H, W)`` of each smooth surface merged into classes of
+    one albedo ``(B, H, W)`` (-1: none), however far apart their segments lie.
+
+    A segment is a patch of one albedo, but a surface holds many patches of the same one
+    (a checker's cells, a floor cut by a shadow or an object's outline), and each patch's
+    free offset throws away how bright it is beside the others: the falloff across the
+    room, which is what places a light under indirect light (one patch alone sees its
+    shading flattened by the bounce and puts the light too far). Segments of one surface
+    (:func:`selfsup.estimation.normals.surface_segments`) join a class when their colour
+    (the median log R/G and B/G of their pixels: the albedo's hue, which shading by white
+    light does not change) lies within ``chroma_tolerance`` of the class's first (largest)
+    segment and their level under ``fit`` (the median log ratio of the observed shading to
+    the model's: the albedo, up to the model's error) within ``level_tolerance``. Clipped
+    pixels and pixels without light are not read. Segments with fewer than
+    :data:`MIN_SEGMENT_PIXELS` readable pixels stay as they are."""
+    import numpy as np
+
+    from selfsup.estimation.normals import surface_segments
+
+    g = problem.gbuffer
+    B, H, W = g.mask.shape
+    if geometry is None:
+        geometry = surface_segments(g.points, g.normals, g.mask)
+    obs = observe(problem, labels=labels)
+    log_model, _ = _log_model(_transport(obs, fit.position), fit.log_weight)
+    level = (obs.log_shading - log_model).flatten(1).detach().double().cpu().numpy()
+    image = problem.image.detach().double().flatten(2)  # (B, 3, H W)
+    peak = image.amax((1, 2), keepdim=True)
+    readable = obs.pairs & (image > 0).all(1) & (image < 0.98 * peak).all(1)
+    tiny = torch.finfo(image.dtype).tiny
+    chroma = (image[:, [0, 2]].clamp_min(tiny) / image[:, 1:2].clamp_min(tiny)).log().cpu().numpy()  # (B, 2, H W)
+    readable, geometry = readable.cpu().numpy(), geometry.flatten(1).cpu().numpy()
+    cells = labels.flatten(1).cpu().numpy()
+    out = np.full((B, H * W), -1, dtype=np.int64)
+    def medians(values: np.ndarray, cell: np.ndarray, starts: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+        # Each segment's (upper) median of ``values`` (pixels sorted by segment): one sort for all.
+        ordered = values[np.lexsort((values, cell))]
+        return ordered[starts + sizes // 2]
+
+    for b in range(B):
+        cell = cells[b]
+        at = np.flatnonzero(readable[b] & (cell >= 0))
+        at = at[np.argsort(cell[at], kind="stable")]
+        ids, starts, sizes = np.unique(cell[at], return_index=True, return_counts=True)
+        surface = geometry[b, at[starts]]  # a segment lies on one surface (the segmentation cuts at them)
+        stats = [medians(v[at], cell[at], starts, sizes) for v in (level[b], chroma[b, 0], chroma[b, 1])]
+        segments = sorted(((size, i, s, lv, c0, c1) for size, i, s, lv, c0, c1 in zip(sizes, ids, surface, *stats)
+                           if size >= MIN_SEGMENT_PIXELS), key=lambda s: -s[0])  # largest first
+        classes, class_of = [], np.arange(int(cell.max()) + 1 if cell.size else 0) + len(segments)
+        for _, i, surface, lv, c0, c1 in segments:
+            for k, (s2, l2, d0, d1) in enumerate(classes):
+                if (s2 == surface and abs(l2 - lv) < level_tolerance and abs(d0 - c0) < chroma_tolerance
+                        and abs(d1 - c1) < chroma_tolerance):
+                    class_of[i] = k
+                    break
+            else:
+                class_of[i] = len(classes)
+                classes.append((surface, lv, c0, c1))
+        merged = np.where(cell >= 0, class_of[np.clip(cell, 0, None)], -1)
+        _, compact = np.unique(merged, return_inverse=True)
+        out[b] = np.where(merged >= 0, compact.reshape(-1) - int((merged < 0).any()), -1)
+    return torch.from_numpy(out).to(labels.device).view(B, H, W)
+
+
+def refine_on_classes(problem: FitProblem, labels: Tensor, fit: AlbedoFreeFit, robust_scale: float = 0.02,
+                      rounds: int = 1, iterations: int = CLASS_ITERATIONS, level_tolerance: float = 0.1,
+                      chroma_tolerance: float = 0.06, geometry: Tensor | None = None) -> tuple[AlbedoFreeFit, Tensor]:
+    """``fit``'s lights refined (``iterations`` LM steps) on its segments ``labels (B, H, W)``
+    merged into :func:`albedo_classes`, ``rounds`` times (the classes found again under the
+    refined model each time); ``geometry``: the smooth surfaces when found already. Returns
+    the fit and the last classes ``(B, H, W)``."""
+    from selfsup.estimation.normals import surface_segments
+
+    if geometry is None:
+        g = problem.gbuffer
+        geometry = surface_segments(g.points, g.normals, g.mask)
+    classes = labels
+    for _ in range(rounds):
+        classes = albedo_classes(problem, labels, fit, level_tolerance, chroma_tolerance, geometry)
+        fit = refine_positions(observe(problem, robust_scale, labels=classes), fit.position, fit.log_weight, iterations)
+    return fit, classes
 
 
 def highlight_pixels(obs: LogShading, fit: AlbedoFreeFit, max_angle_deg: float) -> Tensor:

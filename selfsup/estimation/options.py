@@ -126,6 +126,11 @@ class Tuning:
             ``unlit_evidence``: one more light is also taken where the capture's black
             pixels need it (:mod:`selfsup.estimation.unlit`: the fewer lights' shadows
             shown lit), judged under the criterion's cast shadows.
+            ``albedo_class_rounds``: the chosen model's lights refined this many times on
+            its segments merged into classes of one albedo (0: off), a segment joining a
+            class of its surface within ``albedo_class_level`` of its level under the model
+            (log) and ``albedo_class_chroma`` of its colour (log R/G, B/G)
+            (:func:`selfsup.estimation.albedo_free.albedo_classes`).
         reflectance_gains: rounds re-estimating with each smooth surface's albedo
             rescaled by the last fit.
     Uncertainty:
@@ -163,6 +168,9 @@ class Tuning:
     albedo_segment_scale: float = 50.0
     albedo_free_lobe_deg: float = 20.0
     unlit_evidence: bool = True
+    albedo_class_rounds: int = 1
+    albedo_class_level: float = 0.1
+    albedo_class_chroma: float = 0.06
     albedo_error: float = 0.0
     indirect_variation: float = 0.7
     indirect_length: float = 0.15
@@ -213,6 +221,9 @@ def _check_tuning(t: Tuning) -> None:
          "a finite length > 0 (of the scene size)")
     need(t.albedo_free_scale > 0, "albedo_free_scale", "> 0")
     need(t.albedo_segment_scale > 0, "albedo_segment_scale", "> 0")
+    need(t.albedo_class_rounds >= 0, "albedo_class_rounds", ">= 0")
+    need(t.albedo_class_level >= 0, "albedo_class_level", ">= 0")
+    need(t.albedo_class_chroma >= 0, "albedo_class_chroma", ">= 0")
     need(0 <= t.albedo_free_lobe_deg < 90, "albedo_free_lobe_deg", "in [0, 90) degrees")
     need(t.normal_noise_threshold >= 0, "normal_noise_threshold", ">= 0 degrees")
     need(0 < t.plane_window < 1, "plane_window", "in (0, 1) (of the focal length)")

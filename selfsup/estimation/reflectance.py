@@ -17,6 +17,7 @@ from torch import Tensor
 
 from selfsup.estimation import albedo_free, unlit
 from selfsup.estimation.criterion import Candidate, bic, block_px, criterion_light, fit_row
+from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import FitProblem
 from selfsup.estimation.solvers import refine
@@ -61,9 +62,11 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
     nothing of the highlights either)."""
     B, device = problem.batch, problem.image.device
     block = block_px(options, problem.image.shape[-1], albedo_free=True)
-    labels = None  # every image's albedo segments, found once
+    labels = geometry = None  # every image's albedo segments (and smooth surfaces), found once
     if options.tuning.albedo_free_residuals == "segments":
-        labels = albedo_free.albedo_segments(problem, options.tuning.albedo_segment_scale)
+        g = problem.gbuffer
+        geometry = surface_segments(g.points, g.normals, g.mask)
+        labels = albedo_free.albedo_segments(problem, options.tuning.albedo_segment_scale, geometry)
     found = albedo_free.search(problem, 1, robust_scale=options.tuning.albedo_free_scale, labels=labels,
                                **_residuals(options))
     pairs = found.pairs.tolist()
@@ -117,9 +120,15 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         chosen = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in group])
         rows = torch.tensor(group, dtype=torch.long, device=device)
         sub = problem.select(rows)
+        segments = None if labels is None else labels[rows]
+        if segments is not None and options.tuning.albedo_class_rounds > 0:
+            # The chosen model's lights placed on its segments merged into classes of one albedo.
+            chosen, segments = albedo_free.refine_on_classes(
+                sub, segments, chosen, options.tuning.albedo_free_scale, options.tuning.albedo_class_rounds,
+                level_tolerance=options.tuning.albedo_class_level, chroma_tolerance=options.tuning.albedo_class_chroma,
+                geometry=geometry[rows])
         fit = refine(sub, chosen.position, solve)
-        observed = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=None if labels is None else
-                                       labels[rows], **_residuals(options))
+        observed = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=segments, **_residuals(options))
         cov = albedo_free_covariance(observed, chosen, sub, options).cpu()
         for j, i in enumerate(group):
             candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free")

@@ -501,3 +501,61 @@ def test_a_highlight_is_not_taken_for_a_second_light():
     record = estimate_scene(scene, EstimateOptions())
     assert len(record["lights"]) == 1
     assert _rel_error(torch.tensor([record["lights"][0]["position"]]), scene) < 0.01  # 0.0021 (2026-11-26)
+
+
+def _checker_scene():
+    # A textured procedural scene whose floor is a checker (two colours), as rendered: the
+    # image holds the albedo, the problem's kd is 0.5 (unknown albedo).
+    from selfsup.scenes.sampler import Texture
+
+    for seed in range(40):
+        spec = sample_scene(seed, MEDIUM)
+        if int(spec.materials.texture[0]) == Texture.CHECKER:
+            return spec, render_spec(spec, samples=1).scene
+    raise AssertionError("no checker floor in 40 seeds")
+
+
+def _fit_at_truth(scene, problem):
+    # The albedo-free fit at the true light: no ambient (weight e^-30), the light the gauge.
+    position = scene.light_pos[None].to(problem.image.dtype)
+    log_weight = torch.tensor([[-30.0, 0.0]], dtype=position.dtype)
+    return albedo_free.AlbedoFreeFit(position, log_weight, torch.zeros(1), torch.zeros(1))
+
+
+def test_albedo_classes_join_a_surfaces_patches_of_one_albedo_and_never_two_albedos():
+    # The checker's cells are separate segments; under the true light each colour's cells of
+    # the floor are one class however far apart, and no class holds both colours.
+    spec, scene = _checker_scene()
+    problem = problem_of(_unknown_albedo(scene), shadows="none", dtype=torch.float64)
+    segments = albedo_free.albedo_segments(problem)
+    classes = albedo_free.albedo_classes(problem, segments, _fit_at_truth(scene, problem))
+    kd = scene.kd.reshape(-1, 3).double()
+    base, alt = spec.materials.kd_base[0].double(), spec.materials.kd_alt[0].double()
+    is_base, is_alt = ((kd - base).abs().amax(-1) < 1e-4), ((kd - alt).abs().amax(-1) < 1e-4)
+    flat_segments, flat_classes = segments[0].flatten(), classes[0].flatten()
+    merged = 0
+    for label in flat_classes.unique():
+        inside = flat_classes == label
+        joined = flat_segments[inside].unique().numel()
+        if label < 0 or joined < 2:
+            continue  # a segment left alone is as the segmentation made it (a weak edge may stay uncut)
+        on_base, on_alt = int(is_base[inside].sum()), int(is_alt[inside].sum())
+        # Both colours only at the cells' edges, where a segment's outline is a pixel off.
+        assert min(on_base, on_alt) <= 0.05 * (on_base + on_alt), (on_base, on_alt)
+        if on_base + on_alt > 0:
+            merged = max(merged, joined)
+    assert merged >= 3, merged  # some class joins three or more of the checker's cells
+    assert bool(((classes >= 0) == (segments >= 0)).all())  # no pixel gained or lost
+
+
+def test_refining_on_albedo_classes_keeps_a_true_light_and_brings_back_a_moved_one():
+    spec, scene = _checker_scene()
+    problem = problem_of(_unknown_albedo(scene), shadows="none")
+    segments = albedo_free.albedo_segments(problem)
+    truth = _fit_at_truth(scene, problem)
+    fit, classes = albedo_free.refine_on_classes(problem, segments, truth)
+    assert _rel_error(fit.position[0], scene) < 0.005
+    assert int(classes.max()) < int(segments.max())  # segments were merged
+    moved = dataclasses.replace(truth, position=truth.position + 0.05 * float(scene.scene_scale) / math.sqrt(3))
+    fit, _ = albedo_free.refine_on_classes(problem, segments, moved)
+    assert _rel_error(fit.position[0], scene) < 0.01
