@@ -32,6 +32,9 @@ takes a second light in a third of the two-light captures of our Mitsuba rooms a
 criterion rarely takes them); with the black pixels of the direct-light and sensor-noisy
 captures (:mod:`selfsup.estimation.unlit`) 46-79% of them are counted right, and every
 two-light devset capture.
+The chosen model's lights are then placed on the segments of each surface merged into
+classes of one albedo (:func:`albedo_classes`, :func:`refine_on_classes`), which gives back
+part of what each segment's free level throws away: how bright it is beside the others.
 It is no substitute where kd is right: the image fit of a file with its albedo uses
 every pixel's brightness, which this fit throws away.
 """
@@ -673,6 +676,7 @@ def albedo_classes(problem: FitProblem, labels: Tensor, fit: AlbedoFreeFit, leve
     readable, geometry = readable.cpu().numpy(), geometry.flatten(1).cpu().numpy()
     cells = labels.flatten(1).cpu().numpy()
     out = np.full((B, H * W), -1, dtype=np.int64)
+
     def medians(values: np.ndarray, cell: np.ndarray, starts: np.ndarray, sizes: np.ndarray) -> np.ndarray:
         # Each segment's (upper) median of ``values`` (pixels sorted by segment): one sort for all.
         ordered = values[np.lexsort((values, cell))]
@@ -688,15 +692,15 @@ def albedo_classes(problem: FitProblem, labels: Tensor, fit: AlbedoFreeFit, leve
         segments = sorted(((size, i, s, lv, c0, c1) for size, i, s, lv, c0, c1 in zip(sizes, ids, surface, *stats)
                            if size >= MIN_SEGMENT_PIXELS), key=lambda s: -s[0])  # largest first
         classes, class_of = [], np.arange(int(cell.max()) + 1 if cell.size else 0) + len(segments)
-        for _, i, surface, lv, c0, c1 in segments:
+        for _, i, on, lv, c0, c1 in segments:
             for k, (s2, l2, d0, d1) in enumerate(classes):
-                if (s2 == surface and abs(l2 - lv) < level_tolerance and abs(d0 - c0) < chroma_tolerance
+                if (s2 == on and abs(l2 - lv) < level_tolerance and abs(d0 - c0) < chroma_tolerance
                         and abs(d1 - c1) < chroma_tolerance):
                     class_of[i] = k
                     break
             else:
                 class_of[i] = len(classes)
-                classes.append((surface, lv, c0, c1))
+                classes.append((on, lv, c0, c1))
         merged = np.where(cell >= 0, class_of[np.clip(cell, 0, None)], -1)
         _, compact = np.unique(merged, return_inverse=True)
         out[b] = np.where(merged >= 0, compact.reshape(-1) - int((merged < 0).any()), -1)

@@ -57,7 +57,9 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
     of the lights before, :func:`_without_highlights`, where :data:`MIN_RESIDUALS` are left) and each light
     carries ``min_light_share`` of the fitted shading, or while the capture's black pixels need
     one light more (``unlit_evidence``, :func:`selfsup.estimation.unlit.needs_another_light`:
-    then the records' criteria may favour the fewer lights); intensities and ambient then
+    then the records' criteria may favour the fewer lights); the chosen model's lights then
+    placed on its segments merged into classes of one albedo (``albedo_class_rounds``,
+    :func:`selfsup.estimation.albedo_free.refine_on_classes`); intensities and ambient then
     solved against the image with the file's kd (diffuse only: a constant ks says
     nothing of the highlights either)."""
     B, device = problem.batch, problem.image.device
