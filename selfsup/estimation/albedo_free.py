@@ -684,6 +684,8 @@ def albedo_classes(problem: FitProblem, labels: Tensor, fit: AlbedoFreeFit, leve
 
     for b in range(B):
         cell = cells[b]
+        if not (cell >= 0).any():
+            continue  # no segment: nothing to merge (-1 everywhere)
         at = np.flatnonzero(readable[b] & (cell >= 0))
         at = at[np.argsort(cell[at], kind="stable")]
         ids, starts, sizes = np.unique(cell[at], return_index=True, return_counts=True)
@@ -691,7 +693,7 @@ def albedo_classes(problem: FitProblem, labels: Tensor, fit: AlbedoFreeFit, leve
         stats = [medians(v[at], cell[at], starts, sizes) for v in (level[b], chroma[b, 0], chroma[b, 1])]
         segments = sorted(((size, i, s, lv, c0, c1) for size, i, s, lv, c0, c1 in zip(sizes, ids, surface, *stats)
                            if size >= MIN_SEGMENT_PIXELS), key=lambda s: -s[0])  # largest first
-        classes, class_of = [], np.arange(int(cell.max()) + 1 if cell.size else 0) + len(segments)
+        classes, class_of = [], np.arange(int(cell.max()) + 1) + len(segments)
         for _, i, on, lv, c0, c1 in segments:
             for k, (s2, l2, d0, d1) in enumerate(classes):
                 if (s2 == on and abs(l2 - lv) < level_tolerance and abs(d0 - c0) < chroma_tolerance

@@ -548,6 +548,24 @@ def test_albedo_classes_join_a_surfaces_patches_of_one_albedo_and_never_two_albe
     assert bool(((classes >= 0) == (segments >= 0)).all())  # no pixel gained or lost
 
 
+def _first_row(fit):
+    return albedo_free.AlbedoFreeFit(*(x[:1] for x in dataclasses.astuple(fit)))
+
+
+def test_albedo_classes_of_an_image_without_segments_are_none():
+    # One image of a batch without any segment: -1 everywhere, the other as if alone.
+    spec, scene = _checker_scene()
+    problem = problem_of(_unknown_albedo(scene), shadows="none", dtype=torch.float64)
+    segments = albedo_free.albedo_segments(problem)
+    both = problem.select(torch.tensor([0, 0]))
+    labels = torch.stack([segments[0], torch.full_like(segments[0], -1)])
+    fit = _fit_at_truth(scene, problem)
+    fit = albedo_free.AlbedoFreeFit(*(x.repeat(2, *[1] * (x.dim() - 1)) for x in dataclasses.astuple(fit)))
+    classes = albedo_free.albedo_classes(both, labels, fit)
+    assert bool((classes[1] == -1).all())
+    torch.testing.assert_close(classes[0], albedo_free.albedo_classes(problem, segments, _first_row(fit))[0])
+
+
 def test_refining_on_albedo_classes_keeps_a_true_light_and_brings_back_a_moved_one():
     spec, scene = _checker_scene()
     problem = problem_of(_unknown_albedo(scene), shadows="none")
