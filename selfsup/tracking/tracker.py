@@ -343,7 +343,15 @@ class Tracker:
         if kept.surfaces is None:
             kept.surfaces = surface_segments(g.points, g.normals, g.mask)
         stride = self.tuning.warm_stride
-        labels = albedo_free.albedo_segments(problem, self.options.tuning.albedo_segment_scale, kept.surfaces)
+        tuning = self.options.tuning
+        labels = albedo_free.albedo_segments(problem, tuning.albedo_segment_scale, kept.surfaces)
+        if tuning.albedo_class_rounds > 0:  # merged into albedo classes under the tracked lights, as a full estimate's
+            dtype, device = problem.image.dtype, problem.image.device
+            log_weight = torch.cat([self._ambient, torch.stack([t.log_weight for t in self._tracks])])
+            zero = torch.zeros(1, dtype=dtype, device=device)
+            fit = albedo_free.AlbedoFreeFit(lights.to(device, dtype)[None], log_weight.to(device, dtype)[None], zero, zero)
+            labels = albedo_free.albedo_classes(problem, labels, fit, tuning.albedo_class_level, tuning.albedo_class_chroma,
+                                                kept.surfaces)
         kept.labels, kept.labels_at = labels[:, ::stride, ::stride], lights
         return kept.labels
 

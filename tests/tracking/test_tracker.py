@@ -63,6 +63,19 @@ def test_frames_without_albedo_are_tracked_albedo_free():
     assert max(_worst_error(r, s) for r, s in zip(records, frames)) < 0.05
 
 
+def test_warm_steps_without_albedo_fit_on_albedo_classes_as_full_estimates_do():
+    # The warm steps' segments are merged into albedo classes under the tracked lights
+    # (estimate.tuning.albedo_class_rounds > 0), as the full estimate's are; not with 0.
+    frames = render_sequence("moving_light", 22, frames=2, config=SMALL, degradations=Degradations(reflectance="half"))
+    counts = {}
+    for rounds in (0, 1):
+        tracker = Tracker(options=EstimateOptions().tuned(albedo_class_rounds=rounds))
+        for scene in frames:
+            tracker.update(scene)
+        counts[rounds] = int(tracker._geometry.labels.max())
+    assert counts[1] < counts[0], counts
+
+
 def test_refresh_estimates_every_nth_frame_in_full(switch_frames):
     tracker = Tracker(refresh=2)
     reasons = [tracker.update(scene)["reason"] for scene in switch_frames[:3]]
