@@ -64,8 +64,10 @@ class TrackTuning:
         while every light stays this close to where it was when they were found.
     warm_residuals: the albedo-free warm step's residuals: ``segments`` (as the full
         estimate: each frame's albedo segments, found at full resolution, the kept
-        geometry's surfaces cut by the frame's image edges) | ``pairs`` (neighbours'
-        differences: no segmentation, faster, biased where the shadows move).
+        geometry's surfaces cut by the frame's image edges, merged into albedo classes
+        under the tracked lights where ``estimate.tuning.albedo_class_rounds`` > 0) |
+        ``pairs`` (neighbours' differences: no segmentation, faster, biased where the
+        shadows move).
     change_cooldown: after a ``change`` whose full estimate found the lights it had
         (the change was light the model cannot explain, not a switch), the change test
         rests for this many frames.
