@@ -101,7 +101,7 @@ PAIR_PIXELS = 1200  # the pairs are ranked on about this many pixels (a 160x120 
 # capture frames one borderline frame lost (devset gi 031, 0.040 -> 0.053 of the scene), 5 steps the same.
 PRUNE_ITERATIONS = 3
 # LM steps of the chosen model on its albedo classes (refine_on_classes): 8 and 15 placed our
-# 384 capture frames alike (2026-11-27, docs/decisions.md).
+# 384 capture frames alike, 245 and 246 successes (ad hoc, 2026-11-27, docs/decisions.md).
 CLASS_ITERATIONS = 8
 
 
@@ -640,8 +640,9 @@ def mirror_lobes(gbuffer: GBuffer, position: Tensor, max_angle_deg: float) -> Te
     return (cosine > math.cos(math.radians(max_angle_deg))).any(1) & gbuffer.mask
 
 
-def albedo_classes(problem: FitProblem, labels: Tensor, fit: AlbedoFreeFit, level_tolerance: float = 0.1,
-                   chroma_tolerance: float = 0.06, geometry: Tensor | None = None) -> Tensor:
+def albedo_classes(problem: FitProblem, labels: Tensor, position: Tensor, log_weight: Tensor,
+                   level_tolerance: float = 0.1, chroma_tolerance: float = 0.06,
+                   geometry: Tensor | None = None) -> Tensor:
     """The albedo segments ``labels (B, H, W)`` of each smooth surface merged into classes of
     one albedo ``(B, H, W)`` (-1: none), however far apart their segments lie.
 
@@ -653,8 +654,9 @@ def albedo_classes(problem: FitProblem, labels: Tensor, fit: AlbedoFreeFit, leve
     (:func:`selfsup.estimation.normals.surface_segments`) join a class when their colour
     (the median log R/G and B/G of their pixels: the albedo's hue, which shading by white
     light does not change) lies within ``chroma_tolerance`` of the class's first (largest)
-    segment and their level under ``fit`` (the median log ratio of the observed shading to
-    the model's: the albedo, up to the model's error) within ``level_tolerance``. Clipped
+    segment and their level under the model of lights ``position (B, L, 3)`` and log weights
+    ``log_weight (B, L + 1)`` (as :class:`AlbedoFreeFit`'s; the median log ratio of the observed
+    shading to the model's: the albedo, up to the model's error) within ``level_tolerance``. Clipped
     pixels and pixels without light are not read. Segments with fewer than
     :data:`MIN_SEGMENT_PIXELS` readable pixels stay as they are."""
     import numpy as np
@@ -666,7 +668,7 @@ def albedo_classes(problem: FitProblem, labels: Tensor, fit: AlbedoFreeFit, leve
     if geometry is None:
         geometry = surface_segments(g.points, g.normals, g.mask)
     obs = observe(problem, labels=labels)
-    log_model, _ = _log_model(_transport(obs, fit.position), fit.log_weight)
+    log_model, _ = _log_model(_transport(obs, position), log_weight)
     level = (obs.log_shading - log_model).flatten(1).detach().double().cpu().numpy()
     image = problem.image.detach().double().flatten(2)  # (B, 3, H W)
     peak = image.amax((1, 2), keepdim=True)
@@ -711,21 +713,25 @@ def albedo_classes(problem: FitProblem, labels: Tensor, fit: AlbedoFreeFit, leve
 
 def refine_on_classes(problem: FitProblem, labels: Tensor, fit: AlbedoFreeFit, robust_scale: float = 0.02,
                       rounds: int = 1, iterations: int = CLASS_ITERATIONS, level_tolerance: float = 0.1,
-                      chroma_tolerance: float = 0.06, geometry: Tensor | None = None) -> tuple[AlbedoFreeFit, Tensor]:
+                      chroma_tolerance: float = 0.06, geometry: Tensor | None = None
+                      ) -> tuple[AlbedoFreeFit, LogShading]:
     """``fit``'s lights refined (``iterations`` LM steps) on its segments ``labels (B, H, W)``
-    merged into :func:`albedo_classes`, ``rounds`` times (the classes found again under the
-    refined model each time); ``geometry``: the smooth surfaces when found already. Returns
-    the fit and the last classes ``(B, H, W)``."""
+    merged into :func:`albedo_classes`, ``rounds`` (>= 1) times (the classes found again
+    under the refined model each time); ``geometry``: the smooth surfaces when found
+    already. Returns the fit and the observation on the last classes."""
     from selfsup.estimation.normals import surface_segments
 
+    if rounds < 1:
+        raise ValueError(f"rounds must be >= 1, got {rounds}")
     if geometry is None:
         g = problem.gbuffer
         geometry = surface_segments(g.points, g.normals, g.mask)
-    classes = labels
     for _ in range(rounds):
-        classes = albedo_classes(problem, labels, fit, level_tolerance, chroma_tolerance, geometry)
-        fit = refine_positions(observe(problem, robust_scale, labels=classes), fit.position, fit.log_weight, iterations)
-    return fit, classes
+        classes = albedo_classes(problem, labels, fit.position, fit.log_weight, level_tolerance, chroma_tolerance,
+                                 geometry)
+        observed = observe(problem, robust_scale, labels=classes)
+        fit = refine_positions(observed, fit.position, fit.log_weight, iterations)
+    return fit, observed
 
 
 def highlight_pixels(obs: LogShading, fit: AlbedoFreeFit, max_angle_deg: float) -> Tensor:

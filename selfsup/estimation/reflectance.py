@@ -125,12 +125,13 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         segments = None if labels is None else labels[rows]
         if segments is not None and options.tuning.albedo_class_rounds > 0:
             # The chosen model's lights placed on its segments merged into classes of one albedo.
-            chosen, segments = albedo_free.refine_on_classes(
+            chosen, observed = albedo_free.refine_on_classes(
                 sub, segments, chosen, options.tuning.albedo_free_scale, options.tuning.albedo_class_rounds,
                 level_tolerance=options.tuning.albedo_class_level, chroma_tolerance=options.tuning.albedo_class_chroma,
                 geometry=geometry[rows])
+        else:
+            observed = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=segments, **_residuals(options))
         fit = refine(sub, chosen.position, solve)
-        observed = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=segments, **_residuals(options))
         cov = albedo_free_covariance(observed, chosen, sub, options).cpu()
         for j, i in enumerate(group):
             candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free")

@@ -348,12 +348,9 @@ class Tracker:
         tuning = self.options.tuning
         labels = albedo_free.albedo_segments(problem, tuning.albedo_segment_scale, kept.surfaces)
         if tuning.albedo_class_rounds > 0:  # merged into albedo classes under the tracked lights, as a full estimate's
-            dtype, device = problem.image.dtype, problem.image.device
-            log_weight = torch.cat([self._ambient, torch.stack([t.log_weight for t in self._tracks])])
-            zero = torch.zeros(1, dtype=dtype, device=device)
-            fit = albedo_free.AlbedoFreeFit(lights.to(device, dtype)[None], log_weight.to(device, dtype)[None], zero, zero)
-            labels = albedo_free.albedo_classes(problem, labels, fit, tuning.albedo_class_level, tuning.albedo_class_chroma,
-                                                kept.surfaces)
+            like = problem.image
+            labels = albedo_free.albedo_classes(problem, labels, lights.to(like)[None], self._log_weights().to(like)[None],
+                                                tuning.albedo_class_level, tuning.albedo_class_chroma, kept.surfaces)
         kept.labels, kept.labels_at = labels[:, ::stride, ::stride], lights
         return kept.labels
 
@@ -414,12 +411,15 @@ class Tracker:
             return self._warm_albedo_free(problem, start, labels)
         return self._warm_given(problem, start)
 
+    def _log_weights(self) -> Tensor:
+        # The albedo-free model's log weights (L + 1,): the ambient's, then each tracked light's.
+        return torch.cat([self._ambient, torch.stack([t.log_weight for t in self._tracks])])
+
     def _warm_albedo_free(self, problem: FitProblem, start: Tensor, labels: Tensor | None) -> _Measured:
         tuning = self.options.tuning
         obs = albedo_free.observe(problem, tuning.albedo_free_scale, residuals=self.tuning.warm_residuals,
                                   labels=labels)
-        log_weight = torch.cat([self._ambient, torch.stack([t.log_weight for t in self._tracks])])
-        log_weight = log_weight.to(start.device, start.dtype)[None]
+        log_weight = self._log_weights().to(start)[None]
         fit = albedo_free.refine_positions(obs, start, log_weight, self.tuning.warm_iterations)
         cov = albedo_free_covariance(obs, fit, problem, self.options)
         solve = replace(tuning.refine, specular=False, max_iters=(0,), strides=(1,))

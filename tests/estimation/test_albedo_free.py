@@ -515,11 +515,10 @@ def _checker_scene():
     raise AssertionError("no checker floor in 40 seeds")
 
 
-def _fit_at_truth(scene, problem):
-    # The albedo-free fit at the true light: no ambient (weight e^-30), the light the gauge.
+def _at_truth(scene, problem):
+    # The true light and the albedo-free log weights there: no ambient (e^-30), the light the gauge.
     position = scene.light_pos[None].to(problem.image.dtype)
-    log_weight = torch.tensor([[-30.0, 0.0]], dtype=position.dtype)
-    return albedo_free.AlbedoFreeFit(position, log_weight, torch.zeros(1), torch.zeros(1))
+    return position, torch.tensor([[-30.0, 0.0]], dtype=position.dtype)
 
 
 def test_albedo_classes_join_a_surfaces_patches_of_one_albedo_and_never_two_albedos():
@@ -528,7 +527,7 @@ def test_albedo_classes_join_a_surfaces_patches_of_one_albedo_and_never_two_albe
     spec, scene = _checker_scene()
     problem = problem_of(_unknown_albedo(scene), shadows="none", dtype=torch.float64)
     segments = albedo_free.albedo_segments(problem)
-    classes = albedo_free.albedo_classes(problem, segments, _fit_at_truth(scene, problem))
+    classes = albedo_free.albedo_classes(problem, segments, *_at_truth(scene, problem))
     kd = scene.kd.reshape(-1, 3).double()
     base, alt = spec.materials.kd_base[0].double(), spec.materials.kd_alt[0].double()
     is_base, is_alt = ((kd - base).abs().amax(-1) < 1e-4), ((kd - alt).abs().amax(-1) < 1e-4)
@@ -548,10 +547,6 @@ def test_albedo_classes_join_a_surfaces_patches_of_one_albedo_and_never_two_albe
     assert bool(((classes >= 0) == (segments >= 0)).all())  # no pixel gained or lost
 
 
-def _first_row(fit):
-    return albedo_free.AlbedoFreeFit(*(x[:1] for x in dataclasses.astuple(fit)))
-
-
 def test_albedo_classes_of_an_image_without_segments_are_none():
     # One image of a batch without any segment: -1 everywhere, the other as if alone.
     spec, scene = _checker_scene()
@@ -559,21 +554,21 @@ def test_albedo_classes_of_an_image_without_segments_are_none():
     segments = albedo_free.albedo_segments(problem)
     both = problem.select(torch.tensor([0, 0]))
     labels = torch.stack([segments[0], torch.full_like(segments[0], -1)])
-    fit = _fit_at_truth(scene, problem)
-    fit = albedo_free.AlbedoFreeFit(*(x.repeat(2, *[1] * (x.dim() - 1)) for x in dataclasses.astuple(fit)))
-    classes = albedo_free.albedo_classes(both, labels, fit)
+    position, log_weight = _at_truth(scene, problem)
+    classes = albedo_free.albedo_classes(both, labels, position.repeat(2, 1, 1), log_weight.repeat(2, 1))
     assert bool((classes[1] == -1).all())
-    torch.testing.assert_close(classes[0], albedo_free.albedo_classes(problem, segments, _first_row(fit))[0])
+    torch.testing.assert_close(classes[0], albedo_free.albedo_classes(problem, segments, position, log_weight)[0])
 
 
 def test_refining_on_albedo_classes_keeps_a_true_light_and_brings_back_a_moved_one():
     spec, scene = _checker_scene()
     problem = problem_of(_unknown_albedo(scene), shadows="none")
     segments = albedo_free.albedo_segments(problem)
-    truth = _fit_at_truth(scene, problem)
-    fit, classes = albedo_free.refine_on_classes(problem, segments, truth)
+    position, log_weight = _at_truth(scene, problem)
+    truth = albedo_free.AlbedoFreeFit(position, log_weight, torch.zeros(1), torch.zeros(1))
+    fit, observed = albedo_free.refine_on_classes(problem, segments, truth)
     assert _rel_error(fit.position[0], scene) < 0.005
-    assert int(classes.max()) < int(segments.max())  # segments were merged
+    assert observed.segment_count <= int(segments.max())  # segments were merged (fewer ids than segments)
     moved = dataclasses.replace(truth, position=truth.position + 0.05 * float(scene.scene_scale) / math.sqrt(3))
     fit, _ = albedo_free.refine_on_classes(problem, segments, moved)
     assert _rel_error(fit.position[0], scene) < 0.01
