@@ -51,6 +51,7 @@ from torch import Tensor
 from render import GBuffer, Material
 from render.functional import light_transport, light_transport_jacobian
 from render.shading import blinn_phong_lobe, light_geometry
+from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.options import ALBEDO_FREE_RESIDUALS
 from selfsup.estimation.problem import FitProblem, centre_and_size, gbuffer_centre_and_size, subsample
 from selfsup.estimation.solvers import RUNAWAY_SIZES, grid_candidates, spread_best
@@ -58,7 +59,7 @@ from selfsup.estimation.uncertainty import block_sums, field_covariance, positio
 
 __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "shading_loss", "search", "search_each",
            "split_starts", "refine_positions", "light_shares", "mirror_lobes", "highlight_pixels",
-           "position_covariance", "block_scores_of", "albedo_classes", "refine_on_classes"]
+           "position_covariance", "block_scores_of", "group_medians", "albedo_classes", "refine_on_classes"]
 
 # Contrasts tried in the grid search: the ambient at exp(g) x the median unit-light shading.
 AMBIENT_STEPS = (-4.0, -2.0, -1.0, 0.0, 1.0)
@@ -233,7 +234,6 @@ def albedo_segments(problem: FitProblem, scale: float = 50.0, geometry: Tensor |
     import numpy as np
     from skimage.segmentation import felzenszwalb
 
-    from selfsup.estimation.normals import surface_segments
     from selfsup.scenes.capture import linear_to_srgb
 
     g = problem.gbuffer
@@ -640,6 +640,19 @@ def mirror_lobes(gbuffer: GBuffer, position: Tensor, max_angle_deg: float) -> Te
     return (cosine > math.cos(math.radians(max_angle_deg))).any(1) & gbuffer.mask
 
 
+def group_medians(values: Tensor, group: Tensor, groups: int, upper: bool = False) -> tuple[Tensor, Tensor]:
+    """Each group's median of ``values (N,)`` by ``group (N,)`` (ids in ``[0, groups)``):
+    ``(groups,)`` medians (of an even count the lower middle value, with ``upper`` the upper;
+    an empty group's value means nothing: mask it by the count) and ``(groups,)`` counts.
+    One sort by value, then a stable one by group: each group's values in order, in a row."""
+    by_value = values.argsort()
+    ordered = values[by_value][group[by_value].argsort(stable=True)]
+    counts = torch.bincount(group, minlength=groups)
+    middle = counts // 2 if upper else (counts - 1).clamp_min(0) // 2
+    index = (counts.cumsum(0) - counts + middle).clamp(0, max(values.numel() - 1, 0))
+    return (ordered[index] if values.numel() else values.new_zeros(groups)), counts
+
+
 def albedo_classes(problem: FitProblem, labels: Tensor, position: Tensor, log_weight: Tensor,
                    level_tolerance: float = 0.1, chroma_tolerance: float = 0.06,
                    geometry: Tensor | None = None) -> Tensor:
@@ -659,43 +672,34 @@ def albedo_classes(problem: FitProblem, labels: Tensor, position: Tensor, log_we
     shading to the model's: the albedo, up to the model's error) within ``level_tolerance``. Clipped
     pixels and pixels without light are not read. Segments with fewer than
     :data:`MIN_SEGMENT_PIXELS` readable pixels stay as they are."""
-    import numpy as np
-
-    from selfsup.estimation.normals import surface_segments
-
     g = problem.gbuffer
     B, H, W = g.mask.shape
     if geometry is None:
         geometry = surface_segments(g.points, g.normals, g.mask)
     obs = observe(problem, labels=labels)
     log_model, _ = _log_model(_transport(obs, position), log_weight)
-    level = (obs.log_shading - log_model).flatten(1).detach().double().cpu().numpy()
     image = problem.image.detach().double().flatten(2)  # (B, 3, H W)
     peak = image.amax((1, 2), keepdim=True)
-    readable = obs.pairs & (image > 0).all(1) & (image < 0.98 * peak).all(1)
+    readable = (obs.pairs & (image > 0).all(1) & (image < 0.98 * peak).all(1)).cpu()
     tiny = torch.finfo(image.dtype).tiny
-    chroma = (image[:, [0, 2]].clamp_min(tiny) / image[:, 1:2].clamp_min(tiny)).log().cpu().numpy()  # (B, 2, H W)
-    readable, geometry = readable.cpu().numpy(), geometry.flatten(1).cpu().numpy()
-    cells = labels.flatten(1).cpu().numpy()
-    out = np.full((B, H * W), -1, dtype=np.int64)
-
-    def medians(values: np.ndarray, cell: np.ndarray, starts: np.ndarray, sizes: np.ndarray) -> np.ndarray:
-        # Each segment's (upper) median of ``values`` (pixels sorted by segment): one sort for all.
-        ordered = values[np.lexsort((values, cell))]
-        return ordered[starts + sizes // 2]
-
+    # Per pixel (B, 3, H W): the level under the model, then the hue (log R/G, log B/G).
+    values = torch.cat([(obs.log_shading - log_model).flatten(1).detach().double()[:, None],
+                        (image[:, [0, 2]].clamp_min(tiny) / image[:, 1:2].clamp_min(tiny)).log()], 1).cpu()
+    geometry, cells = geometry.flatten(1).cpu(), labels.flatten(1).cpu()
+    out = torch.full((B, H * W), -1, dtype=torch.long)
     for b in range(B):
         cell = cells[b]
-        if not (cell >= 0).any():
+        if not bool((cell >= 0).any()):
             continue  # no segment: nothing to merge (-1 everywhere)
-        at = np.flatnonzero(readable[b] & (cell >= 0))
-        at = at[np.argsort(cell[at], kind="stable")]
-        ids, starts, sizes = np.unique(cell[at], return_index=True, return_counts=True)
-        surface = geometry[b, at[starts]]  # a segment lies on one surface (the segmentation cuts at them)
-        stats = [medians(v[at], cell[at], starts, sizes) for v in (level[b], chroma[b, 0], chroma[b, 1])]
-        segments = sorted(((size, i, s, lv, c0, c1) for size, i, s, lv, c0, c1 in zip(sizes, ids, surface, *stats)
-                           if size >= MIN_SEGMENT_PIXELS), key=lambda s: -s[0])  # largest first
-        classes, class_of = [], np.arange(int(cell.max()) + 1) + len(segments)
+        at = (readable[b] & (cell >= 0)).nonzero()[:, 0]
+        count = int(cell.max()) + 1
+        stats, sizes = zip(*(group_medians(v[at], cell[at], count, upper=True) for v in values[b]))
+        first = torch.full((count,), H * W, dtype=torch.long).scatter_reduce_(0, cell[at], at, "amin")
+        ids = (sizes[0] > 0).nonzero()[:, 0]  # the segments with readable pixels, in id order
+        surface = geometry[b, first[ids]]  # a segment lies on one surface (the segmentation cuts at them)
+        rows = zip(sizes[0][ids].tolist(), ids.tolist(), surface.tolist(), *(x[ids].tolist() for x in stats))
+        segments = sorted((r for r in rows if r[0] >= MIN_SEGMENT_PIXELS), key=lambda r: -r[0])  # largest first
+        classes, class_of = [], torch.arange(count) + len(segments)
         for _, i, on, lv, c0, c1 in segments:
             for k, (s2, l2, d0, d1) in enumerate(classes):
                 if (s2 == on and abs(l2 - lv) < level_tolerance and abs(d0 - c0) < chroma_tolerance
@@ -705,10 +709,10 @@ def albedo_classes(problem: FitProblem, labels: Tensor, position: Tensor, log_we
             else:
                 class_of[i] = len(classes)
                 classes.append((on, lv, c0, c1))
-        merged = np.where(cell >= 0, class_of[np.clip(cell, 0, None)], -1)
-        _, compact = np.unique(merged, return_inverse=True)
-        out[b] = np.where(merged >= 0, compact.reshape(-1) - int((merged < 0).any()), -1)
-    return torch.from_numpy(out).to(labels.device).view(B, H, W)
+        merged = torch.where(cell >= 0, class_of[cell.clamp_min(0)], -1)
+        _, compact = torch.unique(merged, return_inverse=True)
+        out[b] = torch.where(merged >= 0, compact - int(bool((merged < 0).any())), -1)
+    return out.to(labels.device).view(B, H, W)
 
 
 def refine_on_classes(problem: FitProblem, labels: Tensor, fit: AlbedoFreeFit, robust_scale: float = 0.02,
@@ -719,8 +723,6 @@ def refine_on_classes(problem: FitProblem, labels: Tensor, fit: AlbedoFreeFit, r
     merged into :func:`albedo_classes`, ``rounds`` (>= 1) times (the classes found again
     under the refined model each time); ``geometry``: the smooth surfaces when found
     already. Returns the fit and the observation on the last classes."""
-    from selfsup.estimation.normals import surface_segments
-
     if rounds < 1:
         raise ValueError(f"rounds must be >= 1, got {rounds}")
     if geometry is None:

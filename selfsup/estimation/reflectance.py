@@ -216,11 +216,7 @@ def segment_gains(image: Tensor, model: Tensor, segments: Tensor, min_pixels: in
     values, owner = ratio[use], group[use]
     if not values.numel():
         return torch.ones_like(image).permute(0, 2, 3, 1)
-    # Each group's median: sort by value, then stably by group, and take each run's middle.
-    by_value = values.argsort()
-    ordered = values[by_value][owner[by_value].argsort(stable=True)]
-    counts = torch.bincount(owner, minlength=groups)
-    middle = (counts.cumsum(0) - counts + (counts - 1).clamp_min(0) // 2).clamp_max(values.numel() - 1)
-    factor = torch.where(counts >= min_pixels, ordered[middle].clamp(*limits), torch.ones_like(ordered[middle]))
+    median, counts = albedo_free.group_medians(values, owner, groups)
+    factor = torch.where(counts >= min_pixels, median.clamp(*limits), torch.ones_like(median))
     factor = torch.where(inside.reshape(-1), factor[group], torch.ones_like(ratio))
     return factor.view(B, C, H, W).permute(0, 2, 3, 1)

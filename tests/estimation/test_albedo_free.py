@@ -572,3 +572,13 @@ def test_refining_on_albedo_classes_keeps_a_true_light_and_brings_back_a_moved_o
     moved = dataclasses.replace(truth, position=truth.position + 0.05 * float(scene.scene_scale) / math.sqrt(3))
     fit, _ = albedo_free.refine_on_classes(problem, segments, moved)
     assert _rel_error(fit.position[0], scene) < 0.01
+
+
+def test_group_medians_take_each_groups_middle_value():
+    values = torch.tensor([5.0, 1.0, 4.0, 9.0, 2.0, 3.0, 7.0])
+    group = torch.tensor([0, 0, 0, 2, 2, 2, 2])  # group 1 empty
+    lower, counts = albedo_free.group_medians(values, group, 3)
+    upper, _ = albedo_free.group_medians(values, group, 3, upper=True)
+    assert counts.tolist() == [3, 0, 4]
+    assert (lower[0], upper[0]) == (4.0, 4.0)  # odd count: the middle, either way
+    assert (lower[2], upper[2]) == (3.0, 7.0)  # 2, 3, 7, 9: the two middles
