@@ -23,6 +23,7 @@ REFLECTANCE = ("auto", "given", "albedo_free")
 INDIRECT = ("auto", "never")
 COAT = ("auto", "never", "always")
 ALBEDO_FREE_RESIDUALS = ("segments", "pairs")
+LIGHT_COLOUR = ("neutral", "shared", "free")
 REFINE_METHODS = ("lm", "adam", "gd")
 
 
@@ -110,7 +111,8 @@ class Tuning:
             window of ``plane_window`` x the focal length, each pixel free to take a
             window ``plane_shifts`` of the half-size beside its own.
         mask_saturated: leave out clipped pixels.
-        max_pixels: a larger image is estimated on every k-th pixel (None: all).
+        max_pixels: a larger image is estimated on k x k blocks (the least k leaving at
+            most this many; None: every pixel).
     Reflectance:
         reflectance: ``auto`` fits a file whose kd is one constant albedo-free
             (:mod:`selfsup.estimation.albedo_free`) | ``given`` | ``albedo_free``;
@@ -133,6 +135,15 @@ class Tuning:
             (:func:`selfsup.estimation.albedo_free.albedo_classes`).
         reflectance_gains: rounds re-estimating with each smooth surface's albedo
             rescaled by the last fit.
+        light_colour: the albedo-free fit's intensities, their ratios the fit's:
+            ``neutral`` (the lights and the ambient the image's white) | ``shared`` (one
+            colour for all, the image's mean) | ``free`` (each channel of each light and
+            of the ambient solved on its own) (:func:`selfsup.estimation.reflectance.intensities_of`).
+    Reporting:
+        min_found_share: lights are reported only where the brightest gives at least this
+            share of the light on the visible surfaces (with cast shadows) and, albedo-free,
+            the lights beat the ambient alone by the criterion; else the record says
+            ``light_found: false`` (0: always report).
     Uncertainty:
         albedo_error: std of the file's kd error (0: exact).
         indirect_variation, indirect_length: files without ambient (every capture, the
@@ -176,7 +187,9 @@ class Tuning:
     indirect_length: float = 0.15
     normal_error: bool = True
     coat: str = "auto"
-    max_pixels: int | None = 76800
+    light_colour: str = "neutral"
+    min_found_share: float = 0.1
+    max_pixels: int | None = 19200
     refine: RefineOptions = field(default_factory=RefineOptions)
 
     def __post_init__(self):
@@ -209,6 +222,7 @@ def _check_tuning(t: Tuning) -> None:
     need(t.weak_light_penalty == 0 or t.weak_light_penalty >= 1, "weak_light_penalty", "0 (off) or >= 1")
     need(t.weak_light_min_share >= 0, "weak_light_min_share", ">= 0")
     need(0 <= t.min_light_share <= 1, "min_light_share", "a share in [0, 1]")
+    need(0 <= t.min_found_share <= 1, "min_found_share", "a share in [0, 1]")
     for name in ("block_width", "albedo_free_block_width"):
         need(0 < getattr(t, name) <= 1, name, "in (0, 1] (of the image width)")
     need(t.final_robust_scale > 0, "final_robust_scale", "> 0")
@@ -234,7 +248,7 @@ def _check_tuning(t: Tuning) -> None:
          "null or an integer >= 1")
     need(t.criterion_stride >= 1, "criterion_stride", ">= 1 pixel")
     for name, choices in (("reflectance", REFLECTANCE), ("albedo_free_residuals", ALBEDO_FREE_RESIDUALS),
-                          ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT),
+                          ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT), ("light_colour", LIGHT_COLOUR),
                           ("indirect", INDIRECT), ("search_shadows", SHADOW_METHODS),
                           ("criterion_shadows", SHADOW_METHODS)):
         _check_choice(f"tuning.{name}", getattr(t, name), choices)

@@ -175,13 +175,15 @@ def pixel_stride(height: int, width: int, max_pixels: int | None) -> int:
 
 
 def within_pixels(scene: Scene, options: EstimateOptions) -> Scene:
-    """``scene``, subsampled to ``options.tuning.max_pixels`` (:func:`pixel_stride`) if it is larger."""
+    """``scene`` binned (:meth:`Scene.binned`, blocks of :func:`pixel_stride` pixels a side)
+    to at most ``options.tuning.max_pixels`` if it is larger: the estimator chooses its
+    working resolution, so a 640x480 frame costs what a 160x120 one does."""
     H, W = scene.image.shape[:2]
     stride = pixel_stride(H, W, options.tuning.max_pixels)
     if stride > 1:
-        log.info("%s: %dx%d estimated on every %d%s pixel (estimate.max_pixels=%d)", scene.id, W, H, stride,
-                 {2: "nd", 3: "rd"}.get(stride, "th"), options.tuning.max_pixels)
-    return scene.subsampled(stride)
+        log.info("%s: %dx%d estimated on %dx%d blocks (estimate.tuning.max_pixels=%d)", scene.id, W, H, stride, stride,
+                 options.tuning.max_pixels)
+    return scene.binned(stride)
 
 
 # The image values the estimator works at. It fits in float32, where squares and its few

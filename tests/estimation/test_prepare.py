@@ -101,7 +101,7 @@ def test_noisy_normals_of_a_batch_are_each_scenes_own():
         assert torch.equal(together.normals[i], alone.normals[0]) and torch.equal(together.mask[i], alone.mask[0])
 
 
-def test_a_file_over_max_pixels_is_estimated_on_a_subsample(tmp_path, caplog):
+def test_a_file_over_max_pixels_is_estimated_on_blocks(tmp_path, caplog):
     assert [pixel_stride(*size) for size in ((480, 640, 76800), (120, 160, 76800), (481, 641, 76800),
                                             (480, 640, None))] == [2, 1, 3, 1]
     config = dataclasses.replace(SMALL, height=48, width=64)
@@ -113,9 +113,12 @@ def test_a_file_over_max_pixels_is_estimated_on_a_subsample(tmp_path, caplog):
         sub = estimate_files(tmp_path / "written", tmp_path / "sub.jsonl", options.tuned(max_pixels=800),
                              progress=False, workers=1)
     assert every["done"] == sub["done"] == 1
-    assert "estimated on every 2nd pixel" in caplog.text
+    assert "estimated on 2x2 blocks" in caplog.text
     a, b = (json.loads((tmp_path / name).read_text()) for name in ("all.jsonl", "sub.jsonl"))
-    assert np.linalg.norm(np.subtract(a["lights"][0]["position"], b["lights"][0]["position"])) < 0.02
+    truth = _scene(6, config=config)
+    # 32x24 blocks of a 64x48 file: edges mix two surfaces' light in a block, one surface's depth.
+    assert _rel_error(torch.tensor(a["lights"][0]["position"]), truth) < 0.005
+    assert _rel_error(torch.tensor(b["lights"][0]["position"]), truth) < 0.03
     with pytest.raises(ValueError, match="max_pixels must be null or an integer >= 1"):
         EstimateOptions(tuning=Tuning(max_pixels=0))
 
@@ -135,3 +138,27 @@ def test_normals_of_the_other_sign_convention_are_turned_round(tmp_path, caplog)
     assert "normals face away from the camera" in caplog.text
     given, away = (json.loads(line) for line in (tmp_path / "out.jsonl").read_text().splitlines())
     assert np.linalg.norm(np.subtract(given["lights"][0]["position"], away["lights"][0]["position"])) < 0.02
+
+
+def test_binning_averages_light_takes_the_median_depth_and_keeps_every_point_on_its_ray():
+    # A 640x480 frame is estimated on 4x4 blocks: the cost of a 160x120 one (tuning.max_pixels).
+    assert pixel_stride(480, 640, Tuning().max_pixels) == 4
+    scene = _scene(3, config=dataclasses.replace(SMALL, height=48, width=64))
+    depth = scene.depth.clone()
+    depth[:4, :4] = 0  # a block without depth
+    depth[4, :4] = 0  # a block with 12 of 16: kept
+    depth[8:11, :3] = 0  # 7 of 16: dropped
+    scene = dataclasses.replace(scene, depth=depth)
+    binned = scene.binned(4)
+    assert binned.image.shape == (12, 16, 3) and binned.depth.shape == (12, 16)
+    assert binned.depth[0, 0] == 0 and binned.depth[1, 0] == depth[5:8, :4].flatten().sort().values[5]
+    assert binned.depth[2, 0] == 0
+    block = scene.depth[4:8, 4:8].flatten()
+    assert binned.depth[1, 1] == block.sort().values[7]  # the lower middle of 16 valid depths
+    assert torch.allclose(binned.image[1, 1], scene.image[4:8, 4:8].reshape(-1, 3).mean(0), atol=1e-6)
+    # The block's centre (pixel 5.5, 5.5 of the full image) projects where its binned pixel lies.
+    K, k = scene.K, binned.K
+    ray = torch.linalg.solve(K, torch.tensor([5.5, 5.5, 1.0]))
+    assert torch.allclose(k @ ray / (k @ ray)[2], torch.tensor([1.0, 1.0, 1.0]), atol=1e-5)
+    with pytest.raises(ValueError, match="no whole 64x64 block"):
+        scene.binned(64)
