@@ -96,11 +96,13 @@ def _signature(scene: Scene) -> tuple:
             tuple(scene.shininess.shape), scene.falloff)
 
 
-def _estimate_group(group: list[tuple[Path, Scene]], options: EstimateOptions, device: torch.device
-                    ) -> tuple[dict[Path, dict], dict[Path, str]]:
-    # Records (with ``seconds``: the scene's share of the batch's time) and failure reasons
-    # of scenes that can share a batch. A batch that fails is retried scene by scene, so
+def _estimate_group(group: list[tuple[Path, Scene]], options: EstimateOptions, device: torch.device,
+                    read_seconds: dict[Path, float] | None = None) -> tuple[dict[Path, dict], dict[Path, str]]:
+    # Records and failure reasons of scenes that can share a batch. ``seconds``: the scene's
+    # reading (read_seconds) and its estimate, its own where it was alone (batch_size 1),
+    # else its share of the batch's time. A batch that fails is retried scene by scene, so
     # one bad scene never costs the others.
+    read_seconds = read_seconds or {}
     started = time.perf_counter()
     try:
         with torch.no_grad():
@@ -114,13 +116,30 @@ def _estimate_group(group: list[tuple[Path, Scene]], options: EstimateOptions, d
             done: dict[Path, dict] = {}
             failed: dict[Path, str] = {}
             for item in group:
-                one_done, one_failed = _estimate_group([item], options, device)
+                one_done, one_failed = _estimate_group([item], options, device, read_seconds)
                 done.update(one_done)
                 failed.update(one_failed)
             return done, failed
         return {}, {group[0][0]: failure_reason(error)}
-    seconds = round((time.perf_counter() - started) / len(group), 4)
-    return {path: {**record, "seconds": seconds} for (path, _), record in zip(group, out)}, {}
+    share = (time.perf_counter() - started) / len(group)
+    return {path: {**record, "seconds": round(share + read_seconds.get(path, 0.0), 4), "batch_size": len(group)}
+            for (path, _), record in zip(group, out)}, {}
+
+
+# Frames a batch holds on an accelerator with ``estimate.batch=auto`` (on the CPU: 1, each
+# frame its own time; two forked workers of one frame each were within 5% of batches of 4,
+# docs/estimation.md, "Many files").
+ACCELERATOR_BATCH = 256
+
+
+def batch_size(batch: int | str, device: torch.device) -> int:
+    """Frames estimated together: ``batch`` as given (>= 1), or for ``auto`` 1 on the CPU
+    and :data:`ACCELERATOR_BATCH` on an accelerator."""
+    if batch == "auto":
+        return 1 if device.type == "cpu" else ACCELERATOR_BATCH
+    if isinstance(batch, bool) or not isinstance(batch, int) or batch < 1:
+        raise ValueError(f"estimate.batch must be 'auto' or an integer >= 1, got {batch!r}")
+    return batch
 
 
 def failure_reason(error: Exception) -> str:
@@ -197,15 +216,18 @@ def _estimate_chunk(chunk: list[Path], options: EstimateOptions, device: torch.d
     groups: dict[tuple, list[tuple[Path, Scene]]] = {}
     done: dict[Path, dict] = {}
     reasons: dict[Path, str] = {}
+    read_seconds: dict[Path, float] = {}
     for path in chunk:
+        started = time.perf_counter()
         try:
             scene = within_pixels(read_input(path), options)
         except (SceneFileError, ValueError, RuntimeError) as error:
             reasons[path] = failure_reason(error)
             continue
+        read_seconds[path] = time.perf_counter() - started
         groups.setdefault(_signature(scene), []).append((path, scene))
     for group in groups.values():
-        group_done, group_failed = _estimate_group(group, options, device)
+        group_done, group_failed = _estimate_group(group, options, device, read_seconds)
         done.update(group_done)
         reasons.update(group_failed)
     return done, reasons
@@ -265,7 +287,7 @@ def _chunk_results(chunks: list[list[Path]], options: EstimateOptions, device: t
 
 
 def estimate_files(input: str | Path, output: str | Path, options: EstimateOptions, progress: bool = True,
-                   batch: int = 1, device: str = "cpu", workers: int | str = 1, depth: str | Path | None = None,
+                   batch: int | str = 1, device: str = "cpu", workers: int | str = 1, depth: str | Path | None = None,
                    depth_scale: float = 1000.0, intrinsics: tuple[float, float, float, float] | None = None) -> dict:
     """Estimate every scene under ``input``; one JSON line per good one in ``output``.
 
@@ -277,18 +299,18 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
     time of the whole run, the workers used and how they started (``start``:
     :func:`start_method`, None for this process alone). ``batch`` > 1 estimates up to that
     many consecutive files together (:func:`estimate_batch`; files of one size and
-    the same fields share a batch), each record's ``seconds`` being its share of the
-    batch's time; a failing batch is retried file by file. ``device``: ``cpu``,
+    the same fields share a batch; ``auto``: :func:`batch_size`), each record's ``seconds``
+    being its reading and its share of the batch's time (its own time where
+    ``batch_size`` is 1); a failing batch is retried file by file. ``device``: ``cpu``,
     ``cuda`` or ``auto``. ``workers``: processes the batches are spread over
     (:func:`worker_count`; ``auto``: one per core on the CPU, started as
     :func:`start_method` says); a record's ``seconds`` is then the time in its
     worker, and the run's time per scene is ``wall_seconds / done``. Records are
     written in the files' order whatever the workers.
     """
-    if batch < 1:
-        raise ValueError(f"estimate.batch must be >= 1, got {batch}")
     started = time.perf_counter()
     where = resolve_device(device)
+    batch = batch_size(batch, where)
     files = estimate_inputs(input, depth, depth_scale, intrinsics)
     chunks = [files[first : first + batch] for first in range(0, len(files), batch)]
     workers = min(worker_count(workers, len(files), where), len(chunks))

@@ -9,10 +9,10 @@ from torch import Tensor
 
 from selfsup.estimation.criterion import Candidate, block_px, by_model, criterion_light, stacked_fits
 from selfsup.estimation.options import EstimateOptions
-from selfsup.estimation.problem import FitProblem, solve_at
+from selfsup.estimation.problem import Fit, FitProblem, solve_at, transport_maps
 from selfsup.estimation.uncertainty import position_covariance
 
-__all__ = ["records"]
+__all__ = ["records", "surface_shares"]
 
 
 def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, list[Candidate]]],
@@ -49,14 +49,40 @@ def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, 
             covariances[i] = cov[j]
             if resolve:
                 lit[i] = intensity[j : j + 1], ambient[j : j + 1]
-    return [_record(scene_id, best, tried, cov, solved)
-            for scene_id, (best, tried), cov, solved in zip(ids, results, covariances, lit)]
+    shares: list[Tensor] = [None] * len(results)  # type: ignore[list-item]
+    for _, group in by_model([replace(best, specular=False) for best, _ in results]).items():
+        at = torch.tensor(group, dtype=torch.long, device=problem.image.device)
+        fits = [results[i][0].fit if lit[i] is None else replace(results[i][0].fit, intensity=lit[i][0], ambient=lit[i][1])
+                for i in group]
+        share, mean_diffuse = surface_shares(problem.select(at), stacked_fits(fits), options)
+        for j, i in enumerate(group):
+            shares[i] = (share[j].cpu(), mean_diffuse[j].cpu())
+    return [_record(scene_id, best, tried, cov, share, options.tuning.min_found_share, solved)
+            for scene_id, (best, tried), cov, share, solved in zip(ids, results, covariances, shares, lit)]
 
 
-def _record(scene_id: str, best: Candidate, tried: list[Candidate], cov: Tensor,
-            solved: tuple[Tensor, Tensor] | None = None) -> dict:
-    # cov: (L, 3, 3) position covariance of the chosen model's lights; solved: the
-    # intensities (1, L, 3) and ambient (1, 3) to report instead of the fit's.
+def surface_shares(problem: FitProblem, fit: Fit, options: EstimateOptions) -> tuple[Tensor, Tensor]:
+    """Each light's share ``(B, L)`` of the light on the visible surfaces: its grey
+    intensity times its diffuse shading with the criterion's cast shadows, summed over
+    the valid pixels, over that of every light and the ambient (albedo and highlights
+    left out: what a lamp gives a surface, not what the camera sees of it); and each
+    light's mean unit shading there ``(B, L)``."""
+    judged = criterion_light(problem, options).with_indirect(False)
+    diffuse, _ = transport_maps(judged, fit.position, False)  # (B, L, H, W)
+    mask = problem.gbuffer.mask[:, None].to(diffuse.dtype)
+    pixels = mask.flatten(1).sum(1).clamp_min(1)  # (B,)
+    mean_diffuse = (diffuse * mask).flatten(2).sum(2) / pixels[:, None]  # (B, L)
+    direct = fit.intensity.mean(-1) * mean_diffuse  # (B, L) per pixel
+    return direct / (direct.sum(1) + fit.ambient.mean(-1)).clamp_min(1e-30)[:, None], mean_diffuse
+
+
+def _record(scene_id: str, best: Candidate, tried: list[Candidate], cov: Tensor, shares: tuple[Tensor, Tensor],
+            min_found_share: float, solved: tuple[Tensor, Tensor] | None = None) -> dict:
+    # cov: (L, 3, 3) position covariance of the chosen model's lights; shares: (L,) each
+    # light's share of the surfaces' light and (L,) its mean unit shading there
+    # (surface_shares); solved: the intensities (1, L, 3) and ambient (1, 3) to report
+    # instead of the fit's.
+    share, mean_diffuse = shares
     std = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
     fit = best.fit if solved is None else replace(best.fit, intensity=solved[0], ambient=solved[1])
     # Brightest light first (summed RGB intensity): the same scene gives the same record
@@ -64,11 +90,23 @@ def _record(scene_id: str, best: Candidate, tried: list[Candidate], cov: Tensor,
     order = fit.intensity[0].sum(-1).cpu().argsort(descending=True, stable=True).tolist()
     lights = [
         {"position": fit.position[0, i].tolist(), "intensity": fit.intensity[0, i].tolist(),
-         "position_std": std[i].tolist(), "position_cov": cov[i].tolist()}
+         "position_std": std[i].tolist(), "position_cov": cov[i].tolist(), "share": round(float(share[i]), 4)}
         for i in order
     ]
+    ambient = fit.ambient[0].tolist()
+    # A light that explains almost nothing is not presented as one: the brightest must give
+    # min_found_share of the surfaces' light, and the lights must beat the ambient alone.
+    found = bool(lights) and float(share.max()) >= min_found_share and (best.evidence is None or best.evidence > 0)
+    unsupported = []
+    if not found:
+        # Their light becomes the ambient's: as much light on the surfaces, without direction.
+        unsupported, lights = lights, []
+        ambient = (fit.ambient[0] + (fit.intensity[0] * mean_diffuse.to(fit.intensity)[:, None]).sum(0)).tolist()
     return {
-        "id": scene_id, "lights": lights, "ambient": fit.ambient[0].tolist(),
+        "id": scene_id, "lights": lights, "ambient": ambient, "light_found": found,
+        "direct_share": round(float(share.sum()), 4) if found else 0.0,
+        "evidence": None if best.evidence is None else round(best.evidence, 3),
+        "unsupported_lights": unsupported,
         "specular": best.specular, "coat": best.coat, "reflectance": best.reflectance,
         "candidates": [{"n_lights": c.n_lights, "specular": c.specular, "coat": c.coat, "criterion": round(c.criterion, 3)}
                        for c in tried],

@@ -15,14 +15,16 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
+from render import Material, light_transport
 from selfsup.estimation import albedo_free, unlit
 from selfsup.estimation.criterion import Candidate, bic, block_px, criterion_light, fit_row
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.options import EstimateOptions
-from selfsup.estimation.problem import FitProblem
+from selfsup.estimation.problem import Fit, FitProblem, cauchy_scale
 from selfsup.estimation.solvers import refine
 
-__all__ = ["reflectance_unknown", "albedo_free_images", "estimate_albedo_free", "albedo_free_covariance", "segment_gains"]
+__all__ = ["reflectance_unknown", "albedo_free_images", "estimate_albedo_free", "albedo_free_covariance", "segment_gains",
+           "intensities_of", "ambient_only_loss"]
 
 MIN_RESIDUALS = 100  # the fewest residuals an albedo-free fit or count decision rests on
 
@@ -114,8 +116,6 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
                 still.append(i)
         growing = still
     results: list = [None] * B
-    # No iterations: the intensities and ambient solved and the fit evaluated at the positions.
-    solve = replace(options.tuning.refine, specular=False, max_iters=(0,), strides=(1,))
     counts = [best[i][0].position.shape[1] for i in range(B)]
     for n_lights in sorted(set(counts)):  # one batched solve and covariance per light count
         group = [i for i in range(B) if counts[i] == n_lights]
@@ -123,6 +123,11 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         rows = torch.tensor(group, dtype=torch.long, device=device)
         sub = problem.select(rows)
         segments = None if labels is None else labels[rows]
+        # The chosen model against the model without lights on every residual: how much its lights explain.
+        every = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=segments, **_residuals(options))
+        lit = albedo_free.refine_positions(every, chosen.position, chosen.log_weight, 0)
+        evidence = [bic(unlit, pairs, 0, block) - bic(loss, pairs, 4 * n_lights, block) for unlit, loss, pairs in
+                    zip(ambient_only_loss(every, chosen).tolist(), lit.loss.tolist(), lit.pairs.tolist())]
         if segments is not None and options.tuning.albedo_class_rounds > 0:
             # The chosen model's lights placed on its segments merged into classes of one albedo.
             chosen, observed = albedo_free.refine_on_classes(
@@ -130,11 +135,12 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
                 level_tolerance=options.tuning.albedo_class_level, chroma_tolerance=options.tuning.albedo_class_chroma,
                 geometry=geometry[rows])
         else:
-            observed = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=segments, **_residuals(options))
-        fit = refine(sub, chosen.position, solve)
+            observed = every
+        fit = intensities_of(sub, chosen, options)
         cov = albedo_free_covariance(observed, chosen, sub, options).cpu()
         for j, i in enumerate(group):
-            candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free")
+            candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free",
+                                  evidence=evidence[j])
             # The records keep the tried models' counts and criteria only.
             others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
             results[i] = (candidate, others)
@@ -220,3 +226,59 @@ def segment_gains(image: Tensor, model: Tensor, segments: Tensor, min_pixels: in
     factor = torch.where(counts >= min_pixels, median.clamp(*limits), torch.ones_like(median))
     factor = torch.where(inside.reshape(-1), factor[group], torch.ones_like(ratio))
     return factor.view(B, C, H, W).permute(0, 2, 3, 1)
+
+
+# An ambient log weight this far above the first light's: its shading is the ambient's alone.
+AMBIENT_ONLY_LOG_WEIGHT = 60.0
+
+
+def ambient_only_loss(obs: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFit) -> Tensor:
+    """``(B,)`` loss of the model without lights (the ambient alone: the log shading one
+    constant, each segment's offset free) on the residuals of ``obs``: the fit's positions
+    held, its ambient's weight so far above theirs that they add nothing."""
+    log_weight = fit.log_weight.clone()
+    log_weight[:, 0] = AMBIENT_ONLY_LOG_WEIGHT
+    return albedo_free.refine_positions(obs, fit.position, log_weight, 0).loss
+
+
+def intensities_of(problem: FitProblem, fit: albedo_free.AlbedoFreeFit, options: EstimateOptions) -> Fit:
+    """The albedo-free fit's lights and ambient as intensities in the image's units: the
+    fit's own ratios (its log weights, which its covariance and shares rest on) times one
+    scale per channel, the Cauchy-reweighted least-squares factor of the model shading
+    (no cast shadows, as the fit) times kd against each channel of the image.
+
+    With the albedo unknown, a light's colour is the surfaces' colour too: a channel solved
+    on its own makes colour a free knob (a red wall took a red-only light, a blue ambient
+    painted shadows blue). ``tuning.light_colour``: ``neutral`` (the default): every light
+    and the ambient the image's white, equal channels, as a camera's white balance makes
+    the light it sees; ``shared``: one colour for all, each channel's own factor (the
+    image's mean colour, surfaces and light together); ``free``: each light and the
+    ambient solved per channel at the positions, as before
+    (:func:`selfsup.estimation.solvers.refine` without steps).
+
+    Returns: a :class:`Fit` (``intensity (B, L, 3)``, ``ambient (B, 3)``, ``model (B, 3, H, W)``).
+    """
+    solve = replace(options.tuning.refine, specular=False, max_iters=(0,), strides=(1,))
+    if options.tuning.light_colour == "free":
+        return refine(problem, fit.position, solve)
+    weight = fit.log_weight.exp()  # (B, L + 1): the ambient's, then each light's, relative
+    diffuse = light_transport(problem.gbuffer, Material(kd=problem.material.kd), fit.position, falloff=problem.falloff,
+                              shadows="none", specular=False).diffuse  # (B, L, H, W): the fit's transport
+    shading = weight[:, :1, None] + (weight[:, 1:, None, None] * diffuse).sum(1)  # (B, H, W)
+    mask = problem.gbuffer.mask[:, None].to(problem.image.dtype)  # (B, 1, H, W)
+    unit = problem.material.kd.permute(0, 3, 1, 2) * shading[:, None] * mask  # (B, 3, H, W) at scale 1
+    image = problem.image * mask
+    scale = cauchy_scale(problem, solve)[:, None, None, None]
+    weights = mask.expand_as(image)
+    for _ in range(solve.irls_passes + 1):
+        # (B, 3): each channel's factor; guarded where a channel has no model light.
+        product, square = (weights * image * unit).flatten(2).sum(2), (weights * unit * unit).flatten(2).sum(2)
+        if options.tuning.light_colour == "neutral":  # one factor for the three channels
+            product, square = product.sum(1, keepdim=True), square.sum(1, keepdim=True)
+        factor = (product / square.clamp_min(1e-30)).expand(-1, 3)
+        model = factor[..., None, None] * unit
+        weights = mask / (1 + ((model - image) / scale) ** 2)
+    residual = (model - image) * mask
+    cost = (weights * residual**2).flatten(1).sum(1)
+    return Fit(fit.position, weight[:, 1:, None] * factor[:, None], weight[:, :1] * factor, cost, model,
+               torch.zeros_like(cost), residual.pow(2).flatten(1).sum(1), mask.expand_as(image).flatten(1).sum(1))

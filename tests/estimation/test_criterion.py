@@ -157,7 +157,9 @@ def test_a_light_hidden_behind_a_box_is_found_once_the_solid_behind_surfaces_end
     scene = set_scene("true reflectance, 2 lights", 173, 4242)
     record = estimate_scene(scene, EstimateOptions())
     assert len(record["lights"]) == 2 and score(record, scene)[1]
-    assert len(estimate_scene(scene, EstimateOptions(tuning=Tuning(criterion_thickness=None)))["lights"]) == 1
+    unbounded = estimate_scene(scene, EstimateOptions(tuning=Tuning(criterion_thickness=None)))
+    # One light; inside the unbounded solid it lights no visible surface, so it is not presented as found.
+    assert len(unbounded["lights"] or unbounded["unsupported_lights"]) == 1
 
 
 def test_the_criterion_judges_the_fit_itself_only_where_nothing_differs():

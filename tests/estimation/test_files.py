@@ -156,7 +156,7 @@ def test_batched_files_match_single_files_and_a_bad_one_costs_no_other(tmp_path)
     assert [r["id"] for r in one] == [r["id"] for r in four]
     for a, b in zip(one, four):
         assert np.allclose(a["lights"][0]["position"], b["lights"][0]["position"], atol=1e-3)
-    with pytest.raises(ValueError, match="estimate.batch must be >= 1"):
+    with pytest.raises(ValueError, match="estimate.batch must be .auto. or an integer >= 1"):
         estimate_files(tmp_path, tmp_path / "x.jsonl", options, progress=False, batch=0)
 
 

@@ -137,7 +137,8 @@ def test_the_command_estimates_a_capture_folder_and_exits_non_zero_when_a_frame_
     assert result.returncode == 1, result.stderr[-2000:]
     assert "frame_004" in result.stdout + result.stderr
     (record,) = [json.loads(line) for line in (tmp_path / "o.jsonl").read_text().splitlines()]
-    assert record["id"] == "frame_003" and len(record["lights"]) == 1  # accuracy: benchmarks/captures.py
+    # accuracy: benchmarks/captures.py (this tiny frame's light is wrong, and the record says it is unsupported)
+    assert record["id"] == "frame_003" and len(record["lights"] or record["unsupported_lights"]) == 1
 
 
 def test_a_single_colour_file_takes_its_depth_from_estimate_depth(tmp_path):
@@ -174,9 +175,10 @@ def test_a_light_the_albedo_free_fit_pushes_towards_infinity_stays_within_reach(
     truth = read_truth(tmp_path / "cap" / "truth" / "frame_003.npz")
     scene = read_capture(capture_frames(tmp_path / "cap")[0])
     points = scene.depth[scene.depth > 0]
-    position = torch.tensor(record["lights"][0]["position"])
+    (light,) = record["lights"] or record["unsupported_lights"]  # a wrong light: the record does not present it
+    position = torch.tensor(light["position"])
     assert float(position.norm()) < 2 * RUNAWAY_SIZES * float(truth.scene_scale) + float(points.max())
-    assert all(np.isfinite(record["lights"][0]["position_std"]))
+    assert all(np.isfinite(light["position_std"]))
 
 
 def test_the_capture_benchmark_scores_the_covariance_of_the_placed_lights(tmp_path):
