@@ -4,6 +4,8 @@
     python -m benchmarks.captures procedural --out data/procedural     # our own scenes: direct/ and noisy/ files
     python -m benchmarks.captures make --scenes data/procedural --out data/captures/procedural --sets direct noisy
     python -m benchmarks.captures run --captures data/captures/mitsuba data/captures/mitsuba_closed data/captures/procedural
+    python -m benchmarks.captures realities --out data/captures/realities    # cameras' and rooms' realities
+    python -m benchmarks.captures run --captures data/captures/realities --sets plain camera camera_640 phone panel window
 
 ``make`` turns each set (``direct``, ``gi``, ``noisy``) of scene files into a capture
 folder of the layout ``mode=estimate`` reads (``docs/scene-format.md``, "Capture
@@ -147,6 +149,71 @@ def procedural(out: Path, count: int = 48, seed: int = 7000) -> None:
         print(f"{out / set_name}: {count} scene files", flush=True)
 
 
+# The camera-realities sets (``realities``): (light, render width x height, camera model settings).
+REALITY_SETS = {
+    "plain": ("point", (160, 120), dict(key=None, white_balance=False, vignetting=0.0, jpeg_quality=None,
+                                        misregistration_px=0.0, disparity_step=0.0, depth_bumps=0.0, edge_holes=0.0,
+                                        random_holes=0.0)),
+    "camera": ("point", (160, 120), {}),
+    "camera_640": ("point", (640, 480), {}),
+    "phone": ("point", (768, 576), dict(color_size=(1920, 1440), depth_size=(256, 192))),
+    "panel": ("panel", (160, 120), {}),
+    "window": ("window", (160, 120), {}),
+}
+
+
+def realities(out: Path, count: int = 12, seed: int = 9000, sets=tuple(REALITY_SETS)) -> None:
+    """Capture folders ``out/<set>`` of our procedural rooms (one light each, the same
+    ``count`` rooms in every set) through what cameras and rooms do
+    (:mod:`selfsup.scenes.camera`): ``plain`` (the recipe's sRGB, 8 bits and millimetres
+    at an exposure that puts the mean at 0.2 of full scale), ``camera`` (auto exposure,
+    white balance, vignetting, JPEG, colour 0-2 px off the depth, a structured-light
+    depth sensor), ``camera_640`` (the same at 640x480), ``phone`` (1920x1440 JPEG colour
+    beside 256x192 depth), ``panel`` and ``window`` (area lights: a 0.6 m ceiling panel,
+    a 1.2 m window in front of the back wall; truth at their centres). ``truth/`` as
+    :func:`write_capture` writes it, the intensities those of the light's whole area."""
+    import imageio.v3 as iio
+
+    from selfsup.scenes.camera import CameraModel, camera_capture, with_area_lights
+    from selfsup.scenes.exact import render_specs
+    from selfsup.scenes.sampler import SamplerConfig, sample_scene
+
+    for set_name in sets:
+        light, (width, height), settings = REALITY_SETS[set_name]
+        model = CameraModel(**settings)
+        specs, centres = [], []
+        for k in range(count):
+            spec = sample_scene(seed + k, SamplerConfig(height=height, width=width, specular_prob=0.0,
+                                                        n_lights_probs=(1.0,)))
+            centre = spec.light_position
+            if light != "point":
+                spec, centre = with_area_lights(spec, light, size=0.6 if light == "panel" else 1.2,
+                                                points=4 if light == "panel" else 5)
+            specs.append(spec)
+            centres.append(centre)
+        folder = out / set_name
+        for sub in ("color", "depth", "intrinsics", "truth"):
+            (folder / sub).mkdir(parents=True, exist_ok=True)
+        for k, (rendered, centre) in enumerate(zip(render_specs(specs, samples=1), centres)):
+            scene, frame_id = rendered.scene, f"{set_name}_{k:03d}"
+            valid = scene.depth > 0
+            plain_exposure = 0.2 / max(float(scene.image[valid].mean()), 1e-12)
+            shot = camera_capture(scene.image, scene.depth, scene.K, model, seed + k, exposure=plain_exposure)
+            (folder / "color" / f"{frame_id}{shot.suffix}").write_bytes(shot.encoded)
+            iio.imwrite(folder / "depth" / f"{frame_id}.png", shot.depth_mm)
+            K = shot.K
+            (folder / "intrinsics" / f"{frame_id}.json").write_text(json.dumps(
+                {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}))
+            per_light = scene.light_intensity.reshape(centre.shape[0], -1, 3).sum(1)  # an area's points summed
+            meta = {**scene.meta, "id": frame_id, "set": set_name, "exposure": shot.exposure,
+                    "white_balance_gains": shot.gains.tolist(), "colour_shift_px": list(shot.shift_px)}
+            np.savez_compressed(folder / "truth" / f"{frame_id}.npz", depth=scene.depth.numpy(), K=scene.K.numpy(),
+                                meta=np.array(json.dumps(meta)), light_pos=centre.numpy(),
+                                light_intensity=(per_light * shot.exposure).numpy(),
+                                scene_scale=scene.scene_scale.numpy())
+        print(f"{folder}: {count} frames", flush=True)
+
+
 def read_truth(path: Path) -> SimpleNamespace:
     """A capture's truth file as the fields :func:`benchmarks.common.score_record` reads."""
     data = np.load(path, allow_pickle=False)
@@ -246,6 +313,11 @@ def main() -> None:
     g.add_argument("--out", type=Path, required=True)
     g.add_argument("--count", type=int, default=48)
     g.add_argument("--seed", type=int, default=7000)
+    c = sub.add_parser("realities", help="capture folders through what cameras and rooms do (selfsup.scenes.camera)")
+    c.add_argument("--out", type=Path, required=True)
+    c.add_argument("--count", type=int, default=12)
+    c.add_argument("--seed", type=int, default=9000)
+    c.add_argument("--sets", nargs="+", default=list(REALITY_SETS))
     r = sub.add_parser("run", help="estimate and score capture folders")
     r.add_argument("--captures", type=Path, nargs="+", required=True, help="roots with direct/ gi/ noisy/ captures")
     r.add_argument("--sets", nargs="+", default=list(SETS))
@@ -260,6 +332,8 @@ def main() -> None:
         make(args.scenes, args.out, args.sets)
     elif args.command == "procedural":
         procedural(args.out, args.count, args.seed)
+    elif args.command == "realities":
+        realities(args.out, args.count, args.seed, args.sets)
     else:
         from benchmarks.estimate_procedural import parse_options
         from selfsup.estimation import EstimateOptions
