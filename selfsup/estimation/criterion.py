@@ -39,6 +39,7 @@ class Candidate:
     samples: float | None = None  # the independent samples the criterion counted (effective_samples)
     coat: bool = False  # whether the specular pixels' diffuse light went through a clear coat (render.Material.coat)
     evidence: float | None = None  # the ambient-only model's criterion less this one's (albedo-free fits)
+    vignetting: float | None = None  # the corner light loss of the lens the fit took out (albedo-free fits)
 
 
 def block_px(options: EstimateOptions, width: int, albedo_free: bool = False) -> int:

@@ -24,6 +24,7 @@ INDIRECT = ("auto", "never")
 COAT = ("auto", "never", "always")
 ALBEDO_FREE_RESIDUALS = ("segments", "pairs")
 LIGHT_COLOUR = ("neutral", "shared", "free")
+VIGNETTING = ("auto", "none")
 REFINE_METHODS = ("lm", "adam", "gd")
 
 
@@ -139,6 +140,9 @@ class Tuning:
             ``neutral`` (the lights and the ambient the image's white) | ``shared`` (one
             colour for all, the image's mean) | ``free`` (each channel of each light and
             of the ambient solved on its own) (:func:`selfsup.estimation.reflectance.intensities_of`).
+        vignetting: ``auto``: the albedo-free fit takes out the lens's falloff towards the
+            corners, its strength chosen per frame with the first light
+            (:mod:`selfsup.estimation.vignetting`) | ``none``.
     Reporting:
         min_found_share: lights are reported only where the brightest gives at least this
             share of the light on the visible surfaces (with cast shadows) and, albedo-free,
@@ -188,6 +192,7 @@ class Tuning:
     normal_error: bool = True
     coat: str = "auto"
     light_colour: str = "neutral"
+    vignetting: str = "auto"
     min_found_share: float = 0.1
     max_pixels: int | None = 19200
     refine: RefineOptions = field(default_factory=RefineOptions)
@@ -248,7 +253,7 @@ def _check_tuning(t: Tuning) -> None:
          "null or an integer >= 1")
     need(t.criterion_stride >= 1, "criterion_stride", ">= 1 pixel")
     for name, choices in (("reflectance", REFLECTANCE), ("albedo_free_residuals", ALBEDO_FREE_RESIDUALS),
-                          ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT), ("light_colour", LIGHT_COLOUR),
+                          ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT), ("light_colour", LIGHT_COLOUR), ("vignetting", VIGNETTING),
                           ("indirect", INDIRECT), ("search_shadows", SHADOW_METHODS),
                           ("criterion_shadows", SHADOW_METHODS)):
         _check_choice(f"tuning.{name}", getattr(t, name), choices)

@@ -22,6 +22,7 @@ from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import Fit, FitProblem, cauchy_scale
 from selfsup.estimation.solvers import refine
+from selfsup.estimation.vignetting import choose_vignetting, devignetted
 
 __all__ = ["reflectance_unknown", "albedo_free_images", "estimate_albedo_free", "albedo_free_covariance", "segment_gains",
            "intensities_of", "ambient_only_loss"]
@@ -71,17 +72,26 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         g = problem.gbuffer
         geometry = surface_segments(g.points, g.normals, g.mask)
         labels = albedo_free.albedo_segments(problem, options.tuning.albedo_segment_scale, geometry)
-    found = albedo_free.search(problem, 1, robust_scale=options.tuning.albedo_free_scale, labels=labels,
-                               **_residuals(options))
+    def criterion(fit: albedo_free.AlbedoFreeFit, extra: list[int] | None = None) -> list[float]:
+        # The BIC of each image's fit: its position and a contrast per light (the ambient's for
+        # the first), and ``extra`` parameters (a lens's vignetting).
+        n_params = 4 * fit.position.shape[1]
+        extra = extra or [0] * fit.position.shape[0]
+        return [bic(loss, int(pairs), n_params + more, block)
+                for loss, pairs, more in zip(fit.loss.tolist(), fit.pairs.tolist(), extra)]
+
+    search_kwargs = dict(robust_scale=options.tuning.albedo_free_scale, **_residuals(options))
+    if options.tuning.vignetting == "auto":
+        corner_loss, found = choose_vignetting(problem, labels, criterion, search_kwargs)
+        problem = devignetted(problem, corner_loss)  # every fit below sees the image with the lens's falloff taken out
+    else:
+        corner_loss = problem.image.new_zeros(B)
+        found = albedo_free.search(problem, 1, labels=labels, **search_kwargs)
     pairs = found.pairs.tolist()
     if min(pairs) < MIN_RESIDUALS:
         raise ValueError(f"kd is one constant, so the lights are fitted albedo-free, but image {pairs.index(min(pairs))} "
                          f"has {min(pairs)} usable residuals (lit pixels of albedo segments, or pairs of neighbouring "
                          f"pixels with kd > 0 and light; at least {MIN_RESIDUALS} needed)")
-
-    def criterion(fit: albedo_free.AlbedoFreeFit) -> list[float]:
-        n_params = 4 * fit.position.shape[1]  # position, and a contrast per light (the ambient's for the first)
-        return [bic(loss, int(pairs), n_params, block) for loss, pairs in zip(fit.loss.tolist(), fit.pairs.tolist())]
 
     best = [(found, i, c) for i, c in enumerate(criterion(found))]  # (fit, row, criterion) per image
     tried = [[(1, c)] for _, _, c in best]
@@ -140,7 +150,7 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         cov = albedo_free_covariance(observed, chosen, sub, options).cpu()
         for j, i in enumerate(group):
             candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free",
-                                  evidence=evidence[j])
+                                  evidence=evidence[j], vignetting=round(float(corner_loss[i]), 3))
             # The records keep the tried models' counts and criteria only.
             others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
             results[i] = (candidate, others)
