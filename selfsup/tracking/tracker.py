@@ -397,7 +397,9 @@ class Tracker:
         ambient = torch.tensor(record["ambient"], dtype=torch.float64)
         log_weight = None
         if free:  # the shading's weights: the grey ambient, then each light's grey intensity
-            grey = torch.cat([ambient.mean()[None], intensity.mean(-1)]).clamp_min(1e-6 * float(intensity.max()))
+            # (A frame whose record found no light has the ambient alone: every next frame is estimated afresh.)
+            peak = float(intensity.max()) if intensity.numel() else float(ambient.max())
+            grey = torch.cat([ambient.mean()[None], intensity.mean(-1)]).clamp_min(1e-6 * peak)
             log_weight = grey.log()
         self._reference.clear()
         self._since_full = 0

@@ -156,3 +156,19 @@ def test_a_smaller_frame_mid_sequence_is_tracked_on_its_own_grid(switch_frames):
     tracker.update(switch_frames[0])
     record = tracker.update(switch_frames[1].subsampled(2))
     assert record["lights"] and _worst_error(record, switch_frames[1]) < 0.02
+
+
+def test_frames_no_light_explains_are_tracked_without_lights_and_estimated_afresh(switch_frames):
+    # A frame lit by ambient light alone has no light in its record (light_found false): the
+    # tracker keeps none and estimates the next frame in full (it crashed on the empty record).
+    import dataclasses
+
+    scene = switch_frames[0]
+    albedo = 0.2 + 0.6 * torch.rand(scene.image.shape[:2], generator=torch.Generator().manual_seed(0))[..., None]
+    flat = dataclasses.replace(scene, image=torch.where(scene.depth[..., None] > 0, albedo.expand(-1, -1, 3) * 0.3, 0.0),
+                               kd=torch.where(scene.depth[..., None] > 0, torch.full_like(scene.kd, 0.5), 0.0),
+                               ks=None, ambient=None)
+    tracker = Tracker(EstimateOptions(max_lights=1))
+    records = [tracker.update(flat), tracker.update(flat)]
+    assert [r["lights"] for r in records] == [[], []]
+    assert [r["reason"] for r in records] == ["first", "share"] and all(r["full"] for r in records)
