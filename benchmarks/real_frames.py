@@ -26,7 +26,8 @@ frame's record is judged without truth by what a lamp in a room does:
 - ``seconds``: the command's wall time over the set's frames.
 
 A frame whose record has no light (``light_found: false``) counts as such
-(``no_light``), not as a failed share. Results: ``benchmarks/results/real_frames_<device>_<date>.*``
+(``no_light``), not as a failed share; the contact sheet draws the light it did not
+present grey and dotted, with its share in brackets. Results: ``benchmarks/results/real_frames_<device>_<date>.*``
 (one row per set, one per frame in the JSON) and a contact sheet
 ``real_frames_<device>_<date>.png``: every frame with its lights drawn in (a disc where a
 light projects into the image, an arrow at the border towards one outside; the label
@@ -97,15 +98,17 @@ def up_in_camera(folder: Path, frame_id: str) -> np.ndarray:
     return np.array([0.0, -1.0, 0.0])
 
 
-def light_shares(record: dict, frame) -> tuple[list[float], object]:
+def light_shares(record: dict, frame, lights: list[dict] | None = None) -> tuple[list[float], object]:
     """Each light's share of the light on the frame's visible surfaces (diffuse, with cast
-    shadows, at the estimator's working resolution) and the working-resolution scene."""
+    shadows, at the estimator's working resolution) and the working-resolution scene;
+    ``lights``: others than the record's (its unsupported ones), with its ambient."""
     scene = within_pixels(read_capture(frame), EstimateOptions())
     gbuffer = scene_gbuffer(scene.depth[None], scene.K[None], None, [scene.id])
-    if not record["lights"]:
+    lights = record["lights"] if lights is None else lights
+    if not lights:
         return [], scene
-    position = torch.tensor([[light["position"] for light in record["lights"]]], dtype=torch.float32)
-    intensity = torch.tensor([light["intensity"] for light in record["lights"]], dtype=torch.float32).mean(-1)
+    position = torch.tensor([[light["position"] for light in lights]], dtype=torch.float32)
+    intensity = torch.tensor([light["intensity"] for light in lights], dtype=torch.float32).mean(-1)
     diffuse = light_transport(gbuffer, Material(kd=torch.ones_like(scene.image)[None]), position,
                               shadows="epipolar", specular=False).diffuse[0]  # (L, H, W)
     direct = (intensity[:, None, None] * diffuse * gbuffer.mask[0]).flatten(1).sum(1)  # (L,)
@@ -129,9 +132,13 @@ def judge_set(folder: Path, records: list[dict]) -> list[dict]:
     rows = []
     for record in records:
         shares, scene = light_shares(record, frames[record["id"]])
+        unsupported = record.get("unsupported_lights") or []
         row = {"id": record["id"], "lights": len(record["lights"]), "seconds": record.get("seconds"),
                "light_found": bool(record["lights"]), "min_chroma": round(min_chroma(record), 3), "scene": scene,
-               "record": record, "shares": shares}
+               "record": record, "shares": shares, "evidence": record.get("evidence"),
+               "vignetting": record.get("vignetting"),
+               "unsupported": [(light["position"], record_share) for light, record_share in
+                               zip(unsupported, [light.get("share", 0.0) for light in unsupported])]}
         if record["lights"]:
             brightest = int(np.argmax(shares))
             p = np.asarray(record["lights"][brightest]["position"], dtype=float)
@@ -212,6 +219,13 @@ def contact_sheet(rows: list[dict], path: Path, tile: tuple[int, int] = (320, 24
             label = f"{share:.2f}" + (f" h{up:+.2f}m" if up is not None else "")
             draw.rectangle([at[0] - 1, at[1] - 1, at[0] + 7 * len(label), at[1] + 11], fill=(0, 0, 0))
             draw.text(at, label, fill=colour)
+        for (x, y, z), share in row["unsupported"]:  # a light the record does not present: grey, dotted
+            if z > 1e-6:
+                u, v = (K[0, 0] * x / z + K[0, 2]) * sx, (K[1, 1] * y / z + K[1, 2]) * sy
+                if 0 <= u < width and 0 <= v < height:
+                    for a in range(0, 360, 45):
+                        draw.arc([u - 7, v - 7, u + 7, v + 7], a, a + 20, fill=(170, 170, 170), width=2)
+                    draw.text((u + 9, v - 6), f"({share:.2f})", fill=(170, 170, 170))
         caption = f"{row['id'][:28]}" + ("" if row["light_found"] else "  no light")
         draw.rectangle([0, 0, 7 * len(caption) + 4, 13], fill=(0, 0, 0))
         draw.text((2, 1), caption, fill=(255, 255, 255))

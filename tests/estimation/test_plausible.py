@@ -62,7 +62,8 @@ def test_a_coloured_image_of_unknown_albedo_gets_neutral_lights_unless_colour_is
     assert min(channels) < 0.05 * max(channels)  # the old knob, kept on request
     shared = estimate_scene(red, EstimateOptions(max_lights=1, tuning=Tuning(light_colour="shared")))
     light, ambient = torch.tensor(shared["lights"][0]["intensity"]), torch.tensor(shared["ambient"])
-    assert torch.allclose(light / light.sum(), ambient / ambient.sum(), atol=1e-5)  # one colour for both
+    assert torch.allclose(light / light.sum() * ambient.sum(), ambient, atol=1e-5)  # one colour for both (or none)
+    assert float(light[1] / light[0]) < 0.2  # the image's mean colour, red
 
 
 def test_bad_plausibility_settings_are_named():
