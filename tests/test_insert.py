@@ -131,3 +131,22 @@ def test_insert_mode_writes_a_picture(tmp_path, scene):
     with pytest.raises(ValueError, match="no estimate for scene id"):
         run(_cfg("mode=insert", f"insert.scene={tmp_path}/s.npz", f"insert.estimates={tmp_path}/other.jsonl",
                  f"insert.output={tmp_path}/x.png"))
+
+
+def test_a_shadow_from_a_capture_estimate_darkens_the_surface_without_changing_its_colour(scene):
+    # A capture's record gives every light and the ambient one (neutral) colour: the inserted
+    # shadow scales each channel alike, so a wooden table stays wood-coloured, where a blue
+    # ambient beside a white light painted it blue.
+    from selfsup.estimation import EstimateOptions, estimate_scene
+
+    capture = dataclasses.replace(scene, kd=torch.where(scene.depth[..., None] > 0, torch.full_like(scene.kd, 0.5), 0.0),
+                                  ks=None, ambient=None)
+    record = estimate_scene(capture, EstimateOptions(max_lights=1))
+    position, intensity, ambient = lights_from_record(record)
+    assert record["light_found"] and float(ambient.max() - ambient.min()) <= 1e-6 * float(ambient.max() + 1e-12)
+    gbuffer, _, _ = render_inputs(scene)
+    composite, on_object = insert_sphere(scene, position, intensity, ambient, default_sphere(gbuffer))
+    shadow = (~on_object) & ((composite - scene.image).sum(-1) < -1e-3) & (scene.image.amin(-1) > 1e-3)
+    assert int(shadow.sum()) > 0
+    ratio = composite[shadow] / scene.image[shadow]  # (N, 3): the darkening of each channel
+    assert torch.allclose(ratio, ratio.mean(-1, keepdim=True).expand_as(ratio), atol=1e-4)
