@@ -63,15 +63,39 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
     then the records' criteria may favour the fewer lights); the chosen model's lights then
     placed on its segments merged into classes of one albedo (``albedo_class_rounds``,
     :func:`selfsup.estimation.albedo_free.refine_on_classes`); intensities and ambient then
-    solved against the image with the file's kd (diffuse only: a constant ks says
-    nothing of the highlights either)."""
-    B, device = problem.batch, problem.image.device
-    block = block_px(options, problem.image.shape[-1], albedo_free=True)
+    the fit's own ratios in the image's units (:func:`intensities_of`).
+
+    With ``vignetting=auto`` the lens's falloff is chosen with the first light
+    (:func:`selfsup.estimation.vignetting.choose_vignetting`); where it is not none, the
+    image is estimated again without it and the whole model (its lights, and the falloff's
+    one parameter) with the lower criterion on every residual is kept: two lights far apart
+    light a room much as one light through a vignetting lens, and a one-light choice took
+    a falloff for devset capture 031's second light."""
     labels = geometry = None  # every image's albedo segments (and smooth surfaces), found once
     if options.tuning.albedo_free_residuals == "segments":
         g = problem.gbuffer
         geometry = surface_segments(g.points, g.normals, g.mask)
         labels = albedo_free.albedo_segments(problem, options.tuning.albedo_segment_scale, geometry)
+    auto = options.tuning.vignetting == "auto"
+    results, whole = _fit_albedo_free(problem, options, labels, geometry, auto)
+    again = [i for i, (best, _) in enumerate(results) if best.vignetting]
+    if again:
+        at = torch.tensor(again, dtype=torch.long, device=problem.image.device)
+        plain, plain_whole = _fit_albedo_free(problem.select(at), options, None if labels is None else labels[at],
+                                              None if geometry is None else geometry[at], False)
+        for j, i in enumerate(again):
+            if plain_whole[j] <= whole[i]:
+                results[i] = plain[j]
+    return results
+
+
+def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tensor | None, geometry: Tensor | None,
+                     vignetting: bool) -> tuple[list[tuple[Candidate, list[Candidate]]], list[float]]:
+    # estimate_albedo_free's results, with the lens's falloff chosen (vignetting) or none, and
+    # each image's criterion of its whole chosen model on every residual.
+    B, device = problem.batch, problem.image.device
+    block = block_px(options, problem.image.shape[-1], albedo_free=True)
+
     def criterion(fit: albedo_free.AlbedoFreeFit, extra: list[int] | None = None) -> list[float]:
         # The BIC of each image's fit: its position and a contrast per light (the ambient's for
         # the first), and ``extra`` parameters (a lens's vignetting).
@@ -81,7 +105,7 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
                 for loss, pairs, more in zip(fit.loss.tolist(), fit.pairs.tolist(), extra)]
 
     search_kwargs = dict(robust_scale=options.tuning.albedo_free_scale, **_residuals(options))
-    if options.tuning.vignetting == "auto":
+    if vignetting:
         corner_loss, found = choose_vignetting(problem, labels, criterion, search_kwargs)
         problem = devignetted(problem, corner_loss)  # every fit below sees the image with the lens's falloff taken out
     else:
@@ -126,6 +150,7 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
                 still.append(i)
         growing = still
     results: list = [None] * B
+    whole = [math.inf] * B
     counts = [best[i][0].position.shape[1] for i in range(B)]
     for n_lights in sorted(set(counts)):  # one batched solve and covariance per light count
         group = [i for i in range(B) if counts[i] == n_lights]
@@ -138,6 +163,8 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
         lit = albedo_free.refine_positions(every, chosen.position, chosen.log_weight, 0)
         evidence = [bic(unlit, pairs, 0, block) - bic(loss, pairs, 4 * n_lights, block) for unlit, loss, pairs in
                     zip(ambient_only_loss(every, chosen).tolist(), lit.loss.tolist(), lit.pairs.tolist())]
+        for j, (i, loss, pairs) in enumerate(zip(group, lit.loss.tolist(), lit.pairs.tolist())):
+            whole[i] = bic(loss, pairs, 4 * n_lights + int(bool(corner_loss[i] > 0)), block)
         if segments is not None and options.tuning.albedo_class_rounds > 0:
             # The chosen model's lights placed on its segments merged into classes of one albedo.
             chosen, observed = albedo_free.refine_on_classes(
@@ -154,7 +181,7 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
             # The records keep the tried models' counts and criteria only.
             others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
             results[i] = (candidate, others)
-    return results
+    return results, whole
 
 
 def albedo_free_covariance(observed: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFit, problem: FitProblem,
