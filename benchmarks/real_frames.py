@@ -26,7 +26,8 @@ frame's record is judged without truth by what a lamp in a room does:
 - ``seconds``: the command's wall time over the set's frames.
 
 A frame whose record has no light (``light_found: false``) counts as such
-(``no_light``), not as a failed share; the contact sheet draws the light it did not
+(``no_light``, of all frames), not as a failed share: ``share`` and ``height`` count the
+frames with a light; the contact sheet draws the light it did not
 present grey and dotted, with its share in brackets. Results: ``benchmarks/results/real_frames_<device>_<date>.*``
 (one row per set, one per frame in the JSON) and a contact sheet
 ``real_frames_<device>_<date>.png``: every frame with its lights drawn in (a disc where a
@@ -162,8 +163,8 @@ def summarise(name: str, rows: list[dict], wall: float) -> dict:
     found = [r for r in rows if r["light_found"]]
     n = len(rows)
 
-    def pct(count: int) -> str:
-        return f"{count}/{n} ({100 * count / max(n, 1):.0f}%)"
+    def pct(count: int, total: int = n) -> str:
+        return f"{count}/{total} ({100 * count / total:.0f}%)" if total else "-"
 
     def median(key: str) -> float | None:
         values = [r[key] for r in found]
@@ -171,9 +172,9 @@ def summarise(name: str, rows: list[dict], wall: float) -> dict:
 
     posed = [r for r in found if "world" in r]
     summary = {"set": name, "frames": n, "no_light": pct(n - len(found)),
-               "share_ge_0.1": pct(sum(r["share"] >= SHARE_TARGET for r in found)),
+               "share_ge_0.1": pct(sum(r["share"] >= SHARE_TARGET for r in found), len(found)),
                "chroma_ge_0.2": pct(sum(r["min_chroma"] >= CHROMA_TARGET for r in rows)),
-               "height_ge_0.3m": pct(sum(r["height"] >= HEIGHT_TARGET for r in found)),
+               "height_ge_0.3m": pct(sum(r["height"] >= HEIGHT_TARGET for r in found), len(found)),
                "median_share": median("share"), "median_min_chroma": round(statistics.median(r["min_chroma"] for r in rows), 3),
                "median_height_m": median("height"), "median_distance_m": median("distance"),
                "seconds_per_frame": round(wall / max(n, 1), 3)}
@@ -261,7 +262,8 @@ def main(argv: list[str] | None = None) -> None:
               f"of the surfaces' light (target >= {SHARE_TARGET}), lights' and ambient's weakest channel over the "
               f"strongest (>= {CHROMA_TARGET}), the brightest light's height above the camera (>= {HEIGHT_TARGET} m "
               "in rooms lit from the ceiling), world-frame spread of posed frames' brightest light against a light "
-              "glued to the camera, the command's seconds per frame (start-up included). Frames: the JSON file; "
+              "glued to the camera, the command's seconds per frame (start-up included). no_light: of all frames; the share and "
+              "height columns: of the frames with a light. Frames: the JSON file; "
               "contact sheet: the PNG of the same name.")
     path = write_results(args.name, device, summaries, header, COLUMNS)
     data = json.loads(path.with_suffix(".json").read_text())

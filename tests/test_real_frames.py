@@ -31,6 +31,8 @@ def test_a_light_fixed_in_the_world_has_no_spread_and_the_glued_baseline_follows
     summary = summarise("walk", rows, wall=1.0)
     assert summary["world_spread_m"] == 0.0 and summary["glued_spread_m"] == pytest.approx(0.2)
     assert summary["share_ge_0.1"] == "5/5 (100%)" and summary["seconds_per_frame"] == 0.2
+    rows[0]["light_found"] = False  # shares and heights count the frames with a light
+    assert summarise("walk", rows, wall=1.0)["height_ge_0.3m"] == "4/4 (100%)"
     assert _spread(np.zeros((3, 3))) == 0.0
 
 

@@ -101,7 +101,8 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         # the first), and ``extra`` parameters (a lens's vignetting).
         n_params = 4 * fit.position.shape[1]
         extra = extra or [0] * fit.position.shape[0]
-        return [bic(loss, int(pairs), n_params + more, block)
+        # An image without residuals has no criterion (MIN_RESIDUALS names it below).
+        return [bic(loss, int(pairs), n_params + more, block) if pairs >= 1 else math.inf
                 for loss, pairs, more in zip(fit.loss.tolist(), fit.pairs.tolist(), extra)]
 
     search_kwargs = dict(robust_scale=options.tuning.albedo_free_scale, **_residuals(options))
