@@ -33,7 +33,7 @@ from selfsup.estimation.prepare import prepare, saturated_pixels, within_pixels,
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
 from selfsup.estimation.records import records
-from selfsup.estimation.reflectance import albedo_free_covariance
+from selfsup.estimation.reflectance import albedo_free_covariance, intensities_of
 from selfsup.estimation.solvers import refine
 from selfsup.estimation.stages import estimate_batch, with_coat
 from selfsup.estimation.uncertainty import position_covariance
@@ -424,8 +424,7 @@ class Tracker:
         log_weight = self._log_weights().to(start)[None]
         fit = albedo_free.refine_positions(obs, start, log_weight, self.tuning.warm_iterations)
         cov = albedo_free_covariance(obs, fit, problem, self.options)
-        solve = replace(tuning.refine, specular=False, max_iters=(0,), strides=(1,))
-        solved = refine(problem, fit.position, solve)
+        solved = intensities_of(problem, fit, self.options)  # as the full estimates report them
         share = albedo_free.light_shares(problem, fit)
         loss = float(fit.loss[0]) / max(float(fit.pairs[0]), 1.0)
         return _Measured(_host(fit.position[0]), _host(cov[0]), _host(solved.intensity[0]), _host(solved.ambient[0]),

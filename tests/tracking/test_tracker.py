@@ -60,6 +60,8 @@ def test_frames_without_albedo_are_tracked_albedo_free():
     records = [tracker.update(scene) for scene in frames]
     assert all(r["reflectance"] == "albedo_free" for r in records)
     assert not any(r["full"] for r in records[1:])
+    for light in [light for r in records for light in r["lights"]]:  # warm frames in the image's white too
+        assert max(light["intensity"]) - min(light["intensity"]) <= 1e-5 * max(light["intensity"])
     assert max(_worst_error(r, s) for r, s in zip(records, frames)) < 0.05
 
 
