@@ -34,11 +34,13 @@ FULL_ITERATIONS = 15  # the chosen strength's first light at full resolution, as
 # The strengths are compared on every CHOICE_STRIDE-th pixel. 2 (a quarter of the pixels)
 # lost 3 of 67 successes over the 108 camera-realities frames (ad hoc, 2026-11-28).
 CHOICE_STRIDE = 1
-# Each strength's search: this many starts of this many LM steps (albedo_free.search's
-# defaults: 4 and 15, which chose as well on the 108 camera-realities frames: 67 and 68
-# successes; ad hoc, 2026-11-28).
+# Each strength's search: this many starts of this many LM steps, the grid ranked on every
+# CHOICE_RANK_STRIDE-th pixel (albedo_free.search's defaults: 4, 15 and 4, which chose as
+# well on the 108 camera-realities frames: 67, 68 and 70 successes as each was cheapened in
+# turn; ad hoc, 2026-11-28).
 CHOICE_STARTS = 2
 CHOICE_ITERATIONS = 10
+CHOICE_RANK_STRIDE = 8
 
 
 def falloff(intrinsics: Tensor, height: int, width: int, corner_share: Tensor) -> Tensor:
@@ -104,8 +106,8 @@ def choose_vignetting(problem: FitProblem, labels: Tensor | None, criterion, sea
         shares = problem.image.new_zeros(B)
         return shares, albedo_free.search(problem, 1, labels=labels, **search_kwargs)
     # Each strength's first light on every CHOICE_STRIDE-th pixel (the scales of the image as
-    # given: the loss of each strength on one scale), without the search's last steps, which only the chosen one takes at full
-    # resolution (FULL_ITERATIONS).
+    # given: the loss of each strength on one scale), without the search's last steps, which
+    # only the chosen one takes at full resolution (FULL_ITERATIONS).
     coarse = subsample(problem, CHOICE_STRIDE)
     tried = [devignetted(coarse, torch.full((B,), share, dtype=problem.image.dtype, device=problem.image.device))
              for share in SHARES]
@@ -114,7 +116,7 @@ def choose_vignetting(problem: FitProblem, labels: Tensor | None, criterion, sea
     together._noise = torch.cat([coarse._noise] * len(SHARES))
     at = None if labels is None else labels[:, ::CHOICE_STRIDE, ::CHOICE_STRIDE].repeat(len(SHARES), 1, 1)
     fit = albedo_free.search(together, 1, labels=at, starts=CHOICE_STARTS, iterations=(CHOICE_ITERATIONS, 0),
-                             **search_kwargs)
+                             rank_stride=CHOICE_RANK_STRIDE, **search_kwargs)
     values = torch.tensor([criterion(fit, [0 if share == 0 else 1 for share in SHARES for _ in range(B)])],
                           dtype=torch.float64).view(len(SHARES), B)
     choice = values.argmin(0)  # (B,)
