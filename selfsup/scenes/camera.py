@@ -27,8 +27,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
+from PIL import Image
 from torch import Tensor
 
+from selfsup.scenes.capture import linear_to_srgb
+from selfsup.scenes.io import Scene
 from selfsup.scenes.sampler import SceneSpec
 
 __all__ = ["with_area_lights", "CameraModel", "CameraCapture", "camera_capture", "AREA_KINDS"]
@@ -167,12 +170,21 @@ def camera_capture(image: Tensor, depth: Tensor, K: Tensor, model: CameraModel, 
         image: ``(H, W, 3)`` linear render; depth: ``(H, W)`` metres (0: none); K: ``(3, 3)``.
         exposure: the exposure where ``model.key`` is None.
     """
-    rng = np.random.default_rng(seed)
-    linear = image.double().numpy().copy()
+    rng = np.random.default_rng(seed)  # drawn from by the colour, then by the depth
     z = depth.double().numpy()
     K = K.double().numpy().copy()
-    H, W = z.shape
     valid = np.isfinite(z) & (z > 0)
+    linear, exposure, gains, shift = _processed_colour(image.double().numpy().copy(), K, valid, model, rng, exposure)
+    color, encoded, suffix = _encoded(linear, model)
+    depth_mm, K = _sensed_depth(z, K, valid, model, rng)
+    return CameraCapture(color, encoded, suffix, depth_mm, K, float(exposure), gains, shift)
+
+
+def _processed_colour(linear: np.ndarray, K: np.ndarray, valid: np.ndarray, model: CameraModel,
+                      rng: np.random.Generator, exposure: float | None):
+    # The lens's falloff, white balance, exposure, the colour's shift against the depth and
+    # its grid: (linear (h, w, 3), exposure, gains (3,), shift (dx, dy)).
+    H, W = valid.shape
     if model.vignetting > 0:  # a falloff in the lens, before the sensor
         v, u = np.mgrid[0:H, 0:W]
         r2 = ((u - K[0, 2]) / K[0, 0]) ** 2 + ((v - K[1, 2]) / K[1, 1]) ** 2
@@ -199,20 +211,24 @@ def camera_capture(image: Tensor, depth: Tensor, K: Tensor, model: CameraModel, 
     color_w, color_h = model.color_size or (W, H)
     if (color_w, color_h) != (W, H):
         linear = _resize_linear(linear, color_w, color_h)
-    from selfsup.scenes.capture import linear_to_srgb
+    return linear, exposure, gains, shift
 
+
+def _encoded(linear: np.ndarray, model: CameraModel) -> tuple[np.ndarray, bytes, str]:
+    # sRGB, 8 bits and the file's compression: the pixels as read back, the file's bytes, its suffix.
     color = np.round(linear_to_srgb(np.clip(linear, 0, 1)) * 255).astype(np.uint8)
-    from PIL import Image
-
     buffer = io.BytesIO()
-    if model.jpeg_quality is not None:
-        Image.fromarray(color).save(buffer, format="JPEG", quality=model.jpeg_quality)
-        suffix = ".jpg"
-        color = np.asarray(Image.open(io.BytesIO(buffer.getvalue())).convert("RGB"))
-    else:
+    if model.jpeg_quality is None:
         Image.fromarray(color).save(buffer, format="PNG")
-        suffix = ".png"
-    # Depth: bumps, disparity steps, holes; then the sensor's grid.
+        return color, buffer.getvalue(), ".png"
+    Image.fromarray(color).save(buffer, format="JPEG", quality=model.jpeg_quality)
+    return np.asarray(Image.open(io.BytesIO(buffer.getvalue())).convert("RGB")), buffer.getvalue(), ".jpg"
+
+
+def _sensed_depth(z: np.ndarray, K: np.ndarray, valid: np.ndarray, model: CameraModel,
+                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    # Bumps, disparity steps and holes, then the sensor's grid: millimetres (uint16) and its K.
+    H, W = z.shape
     measured = z.copy()
     if model.depth_bumps > 0:
         measured = measured + model.depth_bumps * z**2 * _smooth_noise((H, W), rng)
@@ -232,11 +248,7 @@ def camera_capture(image: Tensor, depth: Tensor, K: Tensor, model: CameraModel, 
     if (depth_w, depth_h) != (W, H):
         if W % depth_w or H % depth_h or W // depth_w != H // depth_h:
             raise ValueError(f"depth_size {depth_w}x{depth_h} must divide the render's {W}x{H} by one integer")
-        f = W // depth_w
-        from selfsup.scenes.io import Scene
-
         coarse = Scene(image=torch.zeros(H, W, 3), depth=torch.from_numpy(measured).float(),
-                       K=torch.from_numpy(K).float(), kd=torch.zeros(H, W, 3), meta={}).binned(f)
+                       K=torch.from_numpy(K).float(), kd=torch.zeros(H, W, 3), meta={}).binned(W // depth_w)
         measured, K = coarse.depth.double().numpy(), coarse.K.double().numpy()
-    depth_mm = np.round(measured * 1000).clip(0, 65535).astype(np.uint16)
-    return CameraCapture(color, buffer.getvalue(), suffix, depth_mm, K, float(exposure), gains, shift)
+    return np.round(measured * 1000).clip(0, 65535).astype(np.uint16), K
