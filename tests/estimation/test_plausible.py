@@ -104,3 +104,14 @@ def test_a_capture_through_a_vignetting_lens_keeps_its_light_where_it_is():
     ignored = estimate_scene(captured, EstimateOptions(max_lights=1, tuning=Tuning(vignetting="none")))
     light = (ignored["lights"] or ignored["unsupported_lights"])[0]
     assert _rel_error(torch.tensor(light["position"]), scene) > 0.05 and ignored["vignetting"] == 0.0
+
+
+def test_the_strength_between_the_tried_ones_is_the_parabolas_lowest_point():
+    from selfsup.estimation.vignetting import SHARES, _interpolated
+
+    grid = torch.tensor(SHARES, dtype=torch.float64)
+    truth = 0.3
+    values = ((grid - truth) ** 2)[:, None].repeat(1, 2)  # (S, B): a parabola, lowest at 0.3
+    values[:, 1] = torch.tensor([5.0, 1.0, 0.0])  # lowest at the last strength: kept there
+    choice = values.argmin(0)
+    assert _interpolated(values, choice).tolist() == pytest.approx([truth, SHARES[-1]])
