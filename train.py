@@ -183,12 +183,45 @@ def _one_line(error: BaseException) -> str:
 USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError)  # raised with a message that names the fix
 
 
+def _unknown_key(message: str) -> str | None:
+    # Hydra's "Could not override 'estimate.inptu'. To append to your config use +estimate.inptu=x"
+    # leads nowhere (a new key is never read): the one line names the group's settings instead,
+    # the nearest first. None for other errors, or where the group cannot be composed.
+    import difflib
+    import re
+
+    found = re.search(r"Could not override '([\w.]+)'.*Key '(\w+)' is not in struct", message)
+    if not found or found.group(2) not in found.group(1).split("."):
+        return None
+    key, leaf = found.group(1), found.group(2)
+    parts = key.split(".")
+    group = ".".join(parts[: parts.index(leaf)])  # the deepest group that exists: estimate of estimate.tunin.x
+    try:
+        from hydra import compose, initialize_config_dir
+
+        others = [a for a in sys.argv[1:] if not a.lstrip("+~").startswith(key + "=")]
+        with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+            cfg = compose("train", overrides=others)
+        node = OmegaConf.select(cfg, group) if group else cfg
+        keys = sorted(str(k) for k in node.keys())
+    except Exception:  # noqa: BLE001 -- another mistake on the line: Hydra's own message stays
+        return None
+    near = difflib.get_close_matches(leaf, keys, n=1)
+    hint = f"did you mean {group + '.' if group else ''}{near[0]}? " if near else ""
+    where = f"{group}.{leaf}" if group else leaf
+    tuned = f"; tuned constants: +{group}.tuning.NAME=VALUE" if group in ("estimate", "track") else ""
+    return f"{where} is not a setting of {group or 'train.py'}: {hint}its settings are {', '.join(keys)}{tuned}"
+
+
+CONFIGS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "configs")
+
+
 def _report(error: BaseException) -> NoReturn:
     # One line on stderr and exit status 2, unless the user's HYDRA_FULL_ERROR=1 asks for the traceback.
     if FULL_ERROR:
         raise error
-    print(f"train.py: error: {_one_line(error) or type(error).__name__} (HYDRA_FULL_ERROR=1 shows where)",
-          file=sys.stderr)
+    line = _one_line(error) or type(error).__name__
+    print(f"train.py: error: {_unknown_key(line) or line} (HYDRA_FULL_ERROR=1 shows where)", file=sys.stderr)
     raise SystemExit(2) from None
 
 
