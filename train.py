@@ -39,6 +39,22 @@ def _run_dir(mode: str, folder: str) -> str:
 OmegaConf.register_new_resolver("run_dir", _run_dir, replace=True)
 
 
+def _remove_temporary_run_dir() -> None:
+    # The temporary run folder of a mode other than training (_run_dir): Hydra's config copy and
+    # log, which nobody reads once the run is over; left behind, every run added one to /tmp.
+    import shutil
+    import tempfile
+
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return
+    folder = HydraConfig.get().runtime.output_dir
+    if os.path.basename(folder).startswith("shadowlight-") and \
+            os.path.dirname(os.path.abspath(folder)) == os.path.abspath(tempfile.gettempdir()):
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 def _plain(node) -> dict:
     try:
         return OmegaConf.to_container(node, resolve=True, throw_on_missing=True)
@@ -163,6 +179,8 @@ def main(cfg: DictConfig) -> None:
         result = run(cfg)
     except USER_ERRORS as error:
         _report(error)
+    finally:
+        _remove_temporary_run_dir()
     if cfg.mode in ("estimate", "track") and result["failed"]:
         raise SystemExit(1)  # some files failed: each is named in the log above
 

@@ -43,12 +43,19 @@ def test_hydra_full_error_shows_the_traceback(tmp_path):
 
 
 def test_estimate_writes_what_was_asked_and_no_run_folder(tmp_path):
-    # Only training makes outputs/<date>/<time>/; mode=estimate leaves the output file alone.
+    # Only training makes outputs/<date>/<time>/; mode=estimate leaves the output file alone,
+    # no temporary run folder behind (each run left a /tmp/shadowlight-estimate-* before) and
+    # its log on stderr, where the progress bar is (stdout stays empty for `> file`).
+    work, temporary = tmp_path / "work", tmp_path / "tmp"
+    work.mkdir(), temporary.mkdir()
     result = subprocess.run([sys.executable, str(ROOT / "train.py"), "mode=estimate",
                              f"estimate.input={ROOT / 'examples' / 'capture'}", "estimate.output=lights.jsonl",
-                             "estimate.progress=false"], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+                             "estimate.progress=false"], capture_output=True, text=True, cwd=work, timeout=300,
+                            env={**os.environ, "TMPDIR": str(temporary)})
     assert result.returncode == 0, result.stderr[-2000:]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["lights.jsonl"]
+    assert sorted(p.name for p in work.iterdir()) == ["lights.jsonl"]
+    assert list(temporary.glob("shadowlight-*")) == []
+    assert result.stdout == "" and "estimated 3 scene(s)" in result.stderr
 
 
 def test_training_ends_with_a_human_summary():

@@ -199,8 +199,15 @@ def _intrinsics(frame: CaptureFrame) -> np.ndarray:
                                               f"{root / 'intrinsics' / (frame.id + '.json')} as "
                                               '{"fx": ..., "fy": ..., "cx": ..., "cy": ...} (pixels), or give '
                                               "estimate.intrinsics=[fx,fy,cx,cy]")
+        form = '{"fx", "fy", "cx", "cy"} (pixels) or {"K": 3x3}'
         try:
             data = json.loads(path.read_text())
+            if not isinstance(data, dict):
+                raise ValueError(f"it holds a {type(data).__name__}, not an object")
+            missing = [key for key in ("fx", "fy", "cx", "cy") if key not in data]
+            if "K" not in data and missing:
+                # Named by the intrinsics file and the keys it lacks, not by the colour file and a KeyError.
+                raise SceneFileError(path, f"the intrinsics file {path} lacks {', '.join(missing)}: it must be JSON {form}")
             if "K" in data:
                 K = np.asarray(data["K"], dtype=np.float64)
                 if K.shape != (3, 3):
@@ -208,9 +215,11 @@ def _intrinsics(frame: CaptureFrame) -> np.ndarray:
                 fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
             else:
                 fx, fy, cx, cy = (float(data[key]) for key in ("fx", "fy", "cx", "cy"))
-        except (OSError, ValueError, KeyError, TypeError) as error:
-            raise SceneFileError(path, f"intrinsics must be JSON {{\"fx\", \"fy\", \"cx\", \"cy\"}} (pixels) or "
-                                       f"{{\"K\": 3x3}} ({type(error).__name__}: {error})") from None
+        except SceneFileError:
+            raise
+        except (OSError, ValueError, TypeError) as error:
+            raise SceneFileError(path, f"the intrinsics file {path} must be JSON {form} "
+                                       f"({type(error).__name__}: {error})") from None
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     if not (np.isfinite(K).all() and fx > 0 and fy > 0):
         raise SceneFileError(frame.intrinsics_file or frame.color, f"intrinsics need finite fx, fy > 0, got "

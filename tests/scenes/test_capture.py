@@ -102,6 +102,8 @@ def test_colour_larger_than_the_depth_is_area_averaged_onto_its_grid(tmp_path):
     ("depth_zero", "zero (missing) on every pixel"),
     ("no_depth", "no depth file of stem 'frame_004'"),
     ("no_intrinsics", "no intrinsics: write"),
+    ("intrinsics_without_cy", "frame_004.json lacks cy: it must be JSON"),
+    ("intrinsics_not_json", "frame_004.json must be JSON"),
     ("unreadable", "cannot read the image"),
 ])
 def test_a_bad_frame_is_named_with_its_fix_and_the_others_are_estimated(tmp_path, damage, words):
@@ -115,6 +117,10 @@ def test_a_bad_frame_is_named_with_its_fix_and_the_others_are_estimated(tmp_path
         (cap / "depth" / "frame_004.png").unlink()
     elif damage == "no_intrinsics":
         (cap / "intrinsics" / "frame_004.json").unlink()
+    elif damage == "intrinsics_without_cy":  # named by its file and key, not by the colour file and a KeyError
+        (cap / "intrinsics" / "frame_004.json").write_text('{"fx": 50, "fy": 50, "cx": 32}')
+    elif damage == "intrinsics_not_json":
+        (cap / "intrinsics" / "frame_004.json").write_text("fx=50")
     else:
         (cap / "color" / "frame_004.png").write_bytes(b"not a png")
     summary = estimate_files(cap, tmp_path / "lights.jsonl", FAST, progress=False)
