@@ -333,7 +333,9 @@ class Trainer:
             log.warning("stopped at step %d of %d: trainer.max_minutes=%s reached", step,
                         self.options.max_steps, self.options.max_minutes)
         result = {"step": step, "minutes": (time.perf_counter() - started) / 60, "validation": summary,
-                  "last": str(self.out_dir / "last.pt"), "best": str(self.out_dir / "best.pt")}
+                  "last": str(self.out_dir / "last.pt"), "best": str(self.out_dir / "best.pt"),
+                  "max_steps": self.options.max_steps, "max_minutes": self.options.max_minutes,
+                  "stopped_by_time": bool(stop)}
         if ctx.main:
             (self.out_dir / "result.json").write_text(json.dumps(result, indent=2))
         return result

@@ -68,6 +68,9 @@ def test_training_ends_with_a_human_summary():
     assert line == ("trained 900 steps in 2.7 min; validation on 150 scenes: median position error 0.028 of the scene "
                     "size, median angle 2.8 degrees, success 59%, right light count 71%; best checkpoint "
                     "outputs/x/best.pt")
+    stopped = training_summary({"step": 400, "minutes": 5.0, "best": "b.pt", "max_steps": 900, "max_minutes": 5,
+                                "stopped_by_time": True, "validation": {}})
+    assert stopped.startswith("trained 400 of 900 steps (stopped by trainer.max_minutes=5) in 5.0 min")
 
 
 def test_track_writes_a_record_per_frame(tmp_path):
