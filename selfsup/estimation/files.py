@@ -111,7 +111,7 @@ def _estimate_group(group: list[tuple[Path, Scene]], options: EstimateOptions, d
             out = [in_file_units(record, factor) for record, (_, factor) in
                    zip(records([scene.id for scene, _ in scaled], problem, estimate_batch(problem, options), options),
                        scaled)]
-    except (SceneFileError, ValueError, RuntimeError) as error:
+    except Exception as error:  # noqa: BLE001 -- whatever a frame raises is that frame's error, never the run's
         if len(group) > 1:
             done: dict[Path, dict] = {}
             failed: dict[Path, str] = {}
@@ -221,7 +221,7 @@ def _estimate_chunk(chunk: list[Path], options: EstimateOptions, device: torch.d
         started = time.perf_counter()
         try:
             scene = within_pixels(read_input(path), options)
-        except (SceneFileError, ValueError, RuntimeError) as error:
+        except Exception as error:  # noqa: BLE001 -- a frame that cannot be read is named, the others go on
             reasons[path] = failure_reason(error)
             continue
         read_seconds[path] = time.perf_counter() - started

@@ -112,6 +112,10 @@ def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.floa
     material = Material(kd=_stacked_field(scenes, "kd", device), ks=_stacked_field(scenes, "ks", device),
                         shininess=shininess[0] if len(scenes) == 1 and shininess.dim() == 1 else shininess)
     image = _stacked_field(scenes, "image", device).permute(0, 3, 1, 2).to(dtype)
+    unseen = (~gbuffer.mask.flatten(1).any(1)).tolist()
+    if any(unseen):  # a normal from the depth needs valid neighbours: one lone valid pixel has none
+        raise SceneFileError(scenes[unseen.index(True)].id, "no pixel has a depth and a normal (a normal from the "
+                                                            "depth needs neighbours with a depth)")
     dark = (~((image > 0) & gbuffer.mask[:, None]).flatten(1).any(1)).tolist()
     if any(dark):
         raise SceneFileError(scenes[dark.index(True)].id, "the image is zero on every valid pixel: no light to estimate")

@@ -81,6 +81,8 @@ class FitProblem:
         of second differences ``d = I(x-1) - 2 I(x) + I(x+1)`` along rows of three valid
         pixels (a linear shading ramp cancels; edges are too few to move the median);
         about the shading's curvature on a clean image. Kept once found."""
+        if self._noise is None and self.image.shape[-1] < 3:  # no row of three pixels: no floor
+            self._noise = self.image.new_zeros(self.image.shape[0])
         if self._noise is None:
             mask = self.gbuffer.mask
             valid = (mask[..., :-2] & mask[..., 1:-1] & mask[..., 2:])[:, None].expand(-1, self.image.shape[1], -1, -1)

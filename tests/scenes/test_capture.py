@@ -206,3 +206,31 @@ def test_the_capture_benchmark_scores_the_covariance_of_the_placed_lights(tmp_pa
     assert [(r["placed"], r["placed_inside"], r["inside"]) for r in rows] == [(1, 1, 1), (1, 0, 0)]
     row = summary("cap", "direct", rows, 2, 1.0)
     assert row["two_sigma_coverage"] == row["placed_two_sigma_coverage"] == "1/2 (50%)"
+
+
+def test_hostile_frames_beside_a_good_one_are_each_named_and_the_good_one_estimated(tmp_path):
+    # A 2x2 frame raised IndexError from the noise level's median, which no handler took:
+    # the command died with a traceback and the good frame beside it got no record.
+    _capture(tmp_path, seeds=(3,))
+    cap = tmp_path / "cap"
+    rng = np.random.default_rng(0)
+    hostile = {"tiny": (2, 2), "one": (1, 1), "lone": (48, 64), "nan": (48, 64)}
+    for name, (h, w) in hostile.items():
+        iio.imwrite(cap / "color" / f"{name}.png", rng.integers(40, 200, (h, w, 3)).astype(np.uint8))
+        if name == "nan":
+            np.save(cap / "depth" / f"{name}.npy", np.full((h, w), np.nan, np.float32))
+            continue
+        depth = np.full((h, w), 2000, np.uint16) + np.arange(w, dtype=np.uint16)
+        if name == "lone":  # one valid pixel: no normal from the depth
+            depth = np.zeros((h, w), np.uint16)
+            depth[24, 32] = 2000
+        iio.imwrite(cap / "depth" / f"{name}.png", depth)
+        (cap / "intrinsics" / f"{name}.json").write_text('{"fx": 50, "fy": 50, "cx": 1, "cy": 1}')
+    (cap / "intrinsics" / "nan.json").write_text('{"fx": 50, "fy": 50, "cx": 32, "cy": 24}')
+    for batch in (1, 5):  # alone, and in one batch retried frame by frame
+        summary = estimate_files(cap, tmp_path / "o.jsonl", FAST, progress=False, batch=batch, workers=1)
+        assert summary["done"] == 1 and summary["failed"] == 4, summary["failures"]
+        assert all(name in " ".join(summary["failures"]) for name in hostile)
+        assert all("\n" not in reason for reason in summary["failures"].values())
+        (record,) = [json.loads(line) for line in (tmp_path / "o.jsonl").read_text().splitlines()]
+        assert record["id"] == "frame_003"
