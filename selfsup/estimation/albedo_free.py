@@ -22,7 +22,7 @@ sees the lights' positions and the intensities' ratios (to the first light, and 
 ambient's), not their overall scale. The observation is the mean over the channels of
 ``image / kd`` (the grey shading, exact for white lights).
 
-Measured (docs/estimation.md, "Camera captures"): on 48 Mitsuba captures a set, one-light
+Measured (benchmarks/results/estimation_measurements.md, "Camera captures"): on 48 Mitsuba captures a set, one-light
 success 100% direct, 83% path traced, 100% sensor-noisy with segments and their robust
 offsets (96/83/100% with their means; 100/88/100% with the count decided without the
 lights' highlights, :func:`highlight_pixels`), against 71/71/50% with pairs, whose

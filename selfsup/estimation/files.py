@@ -128,7 +128,7 @@ def _estimate_group(group: list[tuple[Path, Scene]], options: EstimateOptions, d
 
 # Frames a batch holds on an accelerator with ``estimate.batch=auto`` (on the CPU: 1, each
 # frame its own time; two forked workers of one frame each were within 5% of batches of 4,
-# docs/estimation.md, "Many files").
+# benchmarks/results/estimation_measurements.md, "Many files").
 ACCELERATOR_BATCH = 256
 
 

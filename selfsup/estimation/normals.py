@@ -70,7 +70,7 @@ def plane_fit(points: Tensor, mask: Tensor, *, radius: int = 3, max_relative_ste
     rounds the crease off over its whole width; a window further in, on the pixel's
     own side, fits the pixel's plane. On the Mitsuba sensor-noise files (160x120,
     ``radius`` 8, ``step`` 2) the share of normals more than 10 degrees off fell from
-    17% to 6% with ``(1, 0.5, 0.25)`` (docs/estimation.md, "Normals of noisy depth beside
+    17% to 6% with ``(1, 0.5, 0.25)`` (benchmarks/results/estimation_measurements.md, "Normals of noisy depth beside
     creases"). What it cannot tell apart: a pixel on the crease line itself lies on
     both planes and may take either.
 

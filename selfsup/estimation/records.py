@@ -26,7 +26,7 @@ def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, 
     its cast shadows, :func:`judged_problem`, at every pixel): the fit's own, without
     them, take indirect light for light of the lamps. On the path-traced files the
     median worst intensity error fell, devset gi 0.114 -> 0.102, Mitsuba rooms 0.158
-    -> 0.107 and 0.538 -> 0.439 (docs/estimation.md, "Intensities under indirect light"); the
+    -> 0.107 and 0.538 -> 0.439 (benchmarks/results/estimation_measurements.md, "Intensities under indirect light"); the
     positions and covariances stay the fit's."""
     covariances: list[Tensor | None] = [best.covariance for best, _ in results]
     lit: list[tuple[Tensor, Tensor] | None] = [None] * len(results)

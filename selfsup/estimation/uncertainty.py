@@ -39,7 +39,7 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     the same over each square block of ``albedo_block_px`` pixels, independent between
     blocks and channels (:func:`albedo_scores`). The fit takes up an albedo error
     partly in its parameters, where its residual cannot show it, so the residual's
-    variance alone misses it (docs/estimation.md, "Uncertainty under reflectance errors").
+    variance alone misses it (benchmarks/results/estimation_measurements.md, "Uncertainty under reflectance errors").
 
     ``indirect_variation`` (0: off; only where the ambient is unknown, ``problem.ambient``
     None) adds what light the model lacks moves the lights by, taking the fitted constant
@@ -47,12 +47,12 @@ def position_covariance(problem: FitProblem, fit: Fit, options: RefineOptions, c
     the point lights is ``ambient (1 + e(x))``, ``e`` a Gaussian random field over the 3D
     points of standard deviation ``indirect_variation`` and correlation length
     ``indirect_length`` (of the scene size), one value per block of ``albedo_block_px``
-    pixels (:func:`indirect_field_scores`; docs/estimation.md, "Uncertainty under indirect light").
+    pixels (:func:`indirect_field_scores`; benchmarks/results/estimation_measurements.md, "Uncertainty under indirect light").
 
     ``normal_error`` adds what the normals' error moves the lights by, where
     ``problem.normal_tilt`` gives its variance (normals fitted to noisy depth): every
     block of ``albedo_block_px`` pixels tilted as one, independently between blocks and
-    the two tilt axes (:func:`normal_tilt_scores`; docs/estimation.md, "Uncertainty under noisy
+    the two tilt axes (:func:`normal_tilt_scores`; benchmarks/results/estimation_measurements.md, "Uncertainty under noisy
     depth").
     """
     if not (indirect_variation >= 0 and math.isfinite(indirect_variation) and 0 < indirect_length < math.inf):
