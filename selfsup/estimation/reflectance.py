@@ -20,7 +20,7 @@ from selfsup.estimation import albedo_free, unlit
 from selfsup.estimation.criterion import Candidate, bic, block_px, criterion_light, fit_row
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.options import EstimateOptions
-from selfsup.estimation.problem import Fit, FitProblem, cauchy_scale
+from selfsup.estimation.problem import Fit, FitProblem, cauchy_scale, irls_weights
 from selfsup.estimation.solvers import refine
 from selfsup.estimation.vignetting import choose_vignetting, devignetted
 
@@ -160,11 +160,12 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         sub = problem.select(rows)
         segments = None if labels is None else labels[rows]
         # The chosen model against the model without lights on every residual: how much its lights explain.
+        # (The chosen fit's own loss is its loss on every residual: the searches end on this observation.)
         every = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=segments, **_residuals(options))
-        lit = albedo_free.refine_positions(every, chosen.position, chosen.log_weight, 0)
+        losses, counted = chosen.loss.tolist(), chosen.pairs.tolist()
         evidence = [bic(unlit, pairs, 0, block) - bic(loss, pairs, 4 * n_lights, block) for unlit, loss, pairs in
-                    zip(ambient_only_loss(every, chosen).tolist(), lit.loss.tolist(), lit.pairs.tolist())]
-        for j, (i, loss, pairs) in enumerate(zip(group, lit.loss.tolist(), lit.pairs.tolist())):
+                    zip(ambient_only_loss(every, chosen).tolist(), losses, counted)]
+        for i, loss, pairs in zip(group, losses, counted):
             whole[i] = bic(loss, pairs, 4 * n_lights + int(bool(corner_loss[i] > 0)), block)
         if segments is not None and options.tuning.albedo_class_rounds > 0:
             # The chosen model's lights placed on its segments merged into classes of one albedo.
@@ -306,8 +307,8 @@ def intensities_of(problem: FitProblem, fit: albedo_free.AlbedoFreeFit, options:
     mask = problem.gbuffer.mask[:, None].to(problem.image.dtype)  # (B, 1, H, W)
     unit = problem.material.kd.permute(0, 3, 1, 2) * shading[:, None] * mask  # (B, 3, H, W) at scale 1
     image = problem.image * mask
-    scale = cauchy_scale(problem, solve)[:, None, None, None]
-    weights = mask.expand_as(image)
+    scale = cauchy_scale(problem, solve)
+    weights = irls_weights(problem, None, solve)
     for _ in range(solve.irls_passes + 1):
         # (B, 3): each channel's factor; guarded where a channel has no model light.
         product, square = (weights * image * unit).flatten(2).sum(2), (weights * unit * unit).flatten(2).sum(2)
@@ -315,7 +316,7 @@ def intensities_of(problem: FitProblem, fit: albedo_free.AlbedoFreeFit, options:
             product, square = product.sum(1, keepdim=True), square.sum(1, keepdim=True)
         factor = (product / square.clamp_min(1e-30)).expand(-1, 3)
         model = factor[..., None, None] * unit
-        weights = mask / (1 + ((model - image) / scale) ** 2)
+        weights = irls_weights(problem, model - problem.image, solve, scale)
     residual = (model - image) * mask
     cost = (weights * residual**2).flatten(1).sum(1)
     return Fit(fit.position, weight[:, 1:, None] * factor[:, None], weight[:, :1] * factor, cost, model,
