@@ -24,6 +24,7 @@ from torch import Tensor
 
 from selfsup.estimation import albedo_free
 from selfsup.estimation.problem import FitProblem, subsample
+from selfsup.scenes.camera import lens_falloff as falloff  # the camera model's lens, the one formula
 
 __all__ = ["falloff", "devignetted", "choose_vignetting", "SHARES"]
 
@@ -41,31 +42,6 @@ CHOICE_STRIDE = 1
 CHOICE_STARTS = 2
 CHOICE_ITERATIONS = 10
 CHOICE_RANK_STRIDE = 8
-
-
-def falloff(intrinsics: Tensor, height: int, width: int, corner_share: Tensor) -> Tensor:
-    """The radial factor ``(B, H, W)`` in ``(0, 1]`` of a lens whose corners lose
-    ``corner_share (B,)`` of the centre's light: ``(1 + a r^2)^-2`` with ``r^2`` the squared
-    distance from the principal point in focal lengths, ``a`` set by the corners.
-
-    Args:
-        intrinsics: ``(B, 3, 3)``; corner_share: ``(B,)`` in ``[0, 1)``.
-
-    Example:
-        >>> K = torch.tensor([[[100.0, 0, 79.5], [0, 100.0, 59.5], [0, 0, 1]]])
-        >>> falloff(K, 120, 160, torch.tensor([0.3]))[0, 0, 0]  # a corner   # doctest: +SKIP
-        tensor(0.7012)
-    """
-    dtype, device = intrinsics.dtype, intrinsics.device
-    v, u = torch.meshgrid(torch.arange(height, dtype=dtype, device=device),
-                          torch.arange(width, dtype=dtype, device=device), indexing="ij")
-    fx, fy = intrinsics[:, 0, 0, None, None], intrinsics[:, 1, 1, None, None]
-    cx, cy = intrinsics[:, 0, 2, None, None], intrinsics[:, 1, 2, None, None]
-    r2 = ((u - cx) / fx) ** 2 + ((v - cy) / fy) ** 2  # (B, H, W)
-    corner = (width / 2 / fx) ** 2 + (height / 2 / fy) ** 2  # (B, 1, 1)
-    share = corner_share.to(dtype).clamp(0.0, 0.99)[:, None, None]
-    a = ((1 - share) ** -0.5 - 1) / corner  # (1 + a corner)^-2 = 1 - share
-    return (1 + a * r2) ** -2
 
 
 def devignetted(problem: FitProblem, corner_share: Tensor) -> FitProblem:

@@ -8,6 +8,8 @@ measured against the truth:
 - :func:`with_area_lights`: a light becomes a grid of points over a square, a ceiling
   panel (horizontal, just under the room's top) or a window (vertical, in front of the
   back wall); the truth stays the square's centre;
+- :func:`lens_falloff`: a lens's vignetting, ``(1 + a r^2)^-2`` (the estimator divides the same
+  formula out: :mod:`selfsup.estimation.vignetting`);
 - :class:`CameraModel` and :func:`camera_capture`: auto exposure metered on the mean
   (bright pixels clip), grey-world auto white balance, vignetting, the sRGB curve, 8 bits,
   JPEG, colour shifted against the depth by a few pixels, depth from a structured-light
@@ -34,7 +36,7 @@ from selfsup.scenes.capture import linear_to_srgb
 from selfsup.scenes.io import Scene
 from selfsup.scenes.sampler import SceneSpec
 
-__all__ = ["with_area_lights", "CameraModel", "CameraCapture", "camera_capture", "AREA_KINDS"]
+__all__ = ["with_area_lights", "lens_falloff", "CameraModel", "CameraCapture", "camera_capture", "AREA_KINDS"]
 
 AREA_KINDS = ("panel", "window")
 
@@ -86,6 +88,31 @@ def with_area_lights(spec: SceneSpec, kind: str, size: float = 0.6, points: int 
     meta = {**spec.meta, "area_lights": {"kind": kind, "size_m": size, "points": points}}
     return replace(spec, light_position=position.contiguous(), light_relative_intensity=intensity.contiguous(),
                    meta=meta), centres
+
+
+def lens_falloff(intrinsics: Tensor, height: int, width: int, corner_share: Tensor) -> Tensor:
+    """The radial factor ``(B, H, W)`` in ``(0, 1]`` of a lens whose corners lose
+    ``corner_share (B,)`` of the centre's light: ``(1 + a r^2)^-2`` with ``r^2`` the squared
+    distance from the principal point in focal lengths, ``a`` set by the corners.
+
+    Args:
+        intrinsics: ``(B, 3, 3)``; corner_share: ``(B,)`` in ``[0, 1)``.
+
+    Example:
+        >>> K = torch.tensor([[[100.0, 0, 79.5], [0, 100.0, 59.5], [0, 0, 1]]])
+        >>> lens_falloff(K, 120, 160, torch.tensor([0.3]))[0, 0, 0]  # a corner   # doctest: +SKIP
+        tensor(0.7012)
+    """
+    dtype, device = intrinsics.dtype, intrinsics.device
+    v, u = torch.meshgrid(torch.arange(height, dtype=dtype, device=device),
+                          torch.arange(width, dtype=dtype, device=device), indexing="ij")
+    fx, fy = intrinsics[:, 0, 0, None, None], intrinsics[:, 1, 1, None, None]
+    cx, cy = intrinsics[:, 0, 2, None, None], intrinsics[:, 1, 2, None, None]
+    r2 = ((u - cx) / fx) ** 2 + ((v - cy) / fy) ** 2  # (B, H, W)
+    corner = (width / 2 / fx) ** 2 + (height / 2 / fy) ** 2  # (B, 1, 1)
+    share = corner_share.to(dtype).clamp(0.0, 0.99)[:, None, None]
+    a = ((1 - share) ** -0.5 - 1) / corner  # (1 + a corner)^-2 = 1 - share
+    return (1 + a * r2) ** -2
 
 
 @dataclass(frozen=True)
@@ -186,12 +213,8 @@ def _processed_colour(linear: np.ndarray, K: np.ndarray, valid: np.ndarray, mode
     # its grid: (linear (h, w, 3), exposure, gains (3,), shift (dx, dy)).
     H, W = valid.shape
     if model.vignetting > 0:  # a falloff in the lens, before the sensor
-        v, u = np.mgrid[0:H, 0:W]
-        r2 = ((u - K[0, 2]) / K[0, 0]) ** 2 + ((v - K[1, 2]) / K[1, 1]) ** 2
-        corner = ((W / 2 / K[0, 0]) ** 2 + (H / 2 / K[1, 1]) ** 2)
-        # (1 + a r^2)^-2, the cos^4 law's shape, with a chosen so that the corners get 1 - vignetting.
-        a = ((1 - model.vignetting) ** -0.5 - 1) / corner
-        linear *= ((1 + a * r2) ** -2)[..., None]
+        lens = lens_falloff(torch.from_numpy(K)[None], H, W, torch.tensor([model.vignetting], dtype=torch.float64))
+        linear *= lens[0].numpy()[..., None]
     gains = np.ones(3)
     if model.white_balance:
         means = linear[valid].mean(0)
