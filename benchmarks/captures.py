@@ -160,6 +160,16 @@ REALITY_SETS = {
     "panel": ("panel", (160, 120), {}),
     "window": ("window", (160, 120), {}),
 }
+# One camera reality at a time beside the plain recipe, and the whole camera but its lens:
+# which of them costs what (docs/decisions.md, 2026-11-28).
+_PLAIN = REALITY_SETS["plain"][2]
+REALITY_SETS.update({name: ("point", (160, 120), {**_PLAIN, **change}) for name, change in {
+    "lens_15": dict(vignetting=0.15), "lens_30": dict(vignetting=0.3), "lens_45": dict(vignetting=0.45),
+    "exposure": dict(key=(0.12, 0.3)), "white_balance": dict(white_balance=True), "jpeg": dict(jpeg_quality=85),
+    "misregistered": dict(misregistration_px=2.0),
+    "depth_sensor": dict(disparity_step=0.0028, depth_bumps=0.002, edge_holes=0.04, random_holes=0.01),
+}.items()})
+REALITY_SETS["camera_no_lens"] = ("point", (160, 120), dict(vignetting=0.0))
 
 
 def realities(out: Path, count: int = 12, seed: int = 9000, sets=tuple(REALITY_SETS)) -> None:
