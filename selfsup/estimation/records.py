@@ -49,7 +49,7 @@ def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, 
             covariances[i] = cov[j]
             if resolve:
                 lit[i] = intensity[j : j + 1], ambient[j : j + 1]
-    shares: list[Tensor] = [None] * len(results)  # type: ignore[list-item]
+    shares: list[tuple[Tensor, Tensor] | None] = [None] * len(results)  # (share, mean shading) per record
     for _, group in by_model([replace(best, specular=False) for best, _ in results]).items():
         at = torch.tensor(group, dtype=torch.long, device=problem.image.device)
         fits = [results[i][0].fit if lit[i] is None else replace(results[i][0].fit, intensity=lit[i][0], ambient=lit[i][1])

@@ -134,7 +134,8 @@ class Scene:
             return torch.where(weight.sum(2) > 0, (b * weight).sum(2) / weight.sum(2).clamp_min(1), b.mean(2))
 
         # The median of the valid depths: invalid ones sorted to the end as +inf.
-        depths = torch.where(inside, blocks(self.depth), torch.full_like(blocks(self.depth), math.inf)).sort(-1).values
+        depth_blocks = blocks(self.depth)
+        depths = torch.where(inside, depth_blocks, torch.full_like(depth_blocks, math.inf)).sort(-1).values
         middle = ((count - 1).clamp_min(0) // 2)[..., None]
         depth = torch.where(kept, depths.gather(-1, middle)[..., 0], torch.zeros(()))
         normals = mean(self.normals)
