@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from selfsup.estimation import albedo_free
-from selfsup.estimation.problem import FitProblem, subsample
+from selfsup.estimation.problem import FitProblem
 from selfsup.scenes.camera import lens_falloff as falloff  # the camera model's lens, the one formula
 
 __all__ = ["falloff", "devignetted", "choose_vignetting", "SHARES"]
@@ -32,9 +32,6 @@ __all__ = ["falloff", "devignetted", "choose_vignetting", "SHARES"]
 # lose 20-50% of the light at the corners without correction).
 SHARES = (0.0, 0.25, 0.5)
 FULL_ITERATIONS = 15  # the chosen strength's first light at full resolution, as albedo_free.search ends
-# The strengths are compared on every CHOICE_STRIDE-th pixel. 2 (a quarter of the pixels)
-# lost 3 of 67 successes over the 108 camera-realities frames (ad hoc, 2026-11-28).
-CHOICE_STRIDE = 1
 # Each strength's search: this many starts of this many LM steps, the grid ranked on every
 # CHOICE_RANK_STRIDE-th pixel (albedo_free.search's defaults: 4, 15 and 4, which chose as
 # well on the 108 camera-realities frames: 67, 68 and 70 successes as each was cheapened in
@@ -81,16 +78,16 @@ def choose_vignetting(problem: FitProblem, labels: Tensor | None, criterion, sea
     if problem.gbuffer.intrinsics is None:
         shares = problem.image.new_zeros(B)
         return shares, albedo_free.search(problem, 1, labels=labels, **search_kwargs)
-    # Each strength's first light on every CHOICE_STRIDE-th pixel (the scales of the image as
-    # given: the loss of each strength on one scale), without the search's last steps, which
-    # only the chosen one takes at full resolution (FULL_ITERATIONS).
-    coarse = subsample(problem, CHOICE_STRIDE)
-    tried = [devignetted(coarse, torch.full((B,), share, dtype=problem.image.dtype, device=problem.image.device))
+    # Each strength's first light on every pixel (the scales of the image as given: the loss of
+    # each strength on one scale; every 2nd pixel lost 3 of 67 successes on the 108 camera-
+    # realities frames, ad hoc, 2026-11-28), without the search's last steps, which only the
+    # chosen one takes at full resolution (FULL_ITERATIONS).
+    tried = [devignetted(problem, torch.full((B,), share, dtype=problem.image.dtype, device=problem.image.device))
              for share in SHARES]
     together = FitProblem.cat(tried)
-    together._median = torch.cat([coarse._median] * len(SHARES))
-    together._noise = torch.cat([coarse._noise] * len(SHARES))
-    at = None if labels is None else labels[:, ::CHOICE_STRIDE, ::CHOICE_STRIDE].repeat(len(SHARES), 1, 1)
+    together._median = torch.cat([problem._median] * len(SHARES))
+    together._noise = torch.cat([problem._noise] * len(SHARES))
+    at = None if labels is None else labels.repeat(len(SHARES), 1, 1)
     fit = albedo_free.search(together, 1, labels=at, starts=CHOICE_STARTS, iterations=(CHOICE_ITERATIONS, 0),
                              rank_stride=CHOICE_RANK_STRIDE, **search_kwargs)
     values = torch.tensor([criterion(fit, [0 if share == 0 else 1 for share in SHARES for _ in range(B)])],
