@@ -18,7 +18,8 @@ from selfsup.model import LightNet
 __all__ = ["DEFAULT_CHECKPOINT", "save_network", "load_network", "load_checkpoint"]
 
 DEFAULT_CHECKPOINT = Path(__file__).parent / "checkpoints" / "lightnet.pt"
-CHECKPOINT_FORMAT = 1
+# 2: the network of colour and depth alone (no albedo channel), counting its lights (issue 62).
+CHECKPOINT_FORMAT = 2
 
 
 def save_network(path: str | Path, network: LightNet, model_config: dict, metrics: dict | None = None,
@@ -63,6 +64,10 @@ def load_network(path: str | Path | None = None, map_location="cpu") -> tuple[Li
     state = load_checkpoint(path, map_location)
     if not isinstance(state, dict) or "model" not in state or "model_config" not in state:
         raise ValueError(f"{path} is not a LightNet checkpoint (needs 'model' and 'model_config')")
+    if state.get("format", 1) != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path} holds a LightNet of checkpoint format {state.get('format', 1)}; this version reads "
+                         f"format {CHECKPOINT_FORMAT} (the network of colour and depth alone that counts its lights): "
+                         "train one with `python train.py` (docs/training.md)")
     config = dict(state["model_config"])
     if "widths" in config:
         config["widths"] = tuple(config["widths"])

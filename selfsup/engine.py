@@ -59,8 +59,11 @@ class DataOptions:
     val_seed: int = 2
     refresh_epochs: int = 0  # 0: one pool for the whole run
     workers: int = 2
+    albedo_share: float = 0.0  # share of training steps whose cost volumes see the scenes' albedo
 
     def __post_init__(self):
+        if not 0 <= self.albedo_share <= 1:
+            raise ValueError(f"data.pool.albedo_share must be in [0, 1], got {self.albedo_share}")
         if self.train_scenes < 1 or self.val_scenes < 1:
             raise ValueError(f"train_scenes and val_scenes must be >= 1, got {self.train_scenes}, {self.val_scenes}")
         if self.refresh_epochs < 0 or self.workers < 0:
@@ -288,8 +291,12 @@ class Trainer:
                 pool = self._pool(generation, "train")
                 batch = {key: value[indices].to(ctx.device, non_blocking=True) for key, value in pool.items()}
                 scenes = scene_batch(batch)
+                # The network needs no albedo; a share of the steps lets its cost volumes see the
+                # true one, as a caller with a scene file's albedo may (the step decides: resume stays exact).
+                albedo = self.pool_options.albedo_share > 0 and float(torch.rand(
+                    (), generator=torch.Generator().manual_seed(self.seed * 7919 + step))) < self.pool_options.albedo_share
                 with torch.autocast(ctx.device.type, dtype=torch.bfloat16, enabled=amp):
-                    prediction = model(scenes.image, scenes.gbuffer, scenes.material.kd)
+                    prediction = model(scenes.image, scenes.gbuffer, scenes.material.kd if albedo else None)
                 terms = reconstruction_loss(_float32(prediction), scenes, renderer, self.loss, batch)
                 if not torch.isfinite(terms.total):
                     raise FloatingPointError(f"non-finite loss at step {step}: {terms.total.item()}")
@@ -304,7 +311,7 @@ class Trainer:
                 bar.update(1)
                 if writer is not None and (step % self.logger.log_every == 0 or step == 1):
                     now = time.perf_counter()
-                    for name in ("total", "photometric", "hypotheses", "presence", "intensity", "supervised"):
+                    for name in ("total", "photometric", "hypotheses", "presence", "intensity", "supervised", "count"):
                         writer.add_scalar(f"train/{name}", float(getattr(terms, name).detach()), step)
                     writer.add_scalar("train/needed_lights", float(terms.needed.float().sum(1).mean()), step)
                     writer.add_scalar("train/lr", schedule.get_last_lr()[0], step)
@@ -366,9 +373,9 @@ class Trainer:
         batch = {key: value[: self.logger.images].to(device) for key, value in pool.items()}
         scenes = scene_batch(batch)
         network.eval()
-        prediction = network(scenes.image, scenes.gbuffer, scenes.material.kd)
+        prediction = network(scenes.image, scenes.gbuffer)
         network.train()
-        terms = reconstruction_loss(prediction, scenes, renderer, self.loss)
+        terms = reconstruction_loss(prediction, scenes, renderer, self.loss, batch)
         exposure = scene_frame(scenes.image, scenes.gbuffer).exposure
         shadow = terms.visibility[:, :1].expand(-1, 3, -1, -1)
         tiles = [_display(scenes.image, exposure), _display(terms.render, exposure),

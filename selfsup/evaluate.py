@@ -22,6 +22,11 @@ def summarise(rows: list[dict]) -> dict[str, float]:
     """Medians and rates over per-scene rows of :func:`evaluate_network`."""
     if not rows:
         raise ValueError("no scenes to summarise")
+    by_count = {}
+    for n, name in ((1, "one_light_success"), (2, "two_light_right_count"), (3, "three_light_right_count")):
+        these = [r for r in rows if r.get("lights_true") == n]
+        if these:  # per room size: placed (one light), counted (two and three)
+            by_count[name] = statistics.fmean(float(r["success"] if n == 1 else r["count_right"]) for r in these)
     return {
         "scenes": len(rows),
         "median_position_error": statistics.median(r["position_error"] for r in rows),
@@ -30,15 +35,18 @@ def summarise(rows: list[dict]) -> dict[str, float]:
         "mean_angular_error": statistics.fmean(r["angular_error"] for r in rows),
         "success_rate": statistics.fmean(float(r["success"]) for r in rows),
         "count_accuracy": statistics.fmean(float(r["count_right"]) for r in rows),
+        **by_count,
     }
 
 
 @torch.no_grad()
 def evaluate_network(network: LightNet, pool: dict[str, Tensor], batch_size: int = 64,
-                     presence_threshold: float = 0.5) -> list[dict]:
+                     albedo: bool = False) -> list[dict]:
     """One row per scene of ``pool`` (stacked items with ground truth): the worst
     light's ``position_error`` (an unpaired light counts 1.0), the median
     ``angular_error`` of the paired lights (180 when none), ``success``, ``count_right``.
+    The network's count says how many of its slots are lights; ``albedo``: its cost
+    volumes see the pool's albedo (as for a scene file that gives it), else none.
 
     The network runs in eval mode on its own device; the pool may live anywhere.
     """
@@ -50,10 +58,10 @@ def evaluate_network(network: LightNet, pool: dict[str, Tensor], batch_size: int
         for start in range(0, pool["image"].shape[0], batch_size):
             batch = {key: value[start:start + batch_size].to(device) for key, value in pool.items()}
             scenes = scene_batch(batch)
-            prediction = network(scenes.image, scenes.gbuffer, scenes.material.kd)
+            prediction = network(scenes.image, scenes.gbuffer, scenes.material.kd if albedo else None)
             centre = scene_frame(scenes.image, scenes.gbuffer).centre
             for i in range(scenes.image.shape[0]):
-                position, intensity = prediction.lights_of(i, presence_threshold)
+                position, intensity = prediction.lights_of(i)
                 truth = batch["light_mask"][i]
                 errors = light_errors(position.float().cpu(), intensity.float().cpu(),
                                       batch["light_pos"][i][truth].cpu(), batch["light_intensity"][i][truth].cpu(),

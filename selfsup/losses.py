@@ -12,17 +12,24 @@ network's own intensity, ambient and presence heads learn from the same fit:
 
 - a slot is *needed* when removing it from the fit raises the photometric error
   by more than ``need_ratio`` of it (and more than ``need_floor``); slot 0 (the
-  network's best position hypothesis) is always needed. Presence learns this label (binary cross
-  entropy), so unneeded slots switch off: the network models only what a scene needs.
+  network's best position hypothesis) is always needed. The count head learns their
+  number (cross entropy), so unneeded slots switch off: the network models only what a
+  scene needs.
 - intensities and ambient learn the closed-form values of the fit with the
   needed slots (log-L1), treated as constants.
 
-The first slot's position hypotheses (:class:`selfsup.model.LightNet`) are
-scored by the same robust photometric error: each hypothesis is re-rendered
-alone (without cast shadows and every ``hypothesis_stride``-th pixel, for
-speed), its intensity solved in closed form, and the scores learn the softmax
-of the negative errors (temperature ``hypothesis_temperature`` times the best
-error). The first slot's learned offset follows the shadowed photometric error.
+Each slot's position hypotheses (:class:`selfsup.model.LightNet`) are scored by the
+same robust photometric error: each hypothesis is re-rendered as one more light beside
+the slots before it (without cast shadows and every ``hypothesis_stride``-th pixel, for
+speed; those slots' intensities and the ambient fitted first, the hypothesis's then, in
+closed form, with the scene's albedo), and the scores learn the softmax of the negative
+errors (temperature ``hypothesis_temperature`` times the best error). The slots' learned
+offsets follow the shadowed photometric error.
+
+The count head learns the number of needed slots (weight ``presence_weight``); the
+photometric signal for "is this slot needed" is degenerate where indirect light or
+texture looks like a light, so ``count_weight > 0`` adds the generator's true count as
+an auxiliary target (the only ground truth the default captures recipe reads).
 """
 
 from __future__ import annotations
@@ -35,7 +42,7 @@ from torch import Tensor
 
 from render import GBuffer, Material, ShadowedBlinnPhong
 from selfsup.linear import basis_images, pseudo_huber, single_light_costs, solve_intensities
-from selfsup.model import LightPrediction, scene_frame
+from selfsup.model import LightPrediction, residual_after, scene_frame
 
 __all__ = ["LossOptions", "LossTerms", "SceneBatch", "scene_batch", "reconstruction_loss"]
 
@@ -50,6 +57,7 @@ class LossOptions:
     presence and intensity/ambient heads' terms. ``need_ratio``, ``need_floor``:
     when a slot counts as needed (see the module doc). ``supervised_weight``:
     ablation only; 0 (default) keeps the loss free of ground-truth lights.
+    ``count_weight``: > 0 adds the true number of lights as the count head's target.
     """
 
     robust_scale: float = 0.05
@@ -61,6 +69,7 @@ class LossOptions:
     hypothesis_stride: int = 3
     hypothesis_temperature: float = 0.05
     supervised_weight: float = 0.0
+    count_weight: float = 0.0
 
     def __post_init__(self):
         if self.robust_scale <= 0:
@@ -68,7 +77,7 @@ class LossOptions:
         if self.hypothesis_stride < 1 or self.hypothesis_temperature <= 0:
             raise ValueError("hypothesis_stride must be >= 1 and hypothesis_temperature > 0")
         for name in ("presence_weight", "intensity_weight", "need_ratio", "need_floor", "hypothesis_weight",
-                     "supervised_weight"):
+                     "supervised_weight", "count_weight"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
@@ -115,6 +124,7 @@ class LossTerms:
     presence: Tensor
     intensity: Tensor
     supervised: Tensor
+    count: Tensor
     needed: Tensor
     render: Tensor
     visibility: Tensor
@@ -178,14 +188,26 @@ def reconstruction_loss(prediction: LightPrediction, scenes: SceneBatch, rendere
     intensity, ambient, model, cost_needed = fit(needed.to(image.dtype))
     photometric = 0.5 * (cost_all.mean() + cost_needed.mean())
 
+    hypotheses = torch.zeros((), dtype=image.dtype, device=image.device)
     with torch.no_grad():
-        costs = hypothesis_costs(prediction.anchor_position.detach(), scenes, frame.exposure, renderer.falloff,
-                                 options.hypothesis_stride, options.robust_scale)
-        best = costs.amin(1, keepdim=True)
-        target = torch.softmax(-(costs - best) / (options.hypothesis_temperature * best.clamp_min(1e-8)), 1)
-    hypotheses = -(target * torch.log_softmax(prediction.anchor_logits, 1)).sum(1).mean()
+        s = options.hypothesis_stride
+        pixels = (g.points[:, ::s, ::s], g.normals[:, ::s, ::s], g.mask[:, ::s, ::s], m.kd[:, ::s, ::s], image[:, :, ::s, ::s])
+    for k in range(K):
+        with torch.no_grad():
+            seen = pixels[-1] if k == 0 else residual_after(prediction.position[:, :k].detach(), *pixels, renderer.falloff)
+            costs = single_light_costs(prediction.anchor_position[:, k].detach(), *pixels[:4], seen, frame.exposure,
+                                       renderer.falloff, options.robust_scale)
+            best = costs.amin(1, keepdim=True)
+            target = torch.softmax(-(costs - best) / (options.hypothesis_temperature * best.clamp_min(1e-8)), 1)
+        hypotheses = hypotheses - (target * torch.log_softmax(prediction.anchor_logits[:, k], 1)).sum(1).mean() / K
 
-    presence = F.binary_cross_entropy(prediction.presence.clamp(1e-6, 1 - 1e-6), needed.to(image.dtype))
+    presence = F.cross_entropy(prediction.count_logits, needed[:, 1:].sum(1))  # count label: 1 + the needed others
+    count = torch.zeros((), dtype=image.dtype, device=image.device)
+    if options.count_weight > 0:
+        if batch is None or "light_mask" not in batch:
+            raise ValueError("count_weight > 0 needs the batch's true light count (light_mask)")
+        true_count = batch["light_mask"].sum(1).clamp(1, K) - 1
+        count = F.cross_entropy(prediction.count_logits, true_count.to(prediction.count_logits.device))
     s = frame.exposure
     target_int = intensity.detach().clamp_min(1e-6 * s[:, None, None] * frame.size[:, None, None] ** 2)
     log_error = (prediction.intensity.clamp_min(1e-12).log() - target_int.log()).abs().mean(-1)
@@ -198,9 +220,9 @@ def reconstruction_loss(prediction: LightPrediction, scenes: SceneBatch, rendere
             raise ValueError("supervised_weight > 0 needs the batch's ground-truth lights")
         supervised = _supervised(prediction, batch, frame.size)
     total = (photometric + options.hypothesis_weight * hypotheses + options.presence_weight * presence + options.intensity_weight * intensity_term
-             + options.supervised_weight * supervised)
+             + options.supervised_weight * supervised + options.count_weight * count)
     visibility = transport.visibility if transport.visibility is not None else torch.ones_like(transport.diffuse)
     return LossTerms(total=total, photometric=photometric.detach(), hypotheses=hypotheses.detach(),
                      presence=presence.detach(),
-                     intensity=intensity_term.detach(), supervised=supervised.detach(), needed=needed,
+                     intensity=intensity_term.detach(), supervised=supervised.detach(), count=count.detach(), needed=needed,
                      render=model.detach(), visibility=visibility.detach())

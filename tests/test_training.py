@@ -36,14 +36,41 @@ def _smoke(tmp_path, *overrides):
     return _cfg("experiment=smoke", f"trainer.out_dir={tmp_path}", "logger.tensorboard=false", *overrides)
 
 
-def test_network_is_small_and_predicts_every_slot(pool):
-    network = LightNet(max_lights=2)
-    assert sum(p.numel() for p in network.parameters()) <= 2_000_000
+def test_network_is_small_counts_and_predicts_every_slot_without_an_albedo(pool):
+    network = LightNet(max_lights=3)
+    assert sum(p.numel() for p in network.parameters()) <= 10_000_000
     scenes = scene_batch(pool)
-    prediction = network(scenes.image, scenes.gbuffer, scenes.material.kd)
-    assert prediction.position.shape == (8, 2, 3) and prediction.intensity.shape == (8, 2, 3)
-    assert prediction.presence.shape == (8, 2) and prediction.ambient.shape == (8, 3)
+    prediction = network(scenes.image, scenes.gbuffer)  # colour and depth alone
+    assert prediction.position.shape == (8, 3, 3) and prediction.intensity.shape == (8, 3, 3)
+    assert prediction.presence.shape == (8, 3) and prediction.ambient.shape == (8, 3)
+    assert prediction.count_logits.shape == (8, 3) and prediction.anchor_logits.shape == (8, 3, 216)
+    assert prediction.anchor_position.shape == (8, 3, 216, 3)
     assert torch.isfinite(prediction.position).all() and (prediction.intensity > 0).all()
+    assert ((prediction.count >= 1) & (prediction.count <= 3)).all()
+    # presence is P(more lights than the slots before): 1, then falling
+    assert (prediction.presence[:, 0] == 1).all() and (prediction.presence.diff(dim=1) <= 1e-6).all()
+    assert prediction.lights_of(0)[0].shape[0] == int(prediction.count[0])
+    # an albedo, where a caller has one, reaches only the cost volumes: the same shapes
+    assert network(scenes.image, scenes.gbuffer, scenes.material.kd).position.shape == (8, 3, 3)
+
+
+def test_second_slot_finds_the_light_the_first_leaves():
+    # Two lights over a bumpy floor, rendered diffuse and unshadowed (the cost volumes'
+    # model): slot 1's volume, on what slot 0 leaves, holds the other light near its best.
+    H, W = 48, 64
+    K = torch.tensor([[[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]]])
+    v, u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    depth = (3.0 - 0.02 * v + 0.2 * torch.sin(u / 7.0) * torch.cos(v / 5.0))[None].float()
+    g = GBuffer.from_depth(depth, K)
+    lights = torch.tensor([[[0.8, -0.8, 2.2], [-0.9, -0.6, 3.0]]])
+    image = render(g, Material(kd=torch.full((1, H, W, 3), 0.6)),
+                   PointLights(position=lights, intensity=torch.tensor([[[4.0] * 3, [2.5] * 3]])),
+                   torch.full((1, 3), 0.02), shadows="none").image
+    with torch.no_grad():
+        prediction = LightNet(max_lights=2).eval()(image, g)
+    size = float(scene_frame(image, g).size[0])
+    error = torch.cdist(prediction.position[0], lights[0]) / size  # (slots, lights)
+    assert float(error.amin(1).max()) < 0.05 and set(error.argmin(1).tolist()) == {0, 1}, error
 
 
 def test_each_cascade_level_brings_the_cost_volume_closer_to_an_exact_light():
@@ -64,7 +91,7 @@ def test_each_cascade_level_brings_the_cost_volume_closer_to_an_exact_light():
     for levels in (1, 2, 3):
         network = LightNet(cascade_levels=levels).eval()
         start = network.anchors[(network.anchors - truth).norm(dim=-1).argmin()][None]
-        found = network.refine_anchor(start, image, g, kd, frame)
+        found = network.refine_anchor(start, network._evidence_pixels(image, g, kd), frame)
         errors.append(float((found - truth).norm()))
     assert errors[1] < errors[0] and errors[2] <= errors[1] + 1e-4, errors
     assert errors[1] < LightNet(cascade_levels=2).finest_step, errors
@@ -79,9 +106,10 @@ def test_network_output_follows_scene_scale_and_exposure(pool):
     scenes = scene_batch(pool)
     g = scenes.gbuffer
     with torch.no_grad():
-        base = network(scenes.image, g, scenes.material.kd)
-        scaled = network(2 * scenes.image, GBuffer(3 * g.points, g.normals, g.mask), scenes.material.kd)
-    torch.testing.assert_close(scaled.position, 3 * base.position, rtol=1e-4, atol=1e-4)
+        base = network(scenes.image, g)
+        scaled = network(2 * scenes.image, GBuffer(3 * g.points, g.normals, g.mask))
+    # float32 cost volumes of points 3x apart: positions agree to a few 1e-4 of their size
+    torch.testing.assert_close(scaled.position, 3 * base.position, rtol=1e-3, atol=2e-3)
     torch.testing.assert_close(scaled.intensity, 18 * base.intensity, rtol=1e-3, atol=1e-6)
 
 
@@ -126,7 +154,7 @@ def test_hypothesis_costs_by_chunks_of_images_equal_one_pass_and_carry_gradients
 def test_loss_reads_no_ground_truth_unless_the_ablation_switch_is_on(pool):
     scenes = scene_batch(pool)
     network = LightNet(max_lights=2)
-    prediction = network(scenes.image, scenes.gbuffer, scenes.material.kd)
+    prediction = network(scenes.image, scenes.gbuffer)
     renderer = ShadowedBlinnPhong(check_finite=False)
     garbage = dict(pool, light_pos=torch.randn_like(pool["light_pos"]) * 50,
                    light_intensity=torch.rand_like(pool["light_intensity"]))
@@ -140,14 +168,25 @@ def test_loss_reads_no_ground_truth_unless_the_ablation_switch_is_on(pool):
         reconstruction_loss(prediction, scenes, renderer, ablation, garbage).total.item()
     with pytest.raises(ValueError, match="ground-truth"):
         reconstruction_loss(prediction, scenes, renderer, ablation, None)
+    counted = LossOptions(count_weight=1.0)  # the auxiliary count reads the true count, nothing else
+    truth = reconstruction_loss(prediction, scenes, renderer, counted, pool).total.item()
+    assert reconstruction_loss(prediction, scenes, renderer, counted,
+                               dict(garbage, light_mask=pool["light_mask"])).total.item() == truth
+    one_light = torch.zeros_like(pool["light_mask"])
+    one_light[:, 0] = True
+    assert reconstruction_loss(prediction, scenes, renderer, counted, dict(pool, light_mask=one_light)).total.item() != truth
+    with pytest.raises(ValueError, match="true light count"):
+        reconstruction_loss(prediction, scenes, renderer, counted, None)
 
 
 def test_loss_gradient_reaches_every_trained_head(pool):
     scenes = scene_batch(pool)
     network = LightNet(max_lights=2)
-    prediction = network(scenes.image, scenes.gbuffer, scenes.material.kd)
-    reconstruction_loss(prediction, scenes, ShadowedBlinnPhong(check_finite=False), LossOptions()).total.backward()
-    for name in ("out.weight", "anchor_out.weight", "backbone.0.0.weight"):
+    prediction = network(scenes.image, scenes.gbuffer)
+    reconstruction_loss(prediction, scenes, ShadowedBlinnPhong(check_finite=False), LossOptions(count_weight=1.0),
+                        pool).total.backward()
+    for name in ("slot_out.weight", "anchor_out.weight", "count_out.0.weight", "ambient_out.weight",
+                 "backbone.0.0.weight", "slot_embedding"):
         grad = dict(network.named_parameters())[name].grad
         assert grad is not None and torch.isfinite(grad).all() and grad.abs().sum() > 0, name
 
@@ -190,7 +229,7 @@ def test_a_few_training_steps_lower_the_loss_on_a_tiny_set(tmp_path, pool):
 
     def loss_of(network):
         with torch.no_grad():
-            return reconstruction_loss(network(scenes.image, scenes.gbuffer, scenes.material.kd), scenes,
+            return reconstruction_loss(network(scenes.image, scenes.gbuffer), scenes,
                                        trainer.renderer, trainer.loss).total.item()
 
     torch.manual_seed(cfg.seed)
@@ -245,9 +284,9 @@ def test_shipped_checkpoint_loads_small_and_within_budget():
 
     if not DEFAULT_CHECKPOINT.is_file():
         pytest.fail(f"the shipped checkpoint {DEFAULT_CHECKPOINT} is missing")
-    assert DEFAULT_CHECKPOINT.stat().st_size <= 20 * 2**20
+    assert DEFAULT_CHECKPOINT.stat().st_size <= 40 * 2**20  # issue 62: at most 40 MB, 10 M parameters
     network, state = load_network()
-    assert sum(p.numel() for p in network.parameters()) <= 2_000_000
+    assert sum(p.numel() for p in network.parameters()) <= 10_000_000
     assert state["metrics"]["median_position_error"] < 0.10
 
 

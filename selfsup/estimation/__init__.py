@@ -11,8 +11,8 @@ Read it top down, each module one job, every import pointing down this list:
 - :mod:`~selfsup.estimation.solvers`: LM, first-order (the paper's GD, Adam), grid search;
 - :mod:`~selfsup.estimation.prepare`: per-frame inputs (normals refit, clipped pixels, working range);
 - :mod:`~selfsup.estimation.problem`: the fit problem and its closed-form linear part;
-- :mod:`~selfsup.estimation.albedo_free`, :mod:`~selfsup.estimation.indirect`, :mod:`~selfsup.estimation.normals`:
-  the albedo-free fit, indirect light, normals of noisy depth;
+- :mod:`~selfsup.estimation.albedo_free`, :mod:`~selfsup.estimation.normals`: the albedo-free fit, normals of
+  noisy depth (indirect light: :mod:`selfsup.scenes.indirect`, shared with the generator);
 - :mod:`~selfsup.estimation.options`: the user's settings and the tuned constants.
 
 Example:

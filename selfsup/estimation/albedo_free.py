@@ -483,8 +483,8 @@ def _grid_losses(obs: LogShading, fixed: AlbedoFreeFit | None, cands: Tensor) ->
 def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None = None, robust_scale: float = 0.02,
            per_axis: tuple[int, int, int] = (7, 7, 7), starts: int = 4, rank_stride: int = 4, start_stride: int = 2,
            iterations: tuple[int, int] = (15, 15), residuals: str = "segments",
-           segment_scale: float = 50.0, labels: Tensor | None = None, split: bool = True, anchors: bool = True
-           ) -> AlbedoFreeFit:
+           segment_scale: float = 50.0, labels: Tensor | None = None, split: bool = True, anchors: bool = True,
+           extra_starts: Tensor | None = None) -> AlbedoFreeFit:
     """Fit ``n_lights`` lights to the log shading of ``problem``, every image at once.
 
     The last light is searched, the others (``fixed``, the fit of ``n_lights - 1``)
@@ -497,7 +497,9 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     :func:`anchor_pairs`, both lights moved; with more starts than ``starts``, each runs
     :data:`PRUNE_ITERATIONS` steps first and the best ``starts`` go on);
     ``residuals``, ``segment_scale``, ``labels``: as :func:`observe` (the segments are
-    found once, at full resolution).
+    found once, at full resolution). ``extra_starts (B, E, n_lights, 3)``: more starts (a
+    network's lights), each at the grid's contrast of its first light (the held lights'
+    weights and a third for the last, with ``fixed``).
     """
     B = problem.batch
     if (fixed is None) != (n_lights == 1) or (fixed is not None and fixed.position.shape[1] != n_lights - 1):
@@ -529,6 +531,18 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
         with torch.no_grad():
             pair_position, pair_weight = anchor_pairs(seen, paired, size, ANCHOR_STARTS)
         position, log_weight = torch.cat([position, pair_position], 1), torch.cat([log_weight, pair_weight], 1)
+    if extra_starts is not None:
+        if extra_starts.shape[0] != B or extra_starts.shape[2] != n_lights:
+            raise ValueError(f"extra_starts must be (B={B}, E, {n_lights}, 3), got {tuple(extra_starts.shape)}")
+        E = extra_starts.shape[1]
+        if fixed is None:
+            with torch.no_grad():
+                _, extra_weight = _grid_losses(ranked, None, extra_starts[:, :, 0].to(cands))
+        else:
+            extra_weight = torch.cat([fixed.log_weight, torch.full_like(fixed.log_weight[:, :1], math.log(1 / 3))], 1)
+            extra_weight = extra_weight[:, None].expand(B, E, -1)
+        position = torch.cat([position, extra_starts.to(position)], 1)
+        log_weight = torch.cat([log_weight, extra_weight.to(log_weight)], 1)
     S = position.shape[1]
     started = observe(subsample(problem, start_stride), robust_scale, residuals=residuals, labels=at(start_stride))
     if S > starts and iterations[0] > PRUNE_ITERATIONS:

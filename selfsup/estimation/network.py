@@ -11,6 +11,7 @@ from torch import Tensor
 from selfsup.estimation.criterion import Candidate, candidates
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import FitProblem
+from selfsup.estimation.reflectance import reflectance_unknown
 from selfsup.estimation.solvers import refine
 
 __all__ = ["cached_network", "network_slots", "network_candidates"]
@@ -25,13 +26,20 @@ def cached_network(checkpoint: str | None, device: str = "cpu"):
 
 @torch.no_grad()
 def network_slots(problem: FitProblem, checkpoint: str | None = None) -> tuple[Tensor, Tensor]:
-    """The network's light slots: positions ``(B, K, 3)`` and presence ``(B, K)``,
-    each image's most present first."""
+    """The network's light slots: positions ``(B, K, 3)`` and presence ``(B, K)`` (the
+    probability that the room has more lights than the slots before; slot 0 is 1), in the
+    network's order. The network needs no albedo: its cost volumes see the problem's only
+    where the file gives one (not one constant, :func:`reflectance_unknown`)."""
     network = cached_network(checkpoint, str(problem.image.device))
-    prediction = network(problem.image.float(), problem.gbuffer, problem.material.kd.float())
-    order = prediction.presence.argsort(dim=1, descending=True)
-    position = prediction.position.gather(1, order[..., None].expand(-1, -1, 3))
-    return position.to(problem.image.dtype), prediction.presence.gather(1, order)
+    image, g, kd = problem.image.float(), problem.gbuffer, problem.material.kd.float()
+    known = ~reflectance_unknown(problem)
+    prediction = network(image, g, kd if bool(known.all()) else None)
+    position, presence = prediction.position, prediction.presence
+    if bool(known.any()) and not bool(known.all()):  # a mixed batch: the albedo where it is known
+        given = network(image, g, kd)
+        position = torch.where(known[:, None, None], given.position, position)
+        presence = torch.where(known[:, None], given.presence, presence)
+    return position.to(problem.image.dtype), presence
 
 
 def network_candidates(problem: FitProblem, slots: Tensor, presence: Tensor, specular_of: list[bool],

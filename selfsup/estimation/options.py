@@ -100,7 +100,7 @@ class Tuning:
             judged under this shadow method, on every that-many-th pixel, with the
             solid behind each pixel this share of the scene size deep (None: unbounded).
         indirect: ``auto`` judges files without ambient with each light's indirect
-            light (:mod:`selfsup.estimation.indirect`) | ``never``.
+            light (:mod:`selfsup.scenes.indirect`) | ``never``.
         coat: ``auto`` | ``never`` | ``always``: the specular pixels' diffuse light
             through a rough clear coat (:mod:`render.coat`).
         search_shadows: shadow method of the global search.

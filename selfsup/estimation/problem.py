@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from render import GBuffer, Material, light_transport
-from selfsup.estimation.indirect import indirect_columns
+from selfsup.scenes.indirect import indirect_columns
 from selfsup.estimation.options import RefineOptions
 from selfsup.linear import basis_images, intensity_design, solve_design
 

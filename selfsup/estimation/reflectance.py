@@ -53,7 +53,8 @@ def _residuals(options: EstimateOptions) -> dict:
     return dict(residuals=options.tuning.albedo_free_residuals, segment_scale=options.tuning.albedo_segment_scale)
 
 
-def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
+def estimate_albedo_free(problem: FitProblem, options: EstimateOptions,
+                         slots: Tensor | None = None) -> list[tuple[Candidate, list[Candidate]]]:
     """Lights fitted to the log shading with each albedo segment's mean taken out (or its
     neighbour differences; :mod:`selfsup.estimation.albedo_free`), 1 .. ``max_lights`` while
     :func:`bic` of their Cauchy loss falls (with segments, judged without the highlights
@@ -70,19 +71,23 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
     image is estimated again without it and the whole model (its lights, and the falloff's
     one parameter) with the lower criterion on every residual is kept: two lights far apart
     light a room much as one light through a vignetting lens, and a one-light choice took
-    a falloff for devset capture 031's second light."""
+    a falloff for devset capture 031's second light.
+
+    ``slots (B, K, 3)``: a network's lights in its order (:func:`selfsup.estimation.network.network_slots`);
+    the search of ``n`` lights also starts from its first ``n``."""
     labels = geometry = None  # every image's albedo segments (and smooth surfaces), found once
     if options.tuning.albedo_free_residuals == "segments":
         g = problem.gbuffer
         geometry = surface_segments(g.points, g.normals, g.mask)
         labels = albedo_free.albedo_segments(problem, options.tuning.albedo_segment_scale, geometry)
     auto = options.tuning.vignetting == "auto"
-    results, whole = _fit_albedo_free(problem, options, labels, geometry, auto)
+    results, whole = _fit_albedo_free(problem, options, labels, geometry, auto, slots)
     again = [i for i, (best, _) in enumerate(results) if best.vignetting]
     if again:
         at = torch.tensor(again, dtype=torch.long, device=problem.image.device)
         plain, plain_whole = _fit_albedo_free(problem.select(at), options, None if labels is None else labels[at],
-                                              None if geometry is None else geometry[at], False)
+                                              None if geometry is None else geometry[at], False,
+                                              None if slots is None else slots[at])
         for j, i in enumerate(again):
             if plain_whole[j] <= whole[i]:
                 results[i] = plain[j]
@@ -90,7 +95,7 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions) -> list[
 
 
 def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tensor | None, geometry: Tensor | None,
-                     vignetting: bool) -> tuple[list[tuple[Candidate, list[Candidate]]], list[float]]:
+                     vignetting: bool, slots: Tensor | None = None) -> tuple[list[tuple[Candidate, list[Candidate]]], list[float]]:
     # estimate_albedo_free's results, with the lens's falloff chosen (vignetting) or none, and
     # each image's criterion of its whole chosen model on every residual.
     B, device = problem.batch, problem.image.device
@@ -106,12 +111,20 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
                 for loss, pairs, more in zip(fit.loss.tolist(), fit.pairs.tolist(), extra)]
 
     search_kwargs = dict(robust_scale=options.tuning.albedo_free_scale, **_residuals(options))
+
+    def network_starts(rows: Tensor | None, n_lights: int) -> dict:
+        # The network's first n lights as one more start of a search of n (None: no network).
+        if slots is None or n_lights > slots.shape[1]:
+            return {}
+        chosen = slots if rows is None else slots[rows]
+        return dict(extra_starts=chosen[:, None, :n_lights])
+
     if vignetting:
-        corner_loss, found = choose_vignetting(problem, labels, criterion, search_kwargs)
+        corner_loss, found = choose_vignetting(problem, labels, criterion, search_kwargs, network_starts(None, 1))
         problem = devignetted(problem, corner_loss)  # every fit below sees the image with the lens's falloff taken out
     else:
         corner_loss = problem.image.new_zeros(B)
-        found = albedo_free.search(problem, 1, labels=labels, **search_kwargs)
+        found = albedo_free.search(problem, 1, labels=labels, **search_kwargs, **network_starts(None, 1))
     pairs = found.pairs.tolist()
     if min(pairs) < MIN_RESIDUALS:
         raise ValueError(f"kd is one constant, so the lights are fitted albedo-free, but image {pairs.index(min(pairs))} "
@@ -129,7 +142,8 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         sub = problem.select(at)
         kwargs = dict(robust_scale=options.tuning.albedo_free_scale, labels=None if labels is None else labels[at],
                       **_residuals(options))
-        more = albedo_free.search_each(sub, albedo_free.search(sub, n_lights, fixed=before, **kwargs), **kwargs)
+        more = albedo_free.search_each(sub, albedo_free.search(sub, n_lights, fixed=before, **kwargs,
+                                                               **network_starts(at, n_lights)), **kwargs)
         shares = albedo_free.light_shares(sub, more).amin(1).tolist()
         fewer_value, more_value = [best[i][2] for i in growing], criterion(more)
         if kwargs["labels"] is not None and options.tuning.albedo_free_lobe_deg > 0:

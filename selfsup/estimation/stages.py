@@ -320,7 +320,7 @@ def estimate_batch(problem: FitProblem, options: EstimateOptions) -> list[Result
     free = albedo_free_images(problem, options)
     if any(free):
         results: list = [None] * problem.batch
-        for flag, fit_images in ((True, estimate_albedo_free), (False, estimate_given)):
+        for flag, fit_images in ((True, _albedo_free_with_network), (False, estimate_given)):
             rows = [i for i, f in enumerate(free) if f == flag]
             if not rows:
                 continue
@@ -333,6 +333,12 @@ def estimate_batch(problem: FitProblem, options: EstimateOptions) -> list[Result
                                                        kd=problem.material.kd.index_put((at,), sub.material.kd))
         return results
     return estimate_given(problem, options)
+
+
+def _albedo_free_with_network(problem: FitProblem, options: EstimateOptions) -> list[Result]:
+    # The albedo-free fit; with cnn+refine the network's lights join its searches' starts.
+    slots = network_slots(problem, options.checkpoint)[0] if options.method == "cnn+refine" else None
+    return estimate_albedo_free(problem, options, slots)
 
 
 def estimate_given(problem: FitProblem, options: EstimateOptions) -> list[Result]:

@@ -65,19 +65,20 @@ def _interpolated(values: Tensor, choice: Tensor) -> Tensor:
     return out
 
 
-def choose_vignetting(problem: FitProblem, labels: Tensor | None, criterion, search_kwargs: dict
-                      ) -> tuple[Tensor, albedo_free.AlbedoFreeFit]:
+def choose_vignetting(problem: FitProblem, labels: Tensor | None, criterion, search_kwargs: dict,
+                      starts: dict | None = None) -> tuple[Tensor, albedo_free.AlbedoFreeFit]:
     """Each image's corner loss ``(B,)`` of :data:`SHARES` and its first light's fit.
 
     The first light is searched through every strength at once (the images side by side);
     ``criterion(fit, extra_params)`` gives each image's value of a fit (lower is better),
     a strength other than none paying for one parameter. A problem without intrinsics
-    keeps none."""
+    keeps none. ``starts``: :func:`selfsup.estimation.albedo_free.search`'s ``extra_starts``
+    (a network's first light), or none."""
     B = problem.batch
     problem.median_observed(), problem.noise_level()  # the scales, found once on the image as given
     if problem.gbuffer.intrinsics is None:
         shares = problem.image.new_zeros(B)
-        return shares, albedo_free.search(problem, 1, labels=labels, **search_kwargs)
+        return shares, albedo_free.search(problem, 1, labels=labels, **search_kwargs, **(starts or {}))
     # Each strength's first light on every pixel (the scales of the image as given: the loss of
     # each strength on one scale; every 2nd pixel lost 3 of 67 successes on the 108 camera-
     # realities frames, ad hoc, 2026-11-28), without the search's last steps, which only the
@@ -88,8 +89,9 @@ def choose_vignetting(problem: FitProblem, labels: Tensor | None, criterion, sea
     together._median = torch.cat([problem._median] * len(SHARES))
     together._noise = torch.cat([problem._noise] * len(SHARES))
     at = None if labels is None else labels.repeat(len(SHARES), 1, 1)
+    extra = {k: v.repeat(len(SHARES), *[1] * (v.dim() - 1)) for k, v in (starts or {}).items()}
     fit = albedo_free.search(together, 1, labels=at, starts=CHOICE_STARTS, iterations=(CHOICE_ITERATIONS, 0),
-                             rank_stride=CHOICE_RANK_STRIDE, **search_kwargs)
+                             rank_stride=CHOICE_RANK_STRIDE, **search_kwargs, **extra)
     values = torch.tensor([criterion(fit, [0 if share == 0 else 1 for share in SHARES for _ in range(B)])],
                           dtype=torch.float64).view(len(SHARES), B)
     choice = values.argmin(0)  # (B,)

@@ -111,7 +111,7 @@ def render_items(seeds: list[int], sampler: SamplerConfig, degradations: Degrada
     """:func:`render_item` of each seed, ray cast together: the same results, several
     times faster per scene (see :func:`selfsup.scenes.exact.render_specs`)."""
     rendered = render_specs([sample_scene(seed, sampler) for seed in seeds], samples=samples)
-    return [(r, degrade(r.scene, degradations, seed)) for r, seed in zip(rendered, seeds)]
+    return [(r, degrade(r.scene, degradations, seed, r.visibility)) for r, seed in zip(rendered, seeds)]
 
 
 # glibc's mallopt(3) parameter M_TOP_PAD: how much free memory at the top of the heap

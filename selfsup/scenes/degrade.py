@@ -13,7 +13,16 @@ Each is a switch of :class:`Degradations` (mirrored by ``configs/data/*.yaml``):
 - image noise: Gaussian read noise ``image_noise`` plus shot noise
   ``shot_noise * sqrt(I)``, clamped at 0;
 - ambient: ``"true"``, ``"unknown"`` (dropped from the file, to be estimated) or
-  ``"wrong"`` (scaled by ``wrong_ambient_factor``).
+  ``"wrong"`` (scaled by ``wrong_ambient_factor``);
+- ``indirect``: the rooms' indirect light added, at a strength drawn in ``[0, indirect]``
+  times the first bounce and the later ones (:func:`selfsup.scenes.indirect.with_bounce`;
+  needs the render's visibility);
+- ``camera``: a camera drawn per scene (:func:`capture_camera`: auto exposure, white
+  balance, lens falloff, the sRGB curve, 8 bits, JPEG or PNG, a pixel's misregistration,
+  a structured-light depth sensor's steps, bumps and holes, millimetres) captures the
+  frame, and the inputs are what the capture reader makes of it: linear colour, metric
+  depth, no normals and no ambient; the lights' intensities follow the exposure and the
+  white balance's gains.
 
 Ground truth (``light_pos``, ``light_intensity``, ``scene_scale``) is copied as is.
 """
@@ -23,13 +32,18 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
+from render import GBuffer
+from selfsup.scenes.camera import CameraModel, camera_capture
+from selfsup.scenes.capture import srgb_to_linear
 from selfsup.scenes.exact import fractal_noise, neighbourhood_max
+from selfsup.scenes.indirect import with_bounce
 from selfsup.scenes.io import Scene
 
-__all__ = ["Degradations", "degrade", "REFLECTANCE_MODES", "AMBIENT_MODES"]
+__all__ = ["Degradations", "degrade", "capture_camera", "REFLECTANCE_MODES", "AMBIENT_MODES"]
 
 REFLECTANCE_MODES = ("true", "half", "noise")
 AMBIENT_MODES = ("true", "unknown", "wrong")
@@ -49,6 +63,8 @@ class Degradations:
     shot_noise: float = 0.0
     ambient: str = "true"
     wrong_ambient_factor: float = 2.0
+    indirect: float = 0.0
+    camera: bool = False
 
     def __post_init__(self):
         if self.reflectance not in REFLECTANCE_MODES:
@@ -56,7 +72,7 @@ class Degradations:
         if self.ambient not in AMBIENT_MODES:
             raise ValueError(f"ambient must be one of {AMBIENT_MODES}, got {self.ambient!r}")
         for name in ("reflectance_noise", "depth_noise", "depth_quantisation", "edge_hole_jump", "random_holes",
-                     "image_noise", "shot_noise", "wrong_ambient_factor"):
+                     "image_noise", "shot_noise", "wrong_ambient_factor", "indirect"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.random_holes >= 1:
@@ -90,13 +106,48 @@ def _degrade_depth(depth: Tensor, d: Degradations, gen: torch.Generator) -> Tens
     return torch.where(keep, z, 0.0)
 
 
-def degrade(scene: Scene, degradations: Degradations, seed: int) -> Scene:
-    """A copy of ``scene`` with the inputs degraded (reproducible from ``seed``)."""
+def capture_camera(gen: torch.Generator) -> CameraModel:
+    """A consumer camera drawn from ``gen``: mean-metered exposure, white balance (70%),
+    a lens losing 0-45% at the corners, PNG or JPEG (quality 70-95), colour and depth a
+    pixel apart (30%), a structured-light sensor's disparity steps, bumps and holes."""
+    draw = lambda low, high: low + (high - low) * float(torch.rand((), generator=gen, dtype=torch.float64))  # noqa: E731
+    return CameraModel(
+        key=(0.08, 0.35), white_balance=draw(0, 1) < 0.7, vignetting=draw(0.0, 0.45),
+        jpeg_quality=None if draw(0, 1) < 0.5 else int(draw(70, 95)), misregistration_px=float(draw(0, 1) < 0.3),
+        disparity_step=draw(0.0005, 0.003), depth_bumps=draw(0.0, 0.002), edge_holes=0.04 if draw(0, 1) < 0.7 else 0.0,
+        random_holes=draw(0.0, 0.02))
+
+
+def _captured(scene: Scene, gen: torch.Generator) -> Scene:
+    # The frame through a drawn camera, read back as the capture reader would.
+    seed = int(torch.randint(0, 2**31 - 1, (), generator=gen))
+    capture = camera_capture(scene.image, scene.depth, scene.K, capture_camera(gen), seed)
+    gains = torch.as_tensor(capture.gains * capture.exposure, dtype=scene.image.dtype)
+    image = torch.from_numpy(srgb_to_linear(capture.color.astype(np.float64) / 255)).to(scene.image.dtype)
+    depth = torch.from_numpy(capture.depth_mm.astype(np.float64) / 1000).to(scene.depth.dtype)
+    intensity = None if scene.light_intensity is None else scene.light_intensity * gains
+    return dataclasses.replace(scene, image=image, depth=depth, K=torch.from_numpy(capture.K).to(scene.K.dtype),
+                               normals=None, ambient=None, light_intensity=intensity)
+
+
+def degrade(scene: Scene, degradations: Degradations, seed: int, visibility: Tensor | None = None) -> Scene:
+    """A copy of ``scene`` with the inputs degraded (reproducible from ``seed``);
+    ``visibility (H, W, L)``: the render's, which ``indirect`` needs."""
     d = degradations
     gen = torch.Generator().manual_seed(int(seed))
     out = dataclasses.replace(scene, meta=dict(scene.meta))
     H, W = scene.depth.shape
     valid = (scene.depth > 0)[..., None]
+    if d.indirect > 0 and scene.light_pos is not None:
+        if visibility is None:
+            raise ValueError("degradations.indirect needs the render's visibility (degrade(..., visibility=...))")
+        g = GBuffer.from_depth(scene.depth[None], scene.K[None], normals=scene.normals[None] if scene.normals is not None else None)
+        strength = d.indirect * float(torch.rand((), generator=gen, dtype=torch.float64))
+        lit = with_bounce(scene.image.permute(2, 0, 1)[None], g, scene.kd[None], scene.light_pos[None],
+                          scene.light_intensity[None], visibility.permute(2, 0, 1)[None].to(scene.image.dtype), strength,
+                          scene.meta.get("falloff", "inverse_square") == "inverse_square")
+        out.image = lit[0].permute(1, 2, 0).contiguous()
+        out.meta["indirect_strength"] = strength
     if d.reflectance == "half":
         out.kd = torch.full_like(scene.kd, 0.5) * valid
         out.ks = torch.full((H, W, 1), 0.5, dtype=scene.kd.dtype) * valid
@@ -114,13 +165,15 @@ def degrade(scene: Scene, degradations: Degradations, seed: int) -> Scene:
         out.normals = None
     if d.image_noise > 0 or d.shot_noise > 0:
         if d.shot_noise > 0:
-            sigma = (d.image_noise**2 + d.shot_noise**2 * scene.image).sqrt()
+            sigma = (d.image_noise**2 + d.shot_noise**2 * out.image).sqrt()
         else:  # the same value everywhere: one number, as the array would hold it
             sigma = torch.tensor(d.image_noise**2, dtype=scene.image.dtype).sqrt()
-        out.image = (scene.image + sigma * torch.randn(scene.image.shape, generator=gen, dtype=scene.image.dtype)).clamp_min(0)
+        out.image = (out.image + sigma * torch.randn(scene.image.shape, generator=gen, dtype=scene.image.dtype)).clamp_min(0)
     if d.ambient == "unknown":
         out.ambient = None
     elif d.ambient == "wrong" and scene.ambient is not None:
         out.ambient = scene.ambient * d.wrong_ambient_factor
+    if d.camera:
+        out = _captured(out, gen)
     out.meta["degradations"] = d.describe()
     return out

@@ -55,6 +55,7 @@ class SamplerConfig:
     ambient_range: tuple[float, float] = (0.0, 0.15)
     exposure_range: tuple[float, float] = (0.6, 1.1)
     scale_range: tuple[float, float] = (0.7, 1.4)
+    light_power_range: tuple[float, float] = (1 / 3, 1.0)  # each light's power (times its distance^2), relative
 
     def __post_init__(self):
         # Bad settings are named here, not met as a NaN probability or an empty room deep in sampling.
@@ -66,7 +67,8 @@ class SamplerConfig:
         self.n_lights_probs = probs
         ranges = {"fov_x_deg": (0, 180), "room_width": (0, math.inf), "room_depth": (0, math.inf),
                   "room_height": (0, math.inf), "ks_range": (0, math.inf), "shininess_range": (0, math.inf),
-                  "ambient_range": (0, math.inf), "exposure_range": (0, math.inf), "scale_range": (0, math.inf)}
+                  "ambient_range": (0, math.inf), "exposure_range": (0, math.inf), "scale_range": (0, math.inf),
+                  "light_power_range": (0, math.inf)}
         for name, (low, high) in ranges.items():
             a, b = (float(x) for x in getattr(self, name))
             positive = name not in ("ks_range", "ambient_range")  # these two may reach 0
@@ -385,9 +387,11 @@ def sample_scene(seed: int, config: SamplerConfig | None = None, n_lights: int |
     base, alt, texture, tex_scale, tex_dir, ks, shininess = _material(gen, n_prims, config, len(planes))
     f = 0.5 * config.width / math.tan(math.radians(fov) / 2)
     K = torch.tensor([[f, 0, (config.width - 1) / 2], [0, f, (config.height - 1) / 2], [0, 0, 1]], dtype=torch.float64)
-    # Light colours near white, each light's power within a factor 3 of the others.
+    # Light colours near white, each light's power drawn log-uniformly in light_power_range
+    # (by default within a factor 3 of the others).
     tint = _uniform(gen, 0.75, 1.0, n_lights, 3)
-    power = torch.exp(_uniform(gen, math.log(1 / 3), 0.0, n_lights, 1)) * (light_cam.norm(dim=-1, keepdim=True) ** 2)
+    low, high = (math.log(x) for x in config.light_power_range)
+    power = torch.exp(_uniform(gen, low, high, n_lights, 1)) * (light_cam.norm(dim=-1, keepdim=True) ** 2)
     ambient = torch.zeros(3, dtype=torch.float64)
     if torch.rand(1, generator=gen) >= config.ambient_zero_prob:
         ambient = _u(gen, config.ambient_range) * _uniform(gen, 0.8, 1.0, 3)

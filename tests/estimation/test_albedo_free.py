@@ -582,3 +582,37 @@ def test_group_medians_take_each_groups_middle_value():
     assert counts.tolist() == [3, 0, 4]
     assert (lower[0], upper[0]) == (4.0, 4.0)  # odd count: the middle, either way
     assert (lower[2], upper[2]) == (3.0, 7.0)  # 2, 3, 7, 9: the two middles
+
+
+def test_a_networks_lights_start_the_search_where_the_grid_alone_does_not_reach():
+    # Held where the one-light fit wrongly lies and searched without the anchor pairs, the
+    # second light is not found (the test above); a start at the true pair (a network's
+    # lights) is taken, and a start of the wrong shape is named.
+    scene = _scene(4, n_lights=2, config=MEDIUM)
+    problem = problem_of(_unknown_albedo(scene), shadows="none")
+    held = _held_away(problem, scene)
+    started = albedo_free.search(problem, 2, fixed=held, anchors=False, extra_starts=scene.light_pos[None, None] + 0.02)
+    assert _worst_error(started, scene) < 0.01
+    with pytest.raises(ValueError, match="extra_starts"):
+        albedo_free.search(problem, 2, fixed=held, extra_starts=scene.light_pos[None, None, :1])
+
+
+def test_cnn_refine_gives_the_networks_lights_to_the_albedo_free_searches(monkeypatch):
+    # A capture-like file (kd one constant) under cnn+refine: the first search of one light
+    # and of two gets the network's first one and two slots (searching each light again,
+    # the others held, needs none); method=refine gives none.
+    seen = []
+    search = albedo_free.search
+
+    def recording(problem, n_lights=1, *args, extra_starts=None, **kwargs):
+        seen.append(None if extra_starts is None else tuple(extra_starts.shape))
+        return search(problem, n_lights, *args, extra_starts=extra_starts, **kwargs)
+
+    monkeypatch.setattr(albedo_free, "search", recording)
+    scene = _unknown_albedo(_scene(3))
+    estimate_scene(scene, EstimateOptions(method="cnn+refine", max_lights=2))
+    given = [shape for shape in seen if shape is not None]
+    assert {shape[2] for shape in given} == {1, 2} and all(shape[1] == 1 and shape[-1] == 3 for shape in given), seen
+    seen.clear()
+    estimate_scene(scene, EstimateOptions(method="refine", max_lights=2))
+    assert seen and all(shape is None for shape in seen)

@@ -229,7 +229,7 @@ def test_intensities_under_unaccounted_light_are_solved_with_its_indirect_light(
     # and no ambient given: the fit, direct light only, takes the bounce for more lamp;
     # the reported intensities, solved again with it at the chosen position, do not.
     from render import light_transport
-    from selfsup.estimation.indirect import indirect_columns
+    from selfsup.scenes.indirect import indirect_columns
 
     scene = _scene(6, config=MEDIUM)
     problem = prepare([scene], EstimateOptions())

@@ -213,6 +213,58 @@ def test_each_degradation_changes_only_what_it_should(switch, changed):
         assert (value is None and before[key] is None) or torch.equal(value, before[key])
 
 
+def test_indirect_light_adds_the_rooms_bounces_and_needs_the_visibility():
+    rendered = _rendered(2, dataclasses.replace(SMALL, ambient_zero_prob=0.0), samples=1)
+    clean = rendered.scene
+    lit = degrade(clean, Degradations(indirect=2.0), seed=5, visibility=rendered.visibility)
+    valid = clean.depth > 0
+    added = (lit.image - clean.image)[valid]
+    strength = lit.meta["indirect_strength"]
+    assert 0 < strength <= 2.0 and (added >= 0).all() and float(added.mean()) > 0.01 * float(clean.image[valid].mean())
+    changed = {k for k, v in _fields(lit).items() if not (v is None or torch.equal(v, _fields(clean)[k]))}
+    assert changed == {"image"}  # the truth (lights, albedo, depth) is what it was
+    with pytest.raises(ValueError, match="visibility"):
+        degrade(clean, Degradations(indirect=1.0), seed=5)
+
+
+def test_a_drawn_camera_gives_what_the_capture_reader_gives():
+    from selfsup.scenes.capture import srgb_to_linear
+
+    rendered = _rendered(3, SMALL, samples=1)
+    clean = rendered.scene
+    captured = degrade(clean, Degradations(camera=True), seed=7)
+    codes = torch.from_numpy(srgb_to_linear(np.arange(256) / 255)).float()
+    image = captured.image.flatten()
+    nearest = (image[:, None] - codes[None]).abs().amin(1)
+    assert float(nearest.max()) < 1e-6  # 8-bit sRGB codes, read back to linear
+    depth = captured.depth[captured.depth > 0]
+    torch.testing.assert_close(depth * 1000, (depth * 1000).round(), rtol=0, atol=1e-3)  # millimetres
+    assert captured.normals is None and captured.ambient is None  # a camera gives neither
+    assert (captured.depth == 0).sum() >= (clean.depth == 0).sum()  # the sensor's holes
+    ratio = captured.light_intensity / clean.light_intensity  # exposure times the white balance's gains
+    assert torch.isfinite(ratio).all() and (ratio > 0).all()
+    torch.testing.assert_close(ratio, ratio[:1].expand_as(ratio))  # one camera for every light
+    assert torch.equal(captured.kd, clean.kd) and torch.equal(captured.light_pos, clean.light_pos)
+    again = degrade(clean, Degradations(camera=True), seed=7)
+    assert torch.equal(again.image, captured.image) and torch.equal(again.depth, captured.depth)
+
+
+def test_light_power_range_draws_dim_lights_and_its_default_draws_as_before():
+    # The default (1/3, 1) draws the numbers the sampler drew before the setting existed.
+    same = sample_scene(11, dataclasses.replace(SMALL, light_power_range=(1 / 3, 1.0)))
+    torch.testing.assert_close(sample_scene(11, SMALL).light_relative_intensity, same.light_relative_intensity,
+                               rtol=0, atol=0)
+    dim = SamplerConfig(height=8, width=8, n_lights_probs=(0.0, 1.0), light_power_range=(0.1, 1.0))
+    ratios = []
+    for seed in range(40):
+        spec = sample_scene(seed, dim)
+        power = spec.light_relative_intensity.mean(-1) / spec.light_position.norm(dim=-1) ** 2
+        ratios.append(float(power.min() / power.max()))
+    assert min(ratios) < 1 / 3 and min(ratios) >= 0.1 * 0.75  # the tint moves a channel by 25% at most
+    with pytest.raises(ValueError, match="light_power_range"):
+        SamplerConfig(light_power_range=(0.0, 1.0))
+
+
 def test_bad_degradation_values_are_named():
     with pytest.raises(ValueError, match="reflectance"):
         Degradations(reflectance="wrong")

@@ -19,7 +19,9 @@ later bounces as a geometric series of the scene's mean albedo.
 
 Model selection uses it (:mod:`selfsup.estimation`, ``estimate.indirect``): a light
 explains the image with its bounce, so a stand-in light for the bounce no longer
-pays for itself.
+pays for itself. The generator adds it to training scenes (:func:`with_bounce`,
+``degradations.indirect``): a network that has never seen a bounce takes it for a
+second light.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from torch import Tensor
 
 from render import GBuffer
 
-__all__ = ["one_bounce", "bounce_gain", "indirect_columns"]
+__all__ = ["one_bounce", "bounce_gain", "indirect_columns", "with_bounce"]
 
 MIN_COS_VIEW = 0.2  # a patch seen at a grazing angle covers more surface; counted up to 5 pixels' worth
 MAX_MEAN_ALBEDO = 0.8  # bounce_gain at most 5
@@ -121,3 +123,28 @@ def indirect_columns(gbuffer: GBuffer, kd: Tensor, diffuse: Tensor, patches_acro
     step = max(1, round(kd.shape[2] / patches_across))
     gain = bounce_gain(kd, gbuffer.mask)[:, :, None, None, None]
     return gain * kd.permute(0, 3, 1, 2)[:, :, None] * one_bounce(gbuffer, kd, diffuse, step, step)
+
+
+def with_bounce(image: Tensor, gbuffer: GBuffer, kd: Tensor, light_position: Tensor, light_intensity: Tensor,
+                visibility: Tensor, strength: Tensor | float, inverse_square: bool = True) -> Tensor:
+    """``image (B, 3, H, W)`` plus ``strength`` times the indirect light of its lights:
+    ``kd * bounce_gain * sum_i I_i G_i`` (:func:`indirect_columns`), each light's bounce
+    from its shadowed direct diffuse transport.
+
+    Args:
+        gbuffer: with intrinsics; kd ``(B, H, W, 3)``.
+        light_position, light_intensity: ``(B, L, 3)`` (an unused slot has intensity 0).
+        visibility: ``(B, L, H, W)`` in [0, 1] (1 lit).
+        strength: a number or ``(B,)``: 1 is the first bounce and the later ones of
+            :func:`bounce_gain`.
+    """
+    to_light = light_position[:, :, None, None] - gbuffer.points[:, None]  # (B, L, H, W, 3)
+    distance = to_light.norm(dim=-1).clamp_min(1e-6)
+    diffuse = ((to_light * gbuffer.normals[:, None]).sum(-1) / distance).clamp_min(0) * visibility
+    if inverse_square:
+        diffuse = diffuse / distance**2
+    diffuse = torch.where(gbuffer.mask[:, None], diffuse, torch.zeros_like(diffuse))
+    columns = indirect_columns(gbuffer, kd, diffuse)  # (B, 3, L, H, W)
+    bounce = (columns * light_intensity.transpose(1, 2)[..., None, None]).sum(2)
+    strength = torch.as_tensor(strength, dtype=image.dtype, device=image.device).reshape(-1, 1, 1, 1)
+    return image + strength * bounce

@@ -9,7 +9,7 @@ import torch
 from render import GBuffer
 from selfsup.estimation.options import EstimateOptions, Tuning
 from selfsup.estimation.stages import estimate_scene
-from selfsup.estimation.indirect import bounce_gain, indirect_columns, one_bounce
+from selfsup.scenes.indirect import bounce_gain, indirect_columns, one_bounce
 from selfsup.scenes.exact import render_spec
 from selfsup.scenes.sampler import SamplerConfig, sample_scene
 
