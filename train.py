@@ -109,7 +109,9 @@ def training_summary(result: dict) -> str:
 
     # A run that trainer.max_minutes ended before its steps says so in this line, not in a warning above it.
     steps = (f"{result['step']} of {result['max_steps']} steps (stopped by trainer.max_minutes={result['max_minutes']})"
-             if result.get("stopped_by_time") else f"{result['step']} steps")
+             if result.get("stopped_by_time") else
+             f"{result['step']} of {result['max_steps']} steps (stopped at trainer.stop_step)"
+             if result.get("stop_step") and result["step"] < result["max_steps"] else f"{result['step']} steps")
     return (f"trained {steps} in {result['minutes']:.1f} min; validation on {v.get('scenes', 'n/a')} "
             f"scenes: median position error {number('median_position_error', '.3f')} of the scene size, median "
             f"angle {number('median_angular_error', '.1f')} degrees, success {number('success_rate', '.0%')}, right "

@@ -39,7 +39,7 @@ from torch import Tensor
 
 from render import ShadowedBlinnPhong
 from selfsup.checkpoint import load_checkpoint, save_network
-from selfsup.evaluate import evaluate_network, summarise
+from selfsup.evaluate import calibrate_count_threshold, evaluate_network, summarise
 from selfsup.losses import LossOptions, reconstruction_loss, scene_batch
 from selfsup.model import LightNet, LightPrediction, scene_frame
 
@@ -93,6 +93,7 @@ class TrainerOptions:
     batch_size: int = 32  # global: split over the processes
     val_every: int = 100
     max_minutes: float = 0.0  # >0: stop (and checkpoint) after this wall time
+    stop_step: int = 0  # >0: stop (and checkpoint) at this step, the schedule still max_steps' (a run reproduced to a step)
     amp: bool = True  # bfloat16 autocast of the network, CUDA only
     device: str = "auto"  # auto | cpu | cuda
     out_dir: str = "runs/default"
@@ -105,6 +106,8 @@ class TrainerOptions:
             raise ValueError(f"max_steps, batch_size and val_every must be >= 1: {self}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise ValueError(f"device must be auto, cpu or cuda, got {self.device!r}")
+        if self.stop_step < 0:
+            raise ValueError(f"trainer.stop_step must be >= 0 (0: none), got {self.stop_step}")
         if not self.max_minutes >= 0 or self.threads < 0:  # -3 minutes read as no cap, silently
             raise ValueError(f"trainer.max_minutes must be >= 0 (0: no cap) and trainer.threads >= 0 (0: torch's "
                              f"default), got {self.max_minutes} and {self.threads}")
@@ -320,6 +323,8 @@ class Trainer:
                     bar.set_postfix(loss=f"{float(terms.total.detach()):.4f}")
                 if self.options.max_minutes > 0:
                     stop = self._agree((time.perf_counter() - started) / 60 > self.options.max_minutes, ctx)
+                if self.options.stop_step and step >= self.options.stop_step:
+                    stop = True  # every process reaches the same step
                 if step % self.options.val_every == 0 or step == self.options.max_steps or stop:
                     if ctx.main:
                         summary = self._validate(network, val_pool, renderer, writer, step)
@@ -337,12 +342,14 @@ class Trainer:
             if writer is not None:
                 writer.close()
         if stop and ctx.main:
-            log.warning("stopped at step %d of %d: trainer.max_minutes=%s reached", step,
-                        self.options.max_steps, self.options.max_minutes)
+            reason = (f"trainer.stop_step={self.options.stop_step}" if self.options.stop_step and step >= self.options.stop_step
+                      else f"trainer.max_minutes={self.options.max_minutes}")
+            log.warning("stopped at step %d of %d: %s reached", step, self.options.max_steps, reason)
         result = {"step": step, "minutes": (time.perf_counter() - started) / 60, "validation": summary,
                   "last": str(self.out_dir / "last.pt"), "best": str(self.out_dir / "best.pt"),
                   "max_steps": self.options.max_steps, "max_minutes": self.options.max_minutes,
-                  "stopped_by_time": bool(stop)}
+                  "stopped_by_time": bool(stop) and not (self.options.stop_step and step >= self.options.stop_step),
+                  "stop_step": self.options.stop_step}
         if ctx.main:
             (self.out_dir / "result.json").write_text(json.dumps(result, indent=2))
         return result
@@ -357,7 +364,11 @@ class Trainer:
         return bool(value.item() > 0)
 
     def _validate(self, network: LightNet, pool: dict[str, Tensor], renderer, writer, step: int) -> dict:
+        # The count's threshold, calibrated on the validation scenes, goes with the checkpoint.
+        network.count_threshold = calibrate_count_threshold(network, pool)
+        self.model_config["count_threshold"] = network.count_threshold
         summary = summarise(evaluate_network(network, pool))
+        summary["count_threshold"] = network.count_threshold
         if writer is not None:
             for name, value in summary.items():
                 writer.add_scalar(f"val/{name}", value, step)

@@ -15,7 +15,10 @@ from selfsup.losses import scene_batch
 from selfsup.metrics import SUCCESS_THRESHOLD, light_errors
 from selfsup.model import LightNet, scene_frame
 
-__all__ = ["evaluate_network", "summarise"]
+__all__ = ["evaluate_network", "summarise", "calibrate_count_threshold", "COUNT_THRESHOLDS"]
+
+# The presence thresholds calibration chooses from.
+COUNT_THRESHOLDS = (0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 0.99, 1.0)
 
 
 def summarise(rows: list[dict]) -> dict[str, float]:
@@ -50,30 +53,50 @@ def evaluate_network(network: LightNet, pool: dict[str, Tensor], batch_size: int
 
     The network runs in eval mode on its own device; the pool may live anywhere.
     """
+    return _rows_by_threshold(network, pool, (network.count_threshold,), batch_size, albedo)[0]
+
+
+def _rows_by_threshold(network: LightNet, pool: dict[str, Tensor], thresholds: tuple[float, ...], batch_size: int,
+                       albedo: bool) -> list[list[dict]]:
+    # evaluate_network's rows under each count threshold, from one pass of the network.
     was_training = network.training
     network.eval()
     device = next(network.parameters()).device
-    rows = []
+    rows: list[list[dict]] = [[] for _ in thresholds]
     try:
         for start in range(0, pool["image"].shape[0], batch_size):
             batch = {key: value[start:start + batch_size].to(device) for key, value in pool.items()}
             scenes = scene_batch(batch)
             prediction = network(scenes.image, scenes.gbuffer, scenes.material.kd if albedo else None)
             centre = scene_frame(scenes.image, scenes.gbuffer).centre
-            for i in range(scenes.image.shape[0]):
-                position, intensity = prediction.lights_of(i)
-                truth = batch["light_mask"][i]
-                errors = light_errors(position.float().cpu(), intensity.float().cpu(),
-                                      batch["light_pos"][i][truth].cpu(), batch["light_intensity"][i][truth].cpu(),
-                                      float(batch["scene_scale"][i]), centre[i].float().cpu())
-                rows.append({
-                    "position_error": max(errors.position),
-                    "angular_error": statistics.median(errors.angular) if errors.angular else 180.0,
-                    "success": max(errors.position) < SUCCESS_THRESHOLD,
-                    "count_right": errors.count_right,
-                    "lights_true": int(truth.sum()),
-                    "lights_found": int(position.shape[0]),
-                })
+            for t, threshold in enumerate(thresholds):
+                prediction.count_threshold = threshold
+                for i in range(scenes.image.shape[0]):
+                    rows[t].append(_scene_row(prediction, i, batch, centre[i]))
     finally:
         network.train(was_training)
     return rows
+
+
+def _scene_row(prediction, i: int, batch: dict[str, Tensor], centre: Tensor) -> dict:
+    position, intensity = prediction.lights_of(i)
+    truth = batch["light_mask"][i]
+    errors = light_errors(position.float().cpu(), intensity.float().cpu(), batch["light_pos"][i][truth].cpu(),
+                          batch["light_intensity"][i][truth].cpu(), float(batch["scene_scale"][i]), centre.float().cpu())
+    return {"position_error": max(errors.position),
+            "angular_error": statistics.median(errors.angular) if errors.angular else 180.0,
+            "success": max(errors.position) < SUCCESS_THRESHOLD, "count_right": errors.count_right,
+            "lights_true": int(truth.sum()), "lights_found": int(position.shape[0])}
+
+
+@torch.no_grad()
+def calibrate_count_threshold(network: LightNet, pool: dict[str, Tensor], batch_size: int = 64,
+                              albedo: bool = False) -> float:
+    """The presence threshold of :data:`COUNT_THRESHOLDS` under which most of ``pool``'s
+    scenes succeed (every light within 0.05 of the scene size, the count right), then most
+    are counted right; the lowest of equals. A slot the network counts but cannot place
+    costs a scene its success: a count head that tells the scenes' counts apart no better
+    than it places their lights gets a threshold that adds few lights."""
+    rows = _rows_by_threshold(network, pool, COUNT_THRESHOLDS, batch_size, albedo)
+    score = [(sum(r["success"] for r in these), sum(r["count_right"] for r in these)) for these in rows]
+    return COUNT_THRESHOLDS[max(range(len(score)), key=lambda i: (score[i], -i))]

@@ -62,6 +62,8 @@ class LightPrediction:
             lights (the count head's); slot 0 is always present (1).
         ambient: ``(B, 3)``.
         count_logits: ``(B, K)``: scores of 1 .. K lights.
+        count_threshold: a slot ``k >= 1`` counts where ``presence[k]`` reaches it
+            (:attr:`LightNet.count_threshold`, calibrated on validation scenes).
         anchor_logits: ``(B, K, M)`` scores of each slot's position hypotheses.
         anchor_position: ``(B, K, M, 3)`` metres: the hypotheses (anchors moved to the
             vertex of their cost parabola); each slot refines its best-scored one.
@@ -74,11 +76,13 @@ class LightPrediction:
     count_logits: Tensor
     anchor_logits: Tensor
     anchor_position: Tensor
+    count_threshold: float = 0.5
 
     @property
     def count(self) -> Tensor:
-        """``(B,)`` long: the most likely number of lights, 1 .. K."""
-        return self.count_logits.argmax(1) + 1
+        """``(B,)`` long: the number of lights, 1 .. K: one, and each slot after it whose
+        presence reaches :attr:`count_threshold` (presence falls from slot to slot)."""
+        return 1 + (self.presence[:, 1:] >= self.count_threshold).sum(1)
 
     def lights_of(self, index: int) -> tuple[Tensor, Tensor]:
         """Positions and intensities ``(n, 3)`` of image ``index``'s first ``n`` slots, ``n``
@@ -204,6 +208,9 @@ class LightNet(nn.Module):
             Each level costs 125 more hypotheses a slot on the evidence pixels.
         offset_steps: how far each slot's learned offset may move it from the cascade's
             best, in anchor steps (0.0625: the finest step of two levels).
+        count_threshold: the presence a slot after the first needs to count (0.5: the
+            count head's median; training calibrates it on its validation scenes,
+            :func:`selfsup.evaluate.calibrate_count_threshold`, and the checkpoint keeps it).
 
     ``forward(image (B, 3, H, W), gbuffer, kd (B, H, W, 3) or None) -> LightPrediction``.
     """
@@ -211,10 +218,13 @@ class LightNet(nn.Module):
     def __init__(self, max_lights: int = 3, input_size: int = 64, widths: tuple[int, ...] = (32, 48, 64, 96, 128),
                  hidden: int = 256, anchors_per_axis: int = 6, anchor_extent: float = 0.75,
                  falloff: Falloff | str = Falloff.INVERSE_SQUARE, evidence_points: int = 16, cascade_levels: int = 2,
-                 offset_steps: float = 0.0625):
+                 offset_steps: float = 0.0625, count_threshold: float = 0.5):
         super().__init__()
         if not offset_steps >= 0:
             raise ValueError(f"offset_steps must be >= 0, got {offset_steps}")
+        if not 0 < count_threshold <= 1:
+            raise ValueError(f"count_threshold must be in (0, 1], got {count_threshold}")
+        self.count_threshold = float(count_threshold)
         if max_lights < 1:
             raise ValueError(f"max_lights must be >= 1, got {max_lights}")
         if cascade_levels < 1:
@@ -343,7 +353,7 @@ class LightNet(nn.Module):
         anchor_position = frame.centre[:, None, None] + frame.size[:, None, None, None] * torch.stack(hypotheses, 1)
         return LightPrediction(position=torch.stack(positions, 1), intensity=intensity, presence=presence,
                                ambient=ambient, count_logits=count_logits, anchor_logits=torch.stack(logits, 1),
-                               anchor_position=anchor_position)
+                               anchor_position=anchor_position, count_threshold=self.count_threshold)
 
 
 @torch.no_grad()

@@ -41,3 +41,13 @@ def test_plain_containers_load(tmp_path):
     path = tmp_path / "plain.pt"
     torch.save({"a": [1, 2.5, "x"], "b": collections.OrderedDict(w=torch.ones(2))}, path)
     assert load_checkpoint(path)["a"] == [1, 2.5, "x"]
+
+
+def test_a_checkpoint_of_the_network_before_camera_inputs_is_named(tmp_path):
+    # Format 1 networks read an albedo channel and had two slots: the message says what to do.
+    state = load_checkpoint(DEFAULT_CHECKPOINT)
+    state["format"] = 1
+    path = tmp_path / "old.pt"
+    torch.save(state, path)
+    with pytest.raises(ValueError, match="format 1.*reads format 2.*python train.py"):
+        load_network(path)

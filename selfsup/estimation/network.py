@@ -26,27 +26,28 @@ def cached_network(checkpoint: str | None, device: str = "cpu"):
 
 @torch.no_grad()
 def network_slots(problem: FitProblem, checkpoint: str | None = None) -> tuple[Tensor, Tensor]:
-    """The network's light slots: positions ``(B, K, 3)`` and presence ``(B, K)`` (the
-    probability that the room has more lights than the slots before; slot 0 is 1), in the
-    network's order. The network needs no albedo: its cost volumes see the problem's only
-    where the file gives one (not one constant, :func:`reflectance_unknown`)."""
+    """The network's light slots: positions ``(B, K, 3)`` in the network's order and which
+    of them it counts ``(B, K)`` bool (its count's first slots). The network needs no albedo:
+    its cost volumes see the problem's only where the file gives one (not one constant,
+    :func:`reflectance_unknown`)."""
     network = cached_network(checkpoint, str(problem.image.device))
     image, g, kd = problem.image.float(), problem.gbuffer, problem.material.kd.float()
     known = ~reflectance_unknown(problem)
     prediction = network(image, g, kd if bool(known.all()) else None)
-    position, presence = prediction.position, prediction.presence
+    position, count = prediction.position, prediction.count
     if bool(known.any()) and not bool(known.all()):  # a mixed batch: the albedo where it is known
         given = network(image, g, kd)
         position = torch.where(known[:, None, None], given.position, position)
-        presence = torch.where(known[:, None], given.presence, presence)
-    return position.to(problem.image.dtype), presence
+        count = torch.where(known, given.count, count)
+    present = torch.arange(position.shape[1], device=count.device) < count[:, None]
+    return position.to(problem.image.dtype), present
 
 
-def network_candidates(problem: FitProblem, slots: Tensor, presence: Tensor, specular_of: list[bool],
+def network_candidates(problem: FitProblem, slots: Tensor, present: Tensor, specular_of: list[bool],
                         options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
-    # The network's present slots (at least one); refine with no iterations solves
+    # The network's counted slots (at least one); refine with no iterations solves
     # their intensities and ambient and evaluates the fit.
-    keep = (presence > 0.5).sum(1).clamp(1, options.max_lights).tolist()
+    keep = present.sum(1).clamp(1, options.max_lights).tolist()
     chosen: list[Candidate | None] = [None] * problem.batch
     for n_lights in sorted(set(keep)):
         group = [i for i, k in enumerate(keep) if k == n_lights]

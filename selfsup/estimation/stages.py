@@ -291,10 +291,10 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[Result
     # The image fit with the problem's reflectance: the stages in turn, or the network alone.
     run = _start(problem, options)
     if options.method != "refine":
-        run.slots, presence = network_slots(problem, options.checkpoint)
+        run.slots, present = network_slots(problem, options.checkpoint)
         if options.method == "cnn":
             return [(replace(best, coat=run.coat_of[i]), [replace(c, coat=run.coat_of[i]) for c in tried])
-                    for i, (best, tried) in enumerate(network_candidates(problem, run.slots, presence,
+                    for i, (best, tried) in enumerate(network_candidates(problem, run.slots, present,
                                                                          run.specular_of, options))]
     for stage in STAGES:
         stage(run)

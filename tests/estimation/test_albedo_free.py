@@ -163,8 +163,9 @@ def test_the_fit_ignores_an_albedo_wrong_by_a_factor_per_patch():
     painted = dataclasses.replace(scene, image=scene.image * factor)
     fit = albedo_free.search(problem_of(painted, shadows="none"), 1)
     assert _rel_error(fit.position[0], scene) < 0.01  # 3e-6 (2026-11-23)
-    # The image fit takes the squares for shading (0.24 off, 2026-11-23).
-    given = estimate_scene(painted, EstimateOptions(max_lights=1, tuning=Tuning(reflectance="given")))
+    # The image fit takes the squares for shading (0.24 off, 2026-11-23; its grid search alone,
+    # without a network's start, which may land anywhere).
+    given = estimate_scene(painted, EstimateOptions(method="refine", max_lights=1, tuning=Tuning(reflectance="given")))
     assert _rel_error(torch.tensor(given["lights"][0]["position"]), scene) > 0.05
 
 
