@@ -95,7 +95,7 @@ def measure(name: str, scenes: list, batch: int, options: EstimateOptions, devic
         seconds = time.perf_counter() - started
     scored = [score(record, scene) for record, scene in zip(out, scenes)]
     return {"set": name, "method": options.method, "batch": batch, "scenes": len(scenes),
-            "scenes_per_s": round(len(scenes) / seconds, 1),
+            "scenes_per_s": round(len(scenes) / seconds, 2),
             **{f"{phase}_share": round(value / seconds, 2) for phase, value in phases.items()},
             "median_position_error": round(statistics.median(s[0] for s in scored), 4),
             "success_rate": round(sum(s[1] for s in scored) / len(scored), 3),

@@ -156,7 +156,8 @@ def _setup_distributed(device: str) -> _Dist:
 
 
 def _float32(prediction: LightPrediction) -> LightPrediction:
-    return LightPrediction(**{f.name: getattr(prediction, f.name).float() for f in dataclasses.fields(prediction)})
+    return dataclasses.replace(prediction, **{f.name: getattr(prediction, f.name).float() for f in dataclasses.fields(prediction)
+                                              if isinstance(getattr(prediction, f.name), Tensor)})
 
 
 def _display(image: Tensor, exposure: Tensor) -> Tensor:

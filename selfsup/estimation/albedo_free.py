@@ -497,9 +497,9 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     :func:`anchor_pairs`, both lights moved; with more starts than ``starts``, each runs
     :data:`PRUNE_ITERATIONS` steps first and the best ``starts`` go on);
     ``residuals``, ``segment_scale``, ``labels``: as :func:`observe` (the segments are
-    found once, at full resolution). ``extra_starts (B, E, n_lights, 3)``: more starts (a
-    network's lights), each at the grid's contrast of its first light (the held lights'
-    weights and a third for the last, with ``fixed``).
+    found once, at full resolution). ``extra_starts (B, E, n_lights, 3)``: starts in place of
+    the grid's last ``E`` (a network's lights), each at the grid's contrast of its first light
+    (the held lights' weights and a third for the last, with ``fixed``).
     """
     B = problem.batch
     if (fixed is None) != (n_lights == 1) or (fixed is not None and fixed.position.shape[1] != n_lights - 1):
@@ -513,7 +513,9 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     with torch.no_grad():
         losses, weights = _grid_losses(ranked, fixed, cands)
     size = centre_and_size(problem)[1]
-    index, _ = spread_best(cands, losses, size, starts, 0.15)  # (B, S)
+    # A network's starts take the places of the grid's last ones: the search costs what it did.
+    grid_starts = max(1, starts - (0 if extra_starts is None else extra_starts.shape[1]))
+    index, _ = spread_best(cands, losses, size, grid_starts, 0.15)  # (B, S)
     rows = torch.arange(B, device=index.device)[:, None]
     base = cands.new_zeros(B, 0, 3) if fixed is None else fixed.position
     position = torch.cat([base[:, None].expand(B, index.shape[1], -1, -1), cands[rows, index][:, :, None]], 2)
