@@ -39,7 +39,7 @@ from torch import Tensor
 
 from render import ShadowedBlinnPhong
 from selfsup.checkpoint import load_checkpoint, save_network
-from selfsup.evaluate import calibrate_count_threshold, evaluate_network, summarise
+from selfsup.evaluate import calibrate_count_threshold, summarise
 from selfsup.losses import LossOptions, reconstruction_loss, scene_batch
 from selfsup.model import LightNet, LightPrediction, scene_frame
 
@@ -286,7 +286,7 @@ class Trainer:
         amp = self.options.amp and ctx.device.type == "cuda"
         started = time.perf_counter()
         window_start, window_scenes = started, 0
-        summary, stop = {}, False
+        summary, stop, at_stop_step = {}, False, False
         bar = tqdm(total=self.options.max_steps, initial=step, disable=not (ctx.main and self.options.progress),
                    desc="train", unit="step")
         try:
@@ -324,8 +324,8 @@ class Trainer:
                     bar.set_postfix(loss=f"{float(terms.total.detach()):.4f}")
                 if self.options.max_minutes > 0:
                     stop = self._agree((time.perf_counter() - started) / 60 > self.options.max_minutes, ctx)
-                if self.options.stop_step and step >= self.options.stop_step:
-                    stop = True  # every process reaches the same step
+                at_stop_step = bool(self.options.stop_step) and step >= self.options.stop_step
+                stop = stop or at_stop_step  # every process reaches the same step
                 if step % self.options.val_every == 0 or step == self.options.max_steps or stop:
                     if ctx.main:
                         summary = self._validate(network, val_pool, renderer, writer, step)
@@ -343,13 +343,12 @@ class Trainer:
             if writer is not None:
                 writer.close()
         if stop and ctx.main:
-            reason = (f"trainer.stop_step={self.options.stop_step}" if self.options.stop_step and step >= self.options.stop_step
-                      else f"trainer.max_minutes={self.options.max_minutes}")
+            reason = f"trainer.stop_step={self.options.stop_step}" if at_stop_step else f"trainer.max_minutes={self.options.max_minutes}"
             log.warning("stopped at step %d of %d: %s reached", step, self.options.max_steps, reason)
         result = {"step": step, "minutes": (time.perf_counter() - started) / 60, "validation": summary,
                   "last": str(self.out_dir / "last.pt"), "best": str(self.out_dir / "best.pt"),
                   "max_steps": self.options.max_steps, "max_minutes": self.options.max_minutes,
-                  "stopped_by_time": bool(stop) and not (self.options.stop_step and step >= self.options.stop_step),
+                  "stopped_by_time": bool(stop) and not at_stop_step,
                   "stop_step": self.options.stop_step}
         if ctx.main:
             (self.out_dir / "result.json").write_text(json.dumps(result, indent=2))
@@ -366,9 +365,9 @@ class Trainer:
 
     def _validate(self, network: LightNet, pool: dict[str, Tensor], renderer, writer, step: int) -> dict:
         # The count's threshold, calibrated on the validation scenes, goes with the checkpoint.
-        network.count_threshold = calibrate_count_threshold(network, pool)
+        network.count_threshold, rows = calibrate_count_threshold(network, pool)
         self.model_config["count_threshold"] = network.count_threshold
-        summary = summarise(evaluate_network(network, pool))
+        summary = summarise(rows)
         summary["count_threshold"] = network.count_threshold
         if writer is not None:
             for name, value in summary.items():

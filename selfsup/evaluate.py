@@ -91,12 +91,14 @@ def _scene_row(prediction, i: int, batch: dict[str, Tensor], centre: Tensor) -> 
 
 @torch.no_grad()
 def calibrate_count_threshold(network: LightNet, pool: dict[str, Tensor], batch_size: int = 64,
-                              albedo: bool = False) -> float:
+                              albedo: bool = False) -> tuple[float, list[dict]]:
     """The presence threshold of :data:`COUNT_THRESHOLDS` under which most of ``pool``'s
     scenes succeed (every light within 0.05 of the scene size, the count right), then most
-    are counted right; the lowest of equals. A slot the network counts but cannot place
-    costs a scene its success: a count head that tells the scenes' counts apart no better
-    than it places their lights gets a threshold that adds few lights."""
+    are counted right; the lowest of equals; and :func:`evaluate_network`'s rows under it
+    (one pass of the network for both). A slot the network counts but cannot place costs a
+    scene its success: a count head that tells the scenes' counts apart no better than it
+    places their lights gets a threshold that adds few lights."""
     rows = _rows_by_threshold(network, pool, COUNT_THRESHOLDS, batch_size, albedo)
     score = [(sum(r["success"] for r in these), sum(r["count_right"] for r in these)) for these in rows]
-    return COUNT_THRESHOLDS[max(range(len(score)), key=lambda i: (score[i], -i))]
+    best = max(range(len(score)), key=lambda i: (score[i], -i))
+    return COUNT_THRESHOLDS[best], rows[best]

@@ -145,14 +145,16 @@ def _robust_cost(model: Tensor, image: Tensor, mask: Tensor, exposure: Tensor, c
 
 
 def hypothesis_costs(anchor_position: Tensor, scenes: SceneBatch, exposure: Tensor, falloff, stride: int,
-                     robust_scale: float | None = None) -> Tensor:
-    """Error ``(B, M)`` of each hypothesis ``(B, M, 3)`` as the only light, unshadowed,
-    on every ``stride``-th pixel, residuals divided by ``exposure (B,)``
-    (:func:`selfsup.linear.single_light_costs`)."""
+                     robust_scale: float | None = None, before: Tensor | None = None) -> Tensor:
+    """Error ``(B, M)`` of each hypothesis ``(B, M, 3)`` as one more light, unshadowed, on
+    every ``stride``-th pixel, residuals divided by ``exposure (B,)``
+    (:func:`selfsup.linear.single_light_costs`): the only light, or beside the lights
+    ``before (B, k, 3)``, whose intensities are fitted first (:func:`selfsup.model.residual_after`)."""
     g, s = scenes.gbuffer, stride
-    return single_light_costs(anchor_position, g.points[:, ::s, ::s], g.normals[:, ::s, ::s], g.mask[:, ::s, ::s],
-                              scenes.material.kd[:, ::s, ::s], scenes.image[:, :, ::s, ::s], exposure, falloff,
-                              robust_scale)
+    pixels = (g.points[:, ::s, ::s], g.normals[:, ::s, ::s], g.mask[:, ::s, ::s], scenes.material.kd[:, ::s, ::s],
+              scenes.image[:, :, ::s, ::s])
+    seen = pixels[-1] if before is None else residual_after(before, *pixels, falloff)
+    return single_light_costs(anchor_position, *pixels[:4], seen, exposure, falloff, robust_scale)
 
 
 def reconstruction_loss(prediction: LightPrediction, scenes: SceneBatch, renderer: ShadowedBlinnPhong,
@@ -189,14 +191,11 @@ def reconstruction_loss(prediction: LightPrediction, scenes: SceneBatch, rendere
     photometric = 0.5 * (cost_all.mean() + cost_needed.mean())
 
     hypotheses = torch.zeros((), dtype=image.dtype, device=image.device)
-    with torch.no_grad():
-        s = options.hypothesis_stride
-        pixels = (g.points[:, ::s, ::s], g.normals[:, ::s, ::s], g.mask[:, ::s, ::s], m.kd[:, ::s, ::s], image[:, :, ::s, ::s])
     for k in range(K):
         with torch.no_grad():
-            seen = pixels[-1] if k == 0 else residual_after(prediction.position[:, :k].detach(), *pixels, renderer.falloff)
-            costs = single_light_costs(prediction.anchor_position[:, k].detach(), *pixels[:4], seen, frame.exposure,
-                                       renderer.falloff, options.robust_scale)
+            costs = hypothesis_costs(prediction.anchor_position[:, k].detach(), scenes, frame.exposure, renderer.falloff,
+                                     options.hypothesis_stride, options.robust_scale,
+                                     prediction.position[:, :k].detach() if k else None)
             best = costs.amin(1, keepdim=True)
             target = torch.softmax(-(costs - best) / (options.hypothesis_temperature * best.clamp_min(1e-8)), 1)
         hypotheses = hypotheses - (target * torch.log_softmax(prediction.anchor_logits[:, k], 1)).sum(1).mean() / K

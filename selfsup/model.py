@@ -40,12 +40,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from render.functional import light_transport
 from render.shading import Falloff
-from render.types import GBuffer
+from render.types import GBuffer, Material
 from selfsup.linear import basis_images, single_light_costs, solve_intensities
 
 __all__ = ["LightNet", "LightPrediction", "SceneFrame", "scene_frame", "brightest_percentile", "network_inputs",
-           "unshadowed_diffuse", "residual_after"]
+           "residual_after"]
 
 IN_CHANNELS = 10
 GREY_ALBEDO = 0.5  # the cost volumes' albedo where none is given (a capture's convention)
@@ -160,7 +161,7 @@ def network_inputs(image: Tensor, gbuffer: GBuffer, frame: SceneFrame, size: int
     points = maps[:, 3:6].permute(0, 2, 3, 1)
     torch.sub(gbuffer.points, frame.centre[:, None, None], out=points).div_(frame.size[:, None, None, None])
     maps[:, 6:9] = gbuffer.normals.permute(0, 3, 1, 2)
-    maps = torch.nan_to_num(maps.mul_(mask), nan=0.0, posinf=0.0, neginf=0.0)  # invalid pixels may hold non-finite points
+    maps = torch.where(gbuffer.mask[:, None], maps, 0.0)  # one pass; invalid pixels may hold non-finite points
     pooled = _average_to(maps, size)
     coverage = _average_to(mask, size)
     return torch.cat([pooled / coverage.clamp_min(1e-6) * (coverage > 0), coverage], 1)
@@ -365,18 +366,9 @@ def residual_after(position: Tensor, points: Tensor, normals: Tensor, mask: Tens
     Args:
         points, normals: ``(B, H, W, 3)``; mask ``(B, H, W)``; kd ``(B, H, W, 3)``; image ``(B, 3, H, W)``.
     """
-    diffuse = unshadowed_diffuse(position, points, normals, falloff)
-    diffuse = torch.where(mask[:, None], diffuse, torch.zeros_like(diffuse))  # invalid pixels may hold anything
+    diffuse = light_transport(GBuffer(points, normals, mask), Material(kd=kd), position, falloff=falloff,
+                              shadows="none", specular=False).diffuse
     cols = basis_images(kd, None, diffuse, None)
     weights = mask[:, None].to(image.dtype).expand_as(image)
     intensity, _, _ = solve_intensities(cols, kd, image, weights, ridge=1e-6)
     return image - (cols * intensity.transpose(1, 2)[..., None, None]).sum(2)
-
-
-def unshadowed_diffuse(position: Tensor, points: Tensor, normals: Tensor, falloff: Falloff) -> Tensor:
-    """``(B, L, H, W)``: ``max(0, n . l)`` (over ``d^2`` under inverse-square falloff) of lights at
-    ``position (B, L, 3)`` on ``points``, ``normals (B, H, W, 3)``; no shadows."""
-    to_light = position[:, :, None, None] - points[:, None]  # (B, L, H, W, 3)
-    distance = to_light.norm(dim=-1).clamp_min(1e-6)
-    diffuse = ((to_light * normals[:, None]).sum(-1) / distance).clamp_min(0)
-    return diffuse / distance**2 if Falloff(falloff) is Falloff.INVERSE_SQUARE else diffuse

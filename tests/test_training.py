@@ -64,9 +64,10 @@ def test_count_threshold_calibration_keeps_a_head_from_adding_lights_it_cannot_t
         network.count_out[-1].weight.zero_()
         network.count_out[-1].bias.copy_(torch.tensor([0.0, 0.0, 3.0]))
     assert all(r["lights_found"] == 3 for r in evaluate_network(network, one_light))
-    network.count_threshold = calibrate_count_threshold(network, one_light)
+    network.count_threshold, rows = calibrate_count_threshold(network, one_light)
     assert network.count_threshold == 0.99  # the lowest that counts one light
     assert all(r["lights_found"] == 1 and r["count_right"] for r in evaluate_network(network, one_light))
+    assert rows == evaluate_network(network, one_light)  # the rows under it, from the same pass
     with pytest.raises(ValueError, match="count_threshold"):
         LightNet(count_threshold=0.0)
 

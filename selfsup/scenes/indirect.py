@@ -32,7 +32,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from render import GBuffer
+from render import GBuffer, Material, light_transport
+from render.shading import Falloff
 
 __all__ = ["one_bounce", "bounce_gain", "indirect_columns", "with_bounce"]
 
@@ -138,13 +139,9 @@ def with_bounce(image: Tensor, gbuffer: GBuffer, kd: Tensor, light_position: Ten
         strength: a number or ``(B,)``: 1 is the first bounce and the later ones of
             :func:`bounce_gain`.
     """
-    to_light = light_position[:, :, None, None] - gbuffer.points[:, None]  # (B, L, H, W, 3)
-    distance = to_light.norm(dim=-1).clamp_min(1e-6)
-    diffuse = ((to_light * gbuffer.normals[:, None]).sum(-1) / distance).clamp_min(0) * visibility
-    if inverse_square:
-        diffuse = diffuse / distance**2
-    diffuse = torch.where(gbuffer.mask[:, None], diffuse, torch.zeros_like(diffuse))
-    columns = indirect_columns(gbuffer, kd, diffuse)  # (B, 3, L, H, W)
+    direct = light_transport(gbuffer, Material(kd=kd), light_position, shadows="none", specular=False,
+                             falloff=Falloff.INVERSE_SQUARE if inverse_square else Falloff.NONE).diffuse
+    columns = indirect_columns(gbuffer, kd, direct * visibility)  # (B, 3, L, H, W)
     bounce = (columns * light_intensity.transpose(1, 2)[..., None, None]).sum(2)
     strength = torch.as_tensor(strength, dtype=image.dtype, device=image.device).reshape(-1, 1, 1, 1)
     return image + strength * bounce
