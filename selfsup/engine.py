@@ -263,19 +263,7 @@ class Trainer:
                                       weight_decay=self.optim.weight_decay)
         schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, self.optim.lr, total_steps=self.options.max_steps,
                                                        pct_start=max(self.optim.warmup, 1e-3))
-        step, best = 0, math.inf
-        resume = self._resume_path()
-        if resume is not None:
-            state = load_checkpoint(resume, map_location=ctx.device)
-            network.load_state_dict(state["model"])
-            optimiser.load_state_dict(state["optimizer"])
-            schedule.load_state_dict(state["scheduler"])
-            step, best = int(state["step"]), float(state["best"])
-            torch.set_rng_state(state["rng"]["torch"].cpu())
-            if "cuda" in state["rng"] and torch.cuda.is_available():
-                torch.cuda.set_rng_state_all(state["rng"]["cuda"])
-            if ctx.main:
-                log.info("resumed from %s at step %d", resume, step)
+        step, best = self._resume(network, optimiser, schedule, ctx)
         renderer = self.renderer.to(ctx.device)
         writer = None
         if ctx.main and self.logger.tensorboard:
@@ -315,11 +303,8 @@ class Trainer:
                 bar.update(1)
                 if writer is not None and (step % self.logger.log_every == 0 or step == 1):
                     now = time.perf_counter()
-                    for name in ("total", "photometric", "hypotheses", "presence", "intensity", "supervised", "count"):
-                        writer.add_scalar(f"train/{name}", float(getattr(terms, name).detach()), step)
-                    writer.add_scalar("train/needed_lights", float(terms.needed.float().sum(1).mean()), step)
-                    writer.add_scalar("train/lr", schedule.get_last_lr()[0], step)
-                    writer.add_scalar("train/scenes_per_second", window_scenes / max(now - window_start, 1e-9), step)
+                    _log_terms(writer, terms, schedule.get_last_lr()[0], window_scenes / max(now - window_start, 1e-9),
+                               step)
                     window_start, window_scenes = now, 0
                     bar.set_postfix(loss=f"{float(terms.total.detach()):.4f}")
                 if self.options.max_minutes > 0:
@@ -353,6 +338,24 @@ class Trainer:
         if ctx.main:
             (self.out_dir / "result.json").write_text(json.dumps(result, indent=2))
         return result
+
+    def _resume(self, network: LightNet, optimiser: torch.optim.Optimizer,
+                schedule: torch.optim.lr_scheduler.LRScheduler, ctx: _Dist) -> tuple[int, float]:
+        """The step and best validation error to go on from: a checkpoint's (its weights,
+        optimiser, schedule and random state restored), or a fresh start's (0, inf)."""
+        resume = self._resume_path()
+        if resume is None:
+            return 0, math.inf
+        state = load_checkpoint(resume, map_location=ctx.device)
+        network.load_state_dict(state["model"])
+        optimiser.load_state_dict(state["optimizer"])
+        schedule.load_state_dict(state["scheduler"])
+        torch.set_rng_state(state["rng"]["torch"].cpu())
+        if "cuda" in state["rng"] and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(state["rng"]["cuda"])
+        if ctx.main:
+            log.info("resumed from %s at step %d", resume, int(state["step"]))
+        return int(state["step"]), float(state["best"])
 
     @staticmethod
     def _agree(flag: bool, ctx: _Dist) -> bool:
@@ -393,3 +396,12 @@ class Trainer:
                  _display((terms.render - scenes.image).abs() * 4, exposure), shadow.clamp(0, 1)]
         rows = torch.cat(tiles, 3)  # (n, 3, H, 4W)
         return rows.permute(1, 0, 2, 3).reshape(3, -1, rows.shape[-1]).cpu()
+
+
+def _log_terms(writer, terms, lr: float, scenes_per_second: float, step: int) -> None:
+    """One training step's loss terms, needed lights, learning rate and speed to TensorBoard."""
+    for name in ("total", "photometric", "hypotheses", "presence", "intensity", "supervised", "count"):
+        writer.add_scalar(f"train/{name}", float(getattr(terms, name).detach()), step)
+    writer.add_scalar("train/needed_lights", float(terms.needed.float().sum(1).mean()), step)
+    writer.add_scalar("train/lr", lr, step)
+    writer.add_scalar("train/scenes_per_second", scenes_per_second, step)

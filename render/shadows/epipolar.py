@@ -38,6 +38,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from render.geometry import norm3
+from render.shadows.epipolar_lines import EpipolarLines, make_lines, pattern_coords, table_nodes, table_row_lines
 
 __all__ = ["EpipolarShadowOptions", "epipolar_shadow_visibility"]
 
@@ -107,81 +108,6 @@ class EpipolarShadowOptions:
                 raise ValueError(f"{name} must be None or finite and > 0, got {value}")
         if self.thickness is not None and self.scene_thickness is not None:
             raise ValueError("give thickness or scene_thickness, not both")
-
-
-@dataclass(frozen=True)
-class _Lines:
-    """The epipolar sampling pattern of each (image, light), all ``(N,)`` for N = B*L."""
-
-    epipole: Tensor  # (N, 2) pixel coordinates of the light's image
-    forward: Tensor  # (N,) bool: light in front of the camera (sweep outwards)
-    periodic: Tensor  # (N,) bool: epipole inside the image (lines all around)
-    theta0: Tensor  # (N,) angle of line 0
-    dtheta: Tensor  # (N,) angle between lines
-    r_min: Tensor  # (N,) distance of the nearest image point to the epipole
-    r_max: Tensor  # (N,) distance of the farthest image point
-    dr: Tensor  # (N,) distance between samples
-    num_lines: int
-    num_samples: int
-
-    def select(self, key) -> "_Lines":
-        """Every field indexed by ``key``: a slice or index tensor of pairs, or
-        ``(slice(None), None)`` for ``(N, 1)`` fields that broadcast against pixels."""
-        fields = ("epipole", "forward", "periodic", "theta0", "dtheta", "r_min", "r_max", "dr")
-        return _Lines(*(getattr(self, f)[key] for f in fields), self.num_lines, self.num_samples)
-
-    def radius(self, k: Tensor) -> Tensor:
-        """Distance to the epipole of sample index ``k`` ``(N, ...)``."""
-        shape = (-1,) + (1,) * (k.dim() - 1)
-        fwd = self.r_min.view(shape) + k * self.dr.view(shape)
-        back = self.r_max.view(shape) - k * self.dr.view(shape)
-        return torch.where(self.forward.view(shape), fwd, back)
-
-
-def _make_lines(light_position: Tensor, K: Tensor, height: int, width: int, spacing: float) -> _Lines:
-    """Sampling pattern covering the image for each light; ``light_position (N, 3)``, ``K (N, 3, 3)``."""
-    dtype = light_position.dtype
-    lz = light_position[:, 2]
-    # Guard: a light in the camera plane (z = 0) projects to infinity; nudge it
-    # to a tiny |z| so the lines become (nearly) parallel instead of undefined.
-    eps_z = 1e-4 * light_position.norm(dim=-1) + torch.finfo(dtype).tiny ** 0.5
-    forward = lz >= 0
-    z_eff = torch.where(lz.abs() < eps_z, torch.where(forward, eps_z, -eps_z), lz)
-    projected = torch.einsum("nij,nj->ni", K, light_position)
-    epipole = projected[:, :2] / z_eff[:, None]
-
-    corners = torch.tensor(
-        [[0.0, 0.0], [width - 1.0, 0.0], [0.0, height - 1.0], [width - 1.0, height - 1.0]],
-        dtype=dtype, device=light_position.device,
-    )
-    to_corner = corners[None] - epipole[:, None]  # (N, 4, 2)
-    r_corner = to_corner.norm(dim=-1)
-    r_max = r_corner.amax(-1)
-    upper = corners[3]
-    inside = ((epipole >= 0) & (epipole <= upper)).all(-1)
-    nearest = torch.minimum(torch.maximum(epipole, torch.zeros_like(upper)), upper)
-    r_min = torch.where(inside, torch.zeros_like(r_max), (epipole - nearest).norm(dim=-1))
-
-    # Angular span of the image seen from an outside epipole: corner angles
-    # relative to the direction of the image centre (no wrap-around possible,
-    # the rectangle subtends less than pi from outside).
-    to_centre = corners.mean(0)[None] - epipole
-    theta_c = torch.atan2(to_centre[:, 1], to_centre[:, 0])
-    cross = to_centre[:, None, 0] * to_corner[..., 1] - to_centre[:, None, 1] * to_corner[..., 0]
-    dot = (to_centre[:, None] * to_corner).sum(-1)
-    rel = torch.atan2(cross, dot)
-    span = torch.where(inside, torch.full_like(r_max, 2 * math.pi), rel.amax(-1) - rel.amin(-1))
-    theta0 = torch.where(inside, torch.full_like(r_max, -math.pi), theta_c + rel.amin(-1))
-
-    with torch.no_grad():
-        needed = torch.stack([torch.ceil(span * r_max / spacing).amax(),
-                              torch.ceil((r_max - r_min) / spacing).amax()]).tolist()  # one host sync
-    num_lines = max(int(needed[0]) + 1, 2)
-    num_samples = max(int(needed[1]) + 1, 2)
-    dtheta = torch.where(inside, span / num_lines, span / (num_lines - 1))
-    # Guard: an image of one pixel has r_max == r_min; keep the step non-zero.
-    dr = ((r_max - r_min) / (num_samples - 1)).clamp_min(torch.finfo(dtype).eps)
-    return _Lines(epipole, forward, inside, theta0, dtheta, r_min, r_max, dr, num_lines, num_samples)
 
 
 def _angle_from_camera_ray(points: Tensor, light_position: Tensor) -> Tensor:
@@ -263,7 +189,7 @@ def epipolar_shadow_visibility(
     # one such light does not size the pattern of every other (image, light).
     thickness = _thickness(points.detach(), mask, options)
     thickness = None if thickness is None else thickness[image_index]
-    lines = _make_lines(light, K, H, W, options.spacing_px)
+    lines = make_lines(light, K, H, W, options.spacing_px)
     groups = [torch.nonzero(lines.periodic == kind).squeeze(1) for kind in (False, True)]
     groups = [g for g in groups if g.numel()]
     if len(groups) == 1:
@@ -289,7 +215,7 @@ def _thickness(points: Tensor, mask: Tensor, options: EpipolarShadowOptions) -> 
     return options.scene_thickness * size
 
 
-def _band_gradient(visibility: Tensor, band: Tensor, pts: Tensor, weight: Tensor, light: Tensor, lines: _Lines,
+def _band_gradient(visibility: Tensor, band: Tensor, pts: Tensor, weight: Tensor, light: Tensor, lines: EpipolarLines,
                    line_of_row: Tensor, running_flat: Tensor, argmin_flat: Tensor, kept: tuple[Tensor, Tensor] | None,
                    focal: Tensor, u: Tensor, v: Tensor, H: int, W: int, options: EpipolarShadowOptions,
                    slab_end: Tensor | None = None) -> Tensor:
@@ -309,7 +235,7 @@ def _band_gradient(visibility: Tensor, band: Tensor, pts: Tensor, weight: Tensor
     if rows.numel() == 0:  # no pixel in a soft edge: a zero gradient, the graph kept (backward works)
         return visibility + 0.0 * light.sum(-1, keepdim=True)
     band_lines = lines.select(rows)
-    node, fa, fs = _node_index(*_pixel_coords(band_lines, u[cols], v[cols], options.lookback), ns)  # (M, 4), (M,), (M,)
+    node, fa, fs = table_nodes(*pattern_coords(band_lines, u[cols], v[cols], options.lookback), ns)  # (M, 4), (M,), (M,)
     at = rows[:, None]
     if kept is not None:
         node_min, occluder_column = kept
@@ -336,15 +262,61 @@ def _band_gradient(visibility: Tensor, band: Tensor, pts: Tensor, weight: Tensor
     return visibility.index_put((rows, cols), band_visibility)
 
 
+def _sweep_table(pts: Tensor, weight: Tensor, gamma: Tensor, slab_end: Tensor | None, lines: EpipolarLines,
+                 line_of_row: Tensor, H: int, W: int, options: EpipolarShadowOptions
+                 ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+    """The sweep's padded table ``(N, nl + 2, ns + 1)`` (rows: lines, then the two that the
+    last pixels' interpolation reaches; columns: a sample before the first, which sees
+    nothing, then the samples), chunked over the N pairs: for each node, the smallest
+    ``gamma (N, H*W)`` at or before it (running) and which column holds it (argmin). With
+    ``slab_end (N, H*W)`` (a bounded solid) each node's gamma (front) and its slab end
+    (back) are returned too, else None: a ray of angle g passes through that slab when
+    front <= g <= back (gamma grows with depth along a camera ray). No gradient."""
+    N = gamma.shape[0]
+    dtype, device = pts.dtype, pts.device
+    nl, ns = lines.num_lines, lines.num_samples
+    thick = slab_end is not None
+    front_table = back_table = None
+    channels = [weight, gamma * weight]
+    if thick:
+        channels.append(slab_end.detach() * weight)
+    angle_image = torch.stack(channels, dim=1).reshape(N, len(channels), H, W)
+    running = torch.empty(N, nl + 2, ns + 1, dtype=dtype, device=device)
+    argmin = torch.empty(N, nl + 2, ns + 1, dtype=torch.long, device=device)
+    if thick:
+        front_table, back_table = torch.empty_like(running), torch.empty_like(running)
+    rows_per_chunk = max(1, options.chunk_samples // ((nl + 2) * (ns + 1)))
+    sample_index = torch.arange(-1, ns, dtype=dtype, device=device)
+    to_grid = pts.new_tensor([2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)])  # pixels -> grid_sample's [-1, 1]
+    for start in range(0, N, rows_per_chunk):
+        part = slice(start, min(N, start + rows_per_chunk))
+        sub = lines.select(part)
+        n = part.stop - part.start
+        # The epipole plus radii per column (n, 1, ns + 1, 1) times directions per row
+        # (n, nl + 2, 1, 2), made in grid coordinates in one pass.
+        theta = sub.theta0[:, None] + line_of_row[part] * sub.dtheta[:, None]
+        direction = torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)[:, :, None]
+        radius = sub.radius(sample_index[None].expand(n, ns + 1))[:, None, :, None]
+        grid = torch.addcmul((sub.epipole * to_grid - 1)[:, None, None], radius, direction * to_grid)
+        angles, ok = _masked_angle(angle_image[part], grid.reshape(n, 1, (nl + 2) * (ns + 1), 2))
+        angle = torch.where(ok, angles[:, 0], _NO_OCCLUDER).reshape(n, nl + 2, ns + 1)
+        angle[:, :, 0] = _NO_OCCLUDER
+        torch.cummin(angle, dim=-1, out=(running[part], argmin[part]))
+        if thick:
+            front_table[part] = angle
+            back_table[part] = angles[:, 1].reshape(n, nl + 2, ns + 1)
+    return running, argmin, front_table, back_table
+
+
 def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
-           options: EpipolarShadowOptions, thickness: Tensor | None = None, lines: _Lines | None = None) -> Tensor:
+           options: EpipolarShadowOptions, thickness: Tensor | None = None, lines: EpipolarLines | None = None) -> Tensor:
     """Visibility ``(N, H*W)`` of ``pts (N, H*W, 3)`` from ``light (N, 3)``, see above;
     ``thickness (N,)`` bounds the solid behind the surface (None: unbounded); ``lines``
     is their pattern when already built (else sized for these N alone)."""
     N = light.shape[0]
     dtype, device = pts.dtype, pts.device
     if lines is None:
-        lines = _make_lines(light, K, H, W, options.spacing_px)
+        lines = make_lines(light, K, H, W, options.spacing_px)
     weight = valid.to(dtype)
     focal = 0.5 * (K[:, 0, 0] + K[:, 1, 1])
     nl, ns = lines.num_lines, lines.num_samples
@@ -357,48 +329,16 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     slab_end = _slab_end_angles(pts, valid, light, thickness, H, W) if thick else None
     with torch.no_grad():
         gamma = _angle_from_camera_ray(pts, light[:, None])  # (N, H*W)
-        # 1) The sweep, on the padded table of _node_index (rows: lines, then the two
-        #    that the last pixels' interpolation reaches; columns: a sample before the
-        #    first, which sees nothing, then the samples): for each node, the smallest
-        #    gamma at or before it (running) and which column holds it (argmin). With a
-        #    thickness, each node's gamma (front) and that of the point a thickness behind
-        #    it along its camera ray (back) are kept too: a ray of angle g passes through
-        #    that slab when front <= g <= back (gamma grows with depth along a camera ray).
-        channels = [weight, gamma * weight]
-        if thick:
-            channels.append(slab_end.detach() * weight)
-        angle_image = torch.stack(channels, dim=1).reshape(N, len(channels), H, W)
-        line_of_row = _line_of_row(lines, nl)  # (N, nl + 2)
-        running = torch.empty(N, nl + 2, ns + 1, dtype=dtype, device=device)
-        argmin = torch.empty(N, nl + 2, ns + 1, dtype=torch.long, device=device)
-        if thick:
-            front_table, back_table = torch.empty_like(running), torch.empty_like(running)
-        rows_per_chunk = max(1, options.chunk_samples // ((nl + 2) * (ns + 1)))
-        sample_index = torch.arange(-1, ns, dtype=dtype, device=device)
-        to_grid = pts.new_tensor([2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)])  # pixels -> grid_sample's [-1, 1]
-        for start in range(0, N, rows_per_chunk):
-            part = slice(start, min(N, start + rows_per_chunk))
-            sub = lines.select(part)
-            n = part.stop - part.start
-            # The epipole plus radii per column (n, 1, ns + 1, 1) times directions per row
-            # (n, nl + 2, 1, 2), made in grid coordinates in one pass.
-            theta = sub.theta0[:, None] + line_of_row[part] * sub.dtheta[:, None]
-            direction = torch.stack([torch.cos(theta), torch.sin(theta)], dim=-1)[:, :, None]
-            radius = sub.radius(sample_index[None].expand(n, ns + 1))[:, None, :, None]
-            grid = torch.addcmul((sub.epipole * to_grid - 1)[:, None, None], radius, direction * to_grid)
-            angles, ok = _masked_angle(angle_image[part], grid.reshape(n, 1, (nl + 2) * (ns + 1), 2))
-            angle = torch.where(ok, angles[:, 0], _NO_OCCLUDER).reshape(n, nl + 2, ns + 1)
-            angle[:, :, 0] = _NO_OCCLUDER
-            torch.cummin(angle, dim=-1, out=(running[part], argmin[part]))
-            if thick:
-                front_table[part] = angle
-                back_table[part] = angles[:, 1].reshape(n, nl + 2, ns + 1)
+        # 1) The sweep: each node's running minimum of gamma along its line (_sweep_table).
+        line_of_row = table_row_lines(lines, nl)  # (N, nl + 2)
+        running, argmin, front_table, back_table = _sweep_table(pts, weight, gamma, slab_end, lines, line_of_row,
+                                                                H, W, options)
         running_flat, argmin_flat = running.reshape(N, -1), argmin.reshape(N, -1)
 
         # 2) Every pixel, from the running minima of the pattern nodes around it.
         # The bilinear interpolation of the four nodes around each pixel is grid_sample's
-        # on the table (border padding: the clamps of _node_index), one fused pass.
-        a, s = _pixel_coords(lines.select((slice(None), None)), u, v, options.lookback)
+        # on the table (border padding: the clamps of table_nodes), one fused pass.
+        a, s = pattern_coords(lines.select((slice(None), None)), u, v, options.lookback)
         grid = torch.stack([(s + 1) * (2 / ns) - 1, a * (2 / (nl + 1)) - 1], dim=-1)
         running_min = F.grid_sample(running[:, None], grid[:, None], mode="bilinear", padding_mode="border",
                                     align_corners=True).reshape(N, H * W)
@@ -416,7 +356,7 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
             band_columns = [argmin_flat.new_empty(0, 4)]
             for start in range(0, rows.numel(), per_chunk):
                 r, c = rows[start:start + per_chunk], cols[start:start + per_chunk]
-                node, fa, fs = _node_index(*_pixel_coords(lines.select(r), u[c], v[c], options.lookback), ns)
+                node, fa, fs = table_nodes(*pattern_coords(lines.select(r), u[c], v[c], options.lookback), ns)
                 soft = options.width_px * _pixel_angle(pts[r, c, 2], distance[r, c], focal[r])
                 node_min, columns = _bounded_minima(running_flat, argmin_flat, front_table, back_table, r, node,
                                                     gamma[r, c], soft)
@@ -437,60 +377,6 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     kept = (torch.cat(band_minima), torch.cat(band_columns)) if thick else None
     return _band_gradient(visibility, band, pts, weight, light, lines, line_of_row, running_flat, argmin_flat, kept,
                           focal, u, v, H, W, options, slab_end)
-
-
-def _line_of_row(lines: _Lines, nl: int) -> Tensor:
-    """``(N, nl + 2)``: the line index (as a float) of each row of the padded sweep table.
-
-    Rows ``nl`` and ``nl + 1`` are where the interpolation of _node_index lands past
-    the last line: lines 0 and 1 again when the lines go all around the epipole, the
-    last line again (a clamp) otherwise.
-    """
-    index = torch.arange(nl + 2, dtype=lines.dtheta.dtype, device=lines.dtheta.device)
-    past = index[nl:]
-    wrapped = torch.where(lines.periodic[:, None], past - nl, torch.full_like(past, nl - 1))
-    return torch.cat([index[:nl].expand(len(lines.periodic), nl), wrapped], dim=1)
-
-
-def _pixel_coords(lines: _Lines, u: Tensor, v: Tensor, lookback: float) -> tuple[Tensor, Tensor]:
-    """Where pixels ``(u, v)`` fall in the pattern, ``lookback`` samples before them:
-    ``a`` across lines (line index, fractional) and ``s`` along them (sample index).
-
-    ``lines`` fields broadcast against ``u`` and ``v``; differentiable in both.
-    """
-    dx, dy = u - lines.epipole[..., 0], v - lines.epipole[..., 1]
-    r_pix = (dx * dx + dy * dy).sqrt()
-    # The pixel's angle from the pattern's reference direction: from line 0 where the
-    # lines span less than pi (outside epipole); from the direction pi past line 0
-    # (= -pi) where they go all around, offset by pi into [0, 2 pi].
-    periodic = lines.periodic.to(u.dtype)
-    base = lines.theta0 + math.pi * periodic
-    cos_b, sin_b = torch.cos(base), torch.sin(base)
-    across, along = cos_b * dy - sin_b * dx, cos_b * dx + sin_b * dy
-    if across.requires_grad or along.requires_grad:
-        # atan2 guard: the pixel at the epipole has no direction; any fixed one will
-        # do, and atan2's gradient at (0, 0) is 0/0.
-        at_epipole = r_pix < 1e-6
-        across, along = torch.where(at_epipole, 1.0, across), torch.where(at_epipole, 1.0, along)
-    rel = torch.atan2(across, along) + math.pi * periodic
-    upper = (lines.num_lines - 1) + periodic  # periodic: index nl is line 0 again (padded row)
-    a = torch.minimum((rel / lines.dtheta).clamp_min(0), upper)
-    radial = torch.where(lines.forward, r_pix - lines.r_min, lines.r_max - r_pix)
-    return a, radial / lines.dr - lookback
-
-
-def _node_index(a: Tensor, s: Tensor, ns: int) -> tuple[Tensor, Tensor, Tensor]:
-    """The four pattern nodes around pattern coordinates ``a, s (...)`` (see _pixel_coords):
-    flat indices ``(..., 4)`` into the padded sweep table ``(nl + 2) x (ns + 1)`` of
-    :func:`_sweep`, ordered (line, sample) = (0, 0), (0, 1), (1, 0), (1, 1) from the
-    lower corner, and the interpolation weights across (``fa``) and along (``fs``)."""
-    a0, s0 = a.detach().floor(), s.detach().floor()
-    width = ns + 1
-    row = a0.long() * width
-    col = s0.long() + 1
-    col = col.clamp(0, ns), (col + 1).clamp(0, ns)  # column 0: nothing before the first sample
-    node = torch.stack([row + col[0], row + col[1], row + (width + col[0]), row + (width + col[1])], dim=-1)
-    return node, a - a0, s - s0
 
 
 def _slab_end_angles(pts: Tensor, valid: Tensor, light: Tensor, thickness: Tensor, H: int, W: int) -> Tensor:
@@ -548,7 +434,7 @@ def _passed_behind(front: Tensor, back: Tensor, gamma: Tensor, soft: Tensor) -> 
 
 def _slab_minima(front: Tensor, back: Tensor, rows: Tensor, node: Tensor, gamma: Tensor, soft: Tensor
                  ) -> tuple[Tensor, Tensor]:
-    """The running minimum at ``node (M, 4)`` (flat indices of _node_index into tables
+    """The running minimum at ``node (M, 4)`` (flat indices of table_nodes into tables
     ``(N, nl + 2, ns + 1)`` of images ``rows (M,)``) of the samples' angles as occluders of a
     pixel's ray of angle ``gamma (M,)``: their ``front`` where the slab ``front <= gamma <=
     back`` reaches behind the ray, rising to ``gamma`` over ``soft (M,)`` past its end
@@ -564,14 +450,14 @@ def _slab_minima(front: Tensor, back: Tensor, rows: Tensor, node: Tensor, gamma:
     last_wins = at_last < before
     upto_last = torch.where(last_wins, at_last, before)
     upto_last_col = torch.where(last_wins, last_col[:, None], before_col)
-    # Order of _node_index: (line 0, first), (line 0, last), (line 1, first), (line 1, last).
+    # Order of table_nodes: (line 0, first), (line 0, last), (line 1, first), (line 1, last).
     minima = torch.stack([before[:, 0], upto_last[:, 0], before[:, 1], upto_last[:, 1]], dim=-1)
     columns = torch.stack([before_col[:, 0], upto_last_col[:, 0], before_col[:, 1], upto_last_col[:, 1]], dim=-1)
     return minima, columns
 
 
 def _lerp_nodes(value: Tensor, fa: Tensor, fs: Tensor) -> Tensor:
-    """Bilinear interpolation of node values ``(..., 4)`` (order of _node_index) -> ``(...)``."""
+    """Bilinear interpolation of node values ``(..., 4)`` (order of table_nodes) -> ``(...)``."""
     v00, v01, v10, v11 = value.unbind(-1)
     return torch.lerp(torch.lerp(v00, v01, fs), torch.lerp(v10, v11, fs), fa)
 

@@ -164,6 +164,17 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
                 best[i] = (more, j, c)
                 still.append(i)
         growing = still
+    return _chosen_candidates(problem, labels, geometry, options, best, tried, corner_loss)
+
+
+def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Tensor | None, options: EstimateOptions,
+                       best: list, tried: list[list[tuple[int, float]]], corner_loss: Tensor
+                       ) -> tuple[list[tuple[Candidate, list[Candidate]]], list[float]]:
+    # Each image's chosen fit ``best[i] = (fit, row, criterion)`` as a candidate (refined on its
+    # albedo classes, its intensities and covariance), the models ``tried[i]`` beside it, and the
+    # criterion of the whole model on every residual; one batched pass per light count.
+    B, device = problem.batch, problem.image.device
+    block = block_px(options, problem.image.shape[-1], albedo_free=True)
     results: list = [None] * B
     whole = [math.inf] * B
     counts = [best[i][0].position.shape[1] for i in range(B)]

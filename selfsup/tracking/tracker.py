@@ -28,7 +28,7 @@ from torch import Tensor
 from render import Material
 from selfsup.estimation import albedo_free
 from selfsup.estimation.criterion import block_px, light_shares
-from selfsup.estimation.options import EstimateOptions
+from selfsup.estimation.options import ALBEDO_FREE_RESIDUALS, EstimateOptions
 from selfsup.estimation.prepare import prepare, saturated_pixels, within_pixels, working_range
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
@@ -109,8 +109,8 @@ class TrackTuning:
     moved_blocks: float = 0.1
 
     def __post_init__(self):
-        if self.warm_residuals not in albedo_free.ALBEDO_FREE_RESIDUALS:
-            raise ValueError(f"track.tuning.warm_residuals must be one of {albedo_free.ALBEDO_FREE_RESIDUALS}, "
+        if self.warm_residuals not in ALBEDO_FREE_RESIDUALS:
+            raise ValueError(f"track.tuning.warm_residuals must be one of {ALBEDO_FREE_RESIDUALS}, "
                              f"got {self.warm_residuals!r}")
         for f in fields(self):
             value = getattr(self, f.name)

@@ -1,4 +1,4 @@
-"""The albedo-free fit (selfsup/estimation/albedo_free.py) and the estimator's reflectance switch."""
+"""The albedo-free fit (selfsup/estimation/albedo_free/) and the estimator's reflectance switch."""
 
 import dataclasses
 import math
@@ -6,8 +6,10 @@ import math
 import pytest
 import torch
 
-from render import GBuffer
+from render import GBuffer, Material
 from selfsup.estimation import albedo_free
+from selfsup.estimation.albedo_free import fit as albedo_fit
+from selfsup.estimation.albedo_free import light_search, observation
 from selfsup.estimation.options import EstimateOptions, Tuning
 from selfsup.estimation.stages import estimate_scene
 from selfsup.estimation.prepare import problem_of
@@ -48,13 +50,13 @@ def test_jacobian_matches_finite_differences(residuals):
     obs = albedo_free.observe(problem, residuals=residuals)
     position = scene.light_pos[None].double() + 0.1
     log_weight = torch.tensor([[-1.5, 0.0]], dtype=torch.float64)
-    residual, jac = albedo_free._jacobian(obs, position, log_weight, robust=False)
+    residual, jac = albedo_fit._jacobian(obs, position, log_weight, robust=False)
     h = 1e-6
     for k in range(4):
         step = torch.zeros(1, 4, dtype=torch.float64)
         step[0, k] = h
-        d_pos, d_u = albedo_free._unpack(step, 1)
-        moved, _ = albedo_free._jacobian(obs, position + d_pos, log_weight + d_u, robust=False)
+        d_pos, d_u = albedo_fit._unpack(step, 1)
+        moved, _ = albedo_fit._jacobian(obs, position + d_pos, log_weight + d_u, robust=False)
         torch.testing.assert_close(jac[0, k], (moved - residual)[0] / h, atol=1e-5, rtol=1e-4)
 
 
@@ -66,12 +68,12 @@ def test_ambient_block_scores_predict_how_more_ambient_over_a_block_moves_the_fi
     obs = albedo_free.observe(problem, residuals=residuals)
     truth = scene.light_pos[None].double()
     log_weight = torch.tensor([[-1.5, 0.0]], dtype=torch.float64)
-    log_model, shading = albedo_free._log_model(albedo_free._transport(obs, truth), log_weight)
+    log_model, shading = albedo_fit._log_model(albedo_fit._transport(obs, truth), log_weight)
     obs.log_shading, obs.observed = log_model, obs.differences(log_model)
     fit = albedo_free.refine_positions(obs, truth, log_weight, iterations=30, tol=1e-14)
     torch.testing.assert_close(fit.position, truth)
-    residual, jac = albedo_free._jacobian(obs, fit.position, fit.log_weight)
-    weighted = jac * albedo_free._cauchy_weights(obs, residual)[:, None]
+    residual, jac = albedo_fit._jacobian(obs, fit.position, fit.log_weight)
+    weighted = jac * albedo_fit._cauchy_weights(obs, residual)[:, None]
     info = weighted @ jac.transpose(1, 2)
     block = 8
     scores = albedo_free.block_scores_of(obs, weighted, fit.log_weight[:, :1, None].exp() / shading, block)
@@ -125,21 +127,21 @@ def test_robust_jacobian_matches_finite_differences_with_outliers_in_the_segment
     obs = albedo_free.observe(problem, robust_scale=0.05)
     log_weight = torch.tensor([[-3.0, 0.0]], dtype=torch.float64)
     truth = scene.light_pos[None].double()
-    log_model, _ = albedo_free._log_model(albedo_free._transport(obs, truth), log_weight)
+    log_model, _ = albedo_fit._log_model(albedo_fit._transport(obs, truth), log_weight)
     albedo = torch.rand(obs.segments.shape[1] + 1, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
     outlier = (torch.rand(log_model.numel(), generator=torch.Generator().manual_seed(1)) < 0.1).double()
     obs.log_shading = log_model + albedo[obs.segments].view_as(log_model) + outlier.view_as(log_model)
     position = truth + 0.0005
-    residual, jac = albedo_free._jacobian(obs, position, log_weight)
-    _, plain = albedo_free._jacobian(obs, position, log_weight, robust=False)
+    residual, jac = albedo_fit._jacobian(obs, position, log_weight)
+    _, plain = albedo_fit._jacobian(obs, position, log_weight, robust=False)
     inliers = (outlier.view_as(obs.pairs) == 0) & obs.pairs
     assert float(residual[inliers].abs().max()) < 0.2 * float(obs.scale[0])
     h = 1e-6
     for k in range(4):
         step = torch.zeros(1, 4, dtype=torch.float64)
         step[0, k] = h
-        d_pos, d_u = albedo_free._unpack(step, 1)
-        moved, _ = albedo_free._jacobian(obs, position + d_pos, log_weight + d_u)
+        d_pos, d_u = albedo_fit._unpack(step, 1)
+        moved, _ = albedo_fit._jacobian(obs, position + d_pos, log_weight + d_u)
         numeric = (moved - residual)[0] / h
         assert float((jac[0, k] - numeric).norm() / numeric.norm()) < 0.01
         assert float((plain[0, k] - numeric).norm() / numeric.norm()) > 0.03
@@ -307,19 +309,19 @@ def test_grid_ranking_scores_each_candidate_as_its_own_model(residuals, held):
         fixed = albedo_free.AlbedoFreeFit(torch.stack([s.light_pos[:1] for s in scenes]).double(),
                                           torch.tensor([[-2.0, 0.0], [-1.0, 0.0]], dtype=torch.float64),
                                           torch.ones(2, dtype=torch.float64), torch.ones(2, dtype=torch.long))
-    losses, weights = albedo_free._grid_losses(obs, fixed, cands)
+    losses, weights = light_search._grid_losses(obs, fixed, cands)
     assert losses.shape == cands.shape[:2] and weights.shape == (*cands.shape[:2], 3 if held else 2)
     for b in range(2):
         for g in (0, 7, cands.shape[1] - 1):
             one = albedo_free.LogShading(*(getattr(obs, f.name)[b : b + 1] if isinstance(getattr(obs, f.name), torch.Tensor)
                                            else getattr(obs, f.name) for f in dataclasses.fields(obs)))
-            one.gbuffer, one.material = obs.gbuffer.select(torch.tensor([b])), albedo_free.Material(kd=obs.material.kd[b : b + 1])
+            one.gbuffer, one.material = obs.gbuffer.select(torch.tensor([b])), Material(kd=obs.material.kd[b : b + 1])
             position = cands[b : b + 1, g : g + 1]
             if held:
                 position = torch.cat([fixed.position[b : b + 1], position], 1)
-            diffuse = albedo_free._transport(one, position)
-            log_model, _ = albedo_free._log_model(diffuse, weights[b : b + 1, g])
-            own = albedo_free.shading_loss(one, albedo_free._residual(one, log_model, robust=False))
+            diffuse = albedo_fit._transport(one, position)
+            log_model, _ = albedo_fit._log_model(diffuse, weights[b : b + 1, g])
+            own = albedo_free.shading_loss(one, albedo_fit._residual(one, log_model, robust=False))
             torch.testing.assert_close(losses[b, g], own[0])
             # The step returned is the list's best: every other step of it loses more.
             if held:
@@ -333,8 +335,8 @@ def test_grid_ranking_scores_each_candidate_as_its_own_model(residuals, held):
             for value in others:
                 other = weights[b : b + 1, g].clone()
                 other[:, -1 if held else 0] = value
-                moved = albedo_free.shading_loss(one, albedo_free._residual(
-                    one, albedo_free._log_model(diffuse, other)[0], robust=False))
+                moved = albedo_free.shading_loss(one, albedo_fit._residual(
+                    one, albedo_fit._log_model(diffuse, other)[0], robust=False))
                 assert float(moved[0]) >= float(own[0]) - 1e-12
 
 
@@ -344,116 +346,11 @@ def test_segment_ids_count_the_segments_not_the_pixels():
     # still be a segment of its own (not merged into "none").
     labels = torch.tensor([[[0, 0, 0, 5000], [0, 0, 5000, 5000], [7, 0, -1, 5000]]]).repeat(1, 4, 1)
     valid = torch.ones_like(labels, dtype=torch.bool)
-    segments, count = albedo_free._usable(labels, valid)
+    segments, count = observation._usable(labels, valid)
     assert count == 5001
     flat = labels.flatten(1)
     assert bool((segments[flat == 5000] == 5000).all()) and bool((segments[flat == 0] == 0).all())
     assert bool((segments[(flat == 7) | (flat == -1)] == count).all())  # 7: too few pixels; -1: no segment
-
-
-def _shading_log(problem, fit):
-    obs = albedo_free.observe(problem)
-    return albedo_free._log_model(albedo_free._transport(obs, fit.position), fit.log_weight)[0]
-
-
-def test_a_fit_without_a_light_keeps_the_others_shading_up_to_its_scale():
-    problem = problem_of(_unknown_albedo(_scene(11, n_lights=2)), shadows="none", dtype=torch.float64)
-    position = torch.tensor([[[0.3, -1.0, 2.0], [-0.5, -0.8, 2.5], [0.0, -1.2, 1.5]]], dtype=torch.float64)
-    fit = albedo_free.AlbedoFreeFit(position, torch.tensor([[-2.0, 0.0, 0.7, -0.4]], dtype=torch.float64),
-                                    torch.ones(1, dtype=torch.float64), torch.ones(1, dtype=torch.long))
-    for light in range(3):
-        kept = [i for i in range(3) if i != light]
-        alone = fit.without(light)
-        assert float(alone.log_weight[0, 1]) == 0.0  # the gauge: the new first light's
-        w = fit.log_weight.exp()[0]
-        transport = albedo_free._transport(albedo_free.observe(problem), position)[0]
-        expected = (w[0] + sum(w[1 + i] * transport[i] for i in kept)).log()
-        difference = _shading_log(problem, alone)[0] - expected
-        mask = problem.gbuffer.mask[0]
-        assert float(difference[mask].std()) < 1e-9  # one constant: the gauge's scale
-    with pytest.raises(ValueError, match="cannot leave light 3 out"):
-        fit.without(3)
-
-
-@pytest.mark.parametrize("lights", [1, 2])
-def test_split_starts_replace_each_light_by_two_that_shade_as_it_does_when_not_moved(lights):
-    problem = problem_of(_unknown_albedo(_scene(11, n_lights=2)), shadows="none", dtype=torch.float64)
-    position = torch.tensor([[[0.3, -1.0, 2.0], [-0.5, -0.8, 2.5]][:lights]], dtype=torch.float64)
-    log_weight = torch.tensor([[-2.0, 0.0, 0.7][: lights + 1]], dtype=torch.float64)
-    fixed = albedo_free.AlbedoFreeFit(position, log_weight, torch.ones(1), torch.ones(1, dtype=torch.long))
-    size = torch.tensor([2.0], dtype=torch.float64)
-    starts, weights = albedo_free.split_starts(fixed, size)
-    assert starts.shape == (1, 3 * lights, lights + 1, 3) and weights.shape == (1, 3 * lights, lights + 2)
-    for j in range(lights):  # each split light's two halves lie 0.15 x size either side of it, along x, y, z
-        halves = starts[0, 3 * j : 3 * j + 3][:, [j, lights]]
-        torch.testing.assert_close(halves[:, 0] - halves[:, 1], 0.6 * torch.eye(3, dtype=torch.float64))
-        torch.testing.assert_close(halves.mean(1), position[0, j].expand(3, 3))
-    assert bool((weights[..., 1] == 0).all())  # the gauge
-    unmoved, _ = albedo_free.split_starts(fixed, size, step=0.0)
-    reference = _shading_log(problem, fixed)[0]
-    mask = problem.gbuffer.mask[0]
-    for s in range(3 * lights):
-        split = albedo_free.AlbedoFreeFit(unmoved[:, s], weights[:, s], fixed.loss, fixed.pairs)
-        assert float((_shading_log(problem, split)[0] - reference)[mask].std()) < 1e-9
-
-
-def test_searching_each_light_again_frees_a_light_held_between_two():
-    # The first light fitted alone lands between the two; the second searched with it held
-    # there cannot undo that. Searched again with the second held, it finds its place.
-    scene = _scene(11, n_lights=2, config=MEDIUM)
-    problem = problem_of(_unknown_albedo(scene), shadows="none")
-    truth = scene.light_pos[None]
-    between = truth.mean(1, keepdim=True)
-    held = albedo_free.refine_positions(albedo_free.observe(problem), torch.cat([between, truth[:, 1:]], 1),
-                                        torch.tensor([[-3.0, 0.0, 0.0]]), iterations=0)
-
-    def worst_error(fit):
-        return max(float((fit.position[0] - light).norm(dim=-1).min() / scene.scene_scale) for light in scene.light_pos)
-
-    assert worst_error(held) > 0.1
-    fit = albedo_free.search_each(problem, held)
-    assert worst_error(fit) < 0.05 and float(fit.loss[0]) < float(held.loss[0])
-
-
-def _held_away(problem, scene):
-    # One light fitted where neither is: half a scene in front of the two, towards the camera.
-    away = scene.light_pos.mean(0) + 0.5 * scene.scene_scale * torch.tensor([0.0, 0.0, -1.0])
-    return albedo_free.refine_positions(albedo_free.observe(problem), away[None, None], torch.tensor([[-3.0, 0.0]]),
-                                        iterations=0)
-
-
-def _worst_error(fit, scene):
-    return max(float((fit.position[0] - light).norm(dim=-1).min() / scene.scene_scale) for light in scene.light_pos)
-
-
-def test_pairs_found_together_free_two_lights_that_a_wrong_single_light_hides():
-    # Held where the one-light fit wrongly lies, the first light keeps the second's search
-    # from both lights; the anchor pairs move both (devset capture direct 031's case).
-    scene = _scene(4, n_lights=2, config=MEDIUM)
-    problem = problem_of(_unknown_albedo(scene), shadows="none")
-    held = _held_away(problem, scene)
-    alone = albedo_free.search(problem, 2, fixed=held, anchors=False)
-    together = albedo_free.search(problem, 2, fixed=held)
-    assert _worst_error(alone, scene) > 0.1
-    assert _worst_error(together, scene) < 0.01 and float(together.loss[0]) < 0.5 * float(alone.loss[0])
-
-
-def test_anchor_pairs_rank_each_image_of_a_batch_as_alone():
-    from selfsup.estimation.prepare import problems_of
-    from selfsup.estimation.problem import centre_and_size, subsample
-
-    def pairs(problem, count=3):
-        coarse = subsample(problem, 4)
-        return albedo_free.anchor_pairs(albedo_free.observe(coarse), coarse, centre_and_size(problem)[1], count)
-
-    scenes = [_unknown_albedo(_scene(seed, n_lights=2)) for seed in (4, 8)]
-    position, log_weight = pairs(problems_of(scenes, shadows="none"))
-    assert position.shape == (2, 3, 2, 3) and log_weight.shape == (2, 3, 3)
-    assert bool((log_weight[..., 1] == 0).all())  # the gauge: the anchor's
-    for i, scene in enumerate(scenes):  # each image's segments are its own
-        alone = pairs(problem_of(scene, shadows="none"))
-        torch.testing.assert_close(position[i : i + 1], alone[0])
-        torch.testing.assert_close(log_weight[i : i + 1], alone[1])
 
 
 def test_mirror_lobes_lie_where_a_flat_wall_mirrors_the_light_into_the_camera():
@@ -481,7 +378,7 @@ def test_highlight_pixels_are_the_lobes_pixels_brighter_than_the_model():
                                        torch.tensor([[-3.0, 0.0]], dtype=torch.float64), iterations=0)
     obs = albedo_free.observe(problem)
     lobes = albedo_free.mirror_lobes(problem.gbuffer, fit.position, 30.0)
-    _, residual = albedo_free._evaluate(obs, fit.position, fit.log_weight)
+    _, residual = albedo_fit._evaluate(obs, fit.position, fit.log_weight)
     brighter = residual.view_as(lobes) > 0
     highlights = albedo_free.highlight_pixels(obs, fit, 30.0)
     assert torch.equal(highlights, lobes & brighter) and 0 < int(highlights.sum()) < int(lobes.sum())
@@ -583,37 +480,3 @@ def test_group_medians_take_each_groups_middle_value():
     assert counts.tolist() == [3, 0, 4]
     assert (lower[0], upper[0]) == (4.0, 4.0)  # odd count: the middle, either way
     assert (lower[2], upper[2]) == (3.0, 7.0)  # 2, 3, 7, 9: the two middles
-
-
-def test_a_networks_lights_start_the_search_where_the_grid_alone_does_not_reach():
-    # Held where the one-light fit wrongly lies and searched without the anchor pairs, the
-    # second light is not found (the test above); a start at the true pair (a network's
-    # lights) is taken, and a start of the wrong shape is named.
-    scene = _scene(4, n_lights=2, config=MEDIUM)
-    problem = problem_of(_unknown_albedo(scene), shadows="none")
-    held = _held_away(problem, scene)
-    started = albedo_free.search(problem, 2, fixed=held, anchors=False, extra_starts=scene.light_pos[None, None] + 0.02)
-    assert _worst_error(started, scene) < 0.01
-    with pytest.raises(ValueError, match="extra_starts"):
-        albedo_free.search(problem, 2, fixed=held, extra_starts=scene.light_pos[None, None, :1])
-
-
-def test_cnn_refine_gives_the_networks_lights_to_the_albedo_free_searches(monkeypatch):
-    # A capture-like file (kd one constant) under cnn+refine: the first search of one light
-    # and of two gets the network's first one and two slots (searching each light again,
-    # the others held, needs none); method=refine gives none.
-    seen = []
-    search = albedo_free.search
-
-    def recording(problem, n_lights=1, *args, extra_starts=None, **kwargs):
-        seen.append(None if extra_starts is None else tuple(extra_starts.shape))
-        return search(problem, n_lights, *args, extra_starts=extra_starts, **kwargs)
-
-    monkeypatch.setattr(albedo_free, "search", recording)
-    scene = _unknown_albedo(_scene(3))
-    estimate_scene(scene, EstimateOptions(method="cnn+refine", max_lights=2))
-    given = [shape for shape in seen if shape is not None]
-    assert {shape[2] for shape in given} == {1, 2} and all(shape[1] == 1 and shape[-1] == 3 for shape in given), seen
-    seen.clear()
-    estimate_scene(scene, EstimateOptions(method="refine", max_lights=2))
-    assert seen and all(shape is None for shape in seen)

@@ -1,0 +1,193 @@
+"""The albedo-free model and its fit: unit transport, log model, Cauchy loss, Jacobian and
+Levenberg-Marquardt (:func:`refine_positions`), and what a fitted model says about its
+lights (:func:`light_shares`, :func:`mirror_lobes`, :func:`highlight_pixels`)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from render import GBuffer, Material
+from render.functional import light_transport, light_transport_jacobian
+from render.shading import blinn_phong_lobe, light_geometry
+from selfsup.estimation.albedo_free.observation import AlbedoFreeFit, LogShading
+from selfsup.estimation.problem import FitProblem, gbuffer_centre_and_size
+from selfsup.estimation.solvers import RUNAWAY_SIZES
+
+__all__ = ["shading_loss", "refine_positions", "light_shares", "mirror_lobes", "highlight_pixels"]
+
+
+def _transport(obs: LogShading, position: Tensor) -> Tensor:
+    # Unit diffuse transport (B, L, H, W), shading alone.
+    return light_transport(obs.gbuffer, obs.material, position, falloff=obs.falloff, shadows="none",
+                           specular=False).diffuse
+
+
+def _log_model(diffuse: Tensor, log_weight: Tensor) -> tuple[Tensor, Tensor]:
+    # The model's shading S (B, H, W) and its log, of unit transport (B, L, H, W) and
+    # log weights (B, L + 1); S floored as _floored_log.
+    w = log_weight.exp()
+    return _floored_log(w[:, :1, None] + (w[:, 1:, None, None] * diffuse).sum(1))
+
+
+def _floored_log(shading: Tensor) -> tuple[Tensor, Tensor]:
+    # The log of shadings (..., H, W) and the shadings, each floored at 1e-12 of its peak
+    # (dark sides, no ambient).
+    shading = shading.clamp_min(1e-12 * shading.flatten(-2).amax(-1).clamp_min(1e-30)[..., None, None])
+    return shading.log(), shading
+
+
+def _per_image(value: Tensor, like: Tensor) -> Tensor:
+    # A per-image value (B,) or (B, P) viewed to broadcast against ``like`` (B, [G,] P): a
+    # model per image, or G candidate models of each image side by side.
+    return value.view(value.shape[0], *[1] * (like.dim() - value.dim()), *value.shape[1:])
+
+
+def shading_loss(obs: LogShading, residual: Tensor) -> Tensor:
+    """Cauchy loss ``(B,)`` of pair residuals ``(B, P)`` (or ``(B, G)`` of ``G`` models'
+    ``(B, G, P)``): ``sum c^2 log(1 + (r / c)^2)``."""
+    c = _per_image(obs.scale, residual)
+    return (c**2 * torch.log1p((residual / c) ** 2) * _per_image(obs.pairs, residual)).sum(-1)
+
+
+def _cauchy_weights(obs: LogShading, residual: Tensor) -> Tensor:
+    # IRLS weights (B, P) of pair residuals: 0 off the valid pairs.
+    return obs.pairs / (1 + (residual / obs.scale[:, None]) ** 2)
+
+
+def _residual(obs: LogShading, log_model: Tensor, robust: bool = True) -> Tensor:
+    # (B, P): pairs' differences, or each pixel's log ratio to the model less its segment's
+    # offset (robust: :meth:`LogShading.offsets`; else the mean, :meth:`LogShading.differences`).
+    # Not robust, log models (B, G, H, W) give (B, G, P).
+    if obs.segments is None or not robust:
+        model = obs.differences(log_model)
+        return torch.where(_per_image(obs.pairs, model), _per_image(obs.observed, model) - model,
+                           torch.zeros((), dtype=model.dtype, device=model.device))
+    ratio = (obs.log_shading - log_model).flatten(1)
+    return torch.where(obs.pairs, ratio - obs.offsets(ratio), torch.zeros_like(ratio))
+
+
+def _evaluate(obs: LogShading, position: Tensor, log_weight: Tensor) -> tuple[Tensor, Tensor]:
+    # The loss (B,) and the residual (B, P) it sums.
+    log_model, _ = _log_model(_transport(obs, position), log_weight)
+    residual = _residual(obs, log_model)
+    return shading_loss(obs, residual), residual
+
+
+def _jacobian(obs: LogShading, position: Tensor, log_weight: Tensor, robust: bool = True,
+              residual: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Residual ``(B, P)`` and its Jacobian ``(B, k, P)`` with respect to the free
+    parameters: each light's position (3L), the ambient's log weight, and the log
+    weights of lights 2.. (the first light's is the gauge). With ``robust`` segment
+    offsets the Jacobian is the reweighting's (each offset a weighted mean whose weights
+    are held): exact where the residuals lie well inside the Cauchy scale. ``residual``:
+    the one at these parameters when known (:func:`_evaluate`'s)."""
+    B, L, _ = position.shape
+    jac = light_transport_jacobian(obs.gbuffer, obs.material, position, 1.0, falloff=obs.falloff, shadows="none",
+                                   specular=False)
+    diffuse = jac.transport.diffuse  # (B, L, H, W)
+    log_model, shading = _log_model(diffuse, log_weight)
+    w = log_weight.exp()
+    H, W = diffuse.shape[-2:]
+    # d log S / d p_i = w_i dD_i/dp_i / S; d log S / d u_0 = w_0 / S; d log S / d u_i = w_i D_i / S,
+    # each block written into one (B, k, H, W) array and divided by S there (no copies between).
+    d_log = diffuse.new_empty(B, 4 * L, H, W)
+    torch.mul(w[:, 1:, None, None, None], jac.diffuse.permute(0, 1, 4, 2, 3),
+              out=d_log[:, : 3 * L].view(B, L, 3, H, W))
+    d_log[:, 3 * L] = w[:, :1, None]
+    torch.mul(w[:, 2:, None, None], diffuse[:, 1:], out=d_log[:, 3 * L + 1 :])
+    d_log /= shading[:, None]
+    residual = _residual(obs, log_model, robust) if residual is None else residual
+    if obs.segments is None or not robust:
+        return residual, -obs.differences(d_log) * obs.pairs[:, None]
+    # The offsets move with the model: each is a weighted mean (the Cauchy weights of its
+    # pixels' residuals), so a residual's derivative is the model's less that mean of it
+    # (mean - d, which is -(d - mean) exactly).
+    d_log = d_log.flatten(2)  # (B, k, P)
+    mean = obs.segment_means(d_log, _cauchy_weights(obs, residual))
+    return residual, mean.sub_(d_log).mul_(obs.pairs[:, None])
+
+
+def _unpack(step: Tensor, L: int) -> tuple[Tensor, Tensor]:
+    # A free-parameter step (B, 4L) -> position step (B, L, 3), log-weight step (B, L + 1).
+    B = step.shape[0]
+    d_pos = step[:, : 3 * L].reshape(B, L, 3)
+    d_u = torch.cat([step[:, 3 * L : 3 * L + 1], step.new_zeros(B, 1), step[:, 3 * L + 1 :]], 1)
+    return d_pos, d_u
+
+
+def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iterations: int = 20,
+                     tol: float = 1e-6) -> AlbedoFreeFit:
+    """Damped Gauss-Newton (Levenberg-Marquardt) with Cauchy IRLS weights from
+    ``position (B, L, 3)`` and ``log_weight (B, L + 1)``; each image stops on its own
+    (relative loss decrease below ``tol``, or damping run out)."""
+    position, log_weight = position.detach().clone(), log_weight.detach().clone()
+    B, L, _ = position.shape
+    centre, size = gbuffer_centre_and_size(obs.gbuffer)
+    reach = RUNAWAY_SIZES * size  # (B,)
+    loss, residual = _evaluate(obs, position, log_weight)
+    damping = torch.full((B,), 1e-3, dtype=position.dtype, device=position.device)
+    active = torch.ones(B, dtype=torch.bool, device=position.device)
+    for _ in range(iterations):
+        if not bool(active.any()):
+            break
+        residual, jac = _jacobian(obs, position, log_weight, residual=residual)
+        weights = _cauchy_weights(obs, residual)
+        weighted = jac * weights[:, None]
+        jtj = (weighted @ jac.transpose(1, 2)).double()
+        jtr = (weighted @ residual[..., None]).double()
+        diag = jtj.diagonal(dim1=-2, dim2=-1)
+        peak = diag.amax(-1, keepdim=True)
+        diag = torch.where(peak > 0, diag.clamp_min(1e-9 * peak), torch.ones_like(diag))
+        system = jtj + damping.double()[:, None, None] * torch.diag_embed(diag)
+        # residual r = observed - model, J = d r / d theta: the step solves (J W J^T) d = -J W r.
+        step = -torch.linalg.solve_ex(system, jtr)[0].squeeze(-1).to(position.dtype)
+        finite = torch.isfinite(step).all(-1) & active
+        step = torch.where(finite[:, None], step, torch.zeros_like(step))
+        d_pos, d_u = _unpack(step, L)
+        trial_pos, trial_u = position + d_pos, log_weight + d_u
+        trial, trial_residual = _evaluate(obs, trial_pos, trial_u)
+        # A step that takes a light beyond RUNAWAY_SIZES scene sizes fits a direction, not a
+        # point (the log shading of a far light flattens towards it): it is not taken.
+        inside = (trial_pos - centre[:, None]).norm(dim=-1).amax(-1) <= reach
+        better = finite & inside & (trial < loss)
+        rel = (loss - trial) / loss.clamp_min(1e-30)
+        position = torch.where(better[:, None, None], trial_pos, position)
+        log_weight = torch.where(better[:, None], trial_u, log_weight)
+        loss = torch.where(better, trial, loss)
+        residual = torch.where(better[:, None], trial_residual, residual)
+        damping = torch.where(better, damping * 0.3, damping * 10).clamp(1e-9, 1e9)
+        active &= ~((better & (rel < tol)) | (damping >= 1e9))
+    return AlbedoFreeFit(position, log_weight, loss, obs.pairs.sum(1))
+
+
+def light_shares(problem: FitProblem, fit: AlbedoFreeFit) -> Tensor:
+    """Each light's share ``(B, L)`` of the fitted direct shading over the valid pixels."""
+    diffuse = light_transport(problem.gbuffer, Material(kd=problem.material.kd), fit.position,
+                              falloff=problem.falloff, shadows="none", specular=False).diffuse
+    direct = (fit.log_weight[:, 1:].exp()[..., None, None] * diffuse * problem.gbuffer.mask[:, None]).flatten(2).sum(2)
+    return direct / direct.sum(1, keepdim=True).clamp_min(1e-30)
+
+
+def mirror_lobes(gbuffer: GBuffer, position: Tensor, max_angle_deg: float) -> Tensor:
+    """``(B, H, W)`` bool: valid pixels whose normal lies within ``max_angle_deg`` of the
+    half vector between the view and the direction to any light at ``position (B, L, 3)``:
+    where a glossy surface shows that light's highlight (a Blinn-Phong lobe of shininess
+    30 keeps 0.15 of its peak 20 degrees out)."""
+    geometry = light_geometry(gbuffer.points[:, None], position[:, :, None, None])
+    cosine = blinn_phong_lobe(gbuffer.normals[:, None], geometry.to_light, geometry.to_viewer, 1.0)  # n.h (B, L, H, W)
+    return (cosine > math.cos(math.radians(max_angle_deg))).any(1) & gbuffer.mask
+
+
+def highlight_pixels(obs: LogShading, fit: AlbedoFreeFit, max_angle_deg: float) -> Tensor:
+    """``(B, H, W)`` bool: the pixels of ``fit``'s lights' :func:`mirror_lobes` that are
+    brighter than its model (a positive residual against their segment's offset): where
+    a glossy surface may show a highlight the diffuse-only fit does not explain.
+    Segment residuals only."""
+    if obs.segments is None:
+        raise ValueError("highlight pixels are found on segment residuals; pairs have no pixel of their own")
+    _, residual = _evaluate(obs, fit.position, fit.log_weight)
+    lobes = mirror_lobes(obs.gbuffer, fit.position, max_angle_deg)
+    return lobes & (residual.view_as(lobes) > 0)
