@@ -3,6 +3,7 @@
 import json
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from benchmarks.captures import read_truth
@@ -40,3 +41,18 @@ def test_the_example_sequence_is_tracked_where_its_light_moves():
         (light,) = record["lights"]
         error = (torch.tensor(light["position"]) - truth.light_pos[0]).norm() / truth.scene_scale
         assert float(error) < 0.05, (frame.stem, float(error))
+
+
+def test_the_estimation_figure_shows_each_stage_of_the_example_room():
+    # benchmarks/estimation_figure.py (docs/estimation.md's figure): every panel the image's
+    # size, segments merged into fewer classes, a finite residual on the segments' pixels,
+    # and the answer drawn within a few pixels of the true light.
+    from benchmarks.estimation_figure import DEFAULT_FRAME, stages
+
+    panels = stages(DEFAULT_FRAME)
+    height, width = panels["shading"].shape
+    assert all(panels[name].shape[:2] == (height, width) for name in ("colour", "normals", "segments", "residual"))
+    assert 1 < panels["classes"].max() < panels["segments"].max()
+    assert 0.5 < float(np.isfinite(panels["residual"]).mean()) < 1.0
+    assert panels["found"] and len(panels["answer"]) == len(panels["truth"]) == 1
+    assert float(np.linalg.norm(panels["answer"][0] - panels["truth"][0])) < 5.0
