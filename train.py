@@ -157,7 +157,7 @@ def run(cfg: DictConfig):
 
         est = _plain(cfg.estimate)
         io = {k: est.pop(k) for k in ("input", "output", "progress", "batch", "device", "workers", "depth",
-                                      "depth_scale", "intrinsics")}
+                                      "depth_scale", "intrinsics", "overwrite", "shard")}
         return estimate_files(options=EstimateOptions(**est), **io)
     if cfg.mode == "track":
         return _track(_plain(cfg.track))

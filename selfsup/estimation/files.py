@@ -8,7 +8,9 @@ reason while the others are written.
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import itertools
 import json
 import logging
 import multiprocessing
@@ -16,6 +18,7 @@ import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Iterator
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
@@ -26,68 +29,16 @@ from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.prepare import in_file_units, prepare, within_pixels, working_range
 from selfsup.estimation.records import records
 from selfsup.estimation.stages import estimate_batch
-from selfsup.scenes.capture import (COLOR_SUFFIXES, CaptureFrame, capture_frames, color_and_depth_frame,
-                                    is_capture_folder, read_input)
+from selfsup.estimation.inputs import (Input, count_inputs, estimate_inputs, item_id, iter_inputs, parse_shard,
+                                       read_item, scene_files, sharded)
+from selfsup.estimation.jobs import (Ranks, barrier, completed_ids, finish_ranks, merge_parts, part_path, parts_folder,
+                                     ranks_from_env)
 from selfsup.scenes.io import Scene, SceneFileError
 
 __all__ = ["estimate_files", "estimate_inputs", "scene_files", "worker_count", "usable_cores", "start_method",
-           "failure_reason", "record_line", "progress_bar", "resolve_device",
-           "worker_threads"]
+           "failure_reason", "record_line", "progress_bar", "resolve_device", "worker_threads"]
 
 log = logging.getLogger(__name__)
-
-
-def scene_files(path: str | Path) -> list[Path]:
-    """The ``.npz`` files of a directory (sorted), or the one file given."""
-    path = Path(path)
-    if path.is_dir():
-        return sorted(p for p in path.glob("*.npz"))
-    if path.exists():
-        return [path]
-    raise FileNotFoundError(f"estimate.input {path} does not exist")
-
-
-Input = Path | CaptureFrame  # a scene file, or a capture frame (str() of either names it)
-
-
-def estimate_inputs(input: str | Path, depth: str | Path | None = None, depth_scale: float = 1000.0,
-                    intrinsics: tuple[float, float, float, float] | None = None, key: str = "estimate.input"
-                    ) -> list[Input]:
-    """What ``estimate.input`` names, in order: the frames of a capture folder
-    (:func:`selfsup.scenes.capture.capture_frames`), one colour file with its ``depth``,
-    the ``.npz`` scene files of a directory, or one scene file. ``key``: the setting the
-    errors name.
-
-    Raises:
-        FileNotFoundError: nothing there, or nothing estimable in the directory (its
-            sub-folders that hold scene files or captures are named).
-        ValueError: a file that is neither a scene file nor a colour image with its depth.
-    """
-    path = Path(input)
-    if not path.exists():
-        raise FileNotFoundError(f"{key} {path} does not exist")
-    if depth is not None and not Path(depth).is_file():
-        raise FileNotFoundError(f"estimate.depth {depth} does not exist")
-    if is_capture_folder(path):
-        frames = capture_frames(path, depth_scale, intrinsics)
-        if not frames:
-            raise FileNotFoundError(f"no colour images ({', '.join(COLOR_SUFFIXES)}) in {path / 'color'}")
-        return frames
-    if path.is_file() and path.suffix.lower() in COLOR_SUFFIXES:
-        if depth is None:
-            raise ValueError(f"{key} {path} is a colour image: give its depth with estimate.depth=<file> "
-                             "(16-bit millimetres, or .npy / .tif metres), or give the capture folder")
-        return [color_and_depth_frame(path, depth, depth_scale, intrinsics)]
-    if path.is_file() and path.suffix.lower() != ".npz":
-        raise ValueError(f"{key} {path} is not a .npz scene file, a colour image ({', '.join(COLOR_SUFFIXES)}) "
-                         "or a capture folder (color/ and depth/)")
-    files = scene_files(path)
-    if not files:
-        folders = sorted(p.name for p in path.iterdir()
-                         if p.is_dir() and (any(p.glob("*.npz")) or is_capture_folder(p)))
-        raise FileNotFoundError(f"no .npz scene files or capture folder (color/ and depth/) in {path}" + (
-            f" (its sub-folders {', '.join(folders)} hold some: give one of them)" if folders else ""))
-    return files
 
 
 def _signature(scene: Scene) -> tuple:
@@ -96,8 +47,8 @@ def _signature(scene: Scene) -> tuple:
             tuple(scene.shininess.shape), scene.falloff)
 
 
-def _estimate_group(group: list[tuple[Path, Scene]], options: EstimateOptions, device: torch.device,
-                    read_seconds: dict[Path, float] | None = None) -> tuple[dict[Path, dict], dict[Path, str]]:
+def _estimate_group(group: list[tuple[Input, Scene]], options: EstimateOptions, device: torch.device,
+                    read_seconds: dict[Input, float] | None = None) -> tuple[dict[Input, dict], dict[Input, str]]:
     # Records and failure reasons of scenes that can share a batch. ``seconds``: the scene's
     # reading (read_seconds) and its estimate, its own where it was alone (batch_size 1),
     # else its share of the batch's time. A batch that fails is retried scene by scene, so
@@ -113,8 +64,8 @@ def _estimate_group(group: list[tuple[Path, Scene]], options: EstimateOptions, d
                        scaled)]
     except Exception as error:  # noqa: BLE001 -- whatever a frame raises is that frame's error, never the run's
         if len(group) > 1:
-            done: dict[Path, dict] = {}
-            failed: dict[Path, str] = {}
+            done: dict[Input, dict] = {}
+            failed: dict[Input, str] = {}
             for item in group:
                 one_done, one_failed = _estimate_group([item], options, device, read_seconds)
                 done.update(one_done)
@@ -209,18 +160,18 @@ def worker_count(workers: int | str, files: int, device: torch.device) -> int:
     return workers
 
 
-def _estimate_chunk(chunk: list[Path], options: EstimateOptions, device: torch.device
-                    ) -> tuple[dict[Path, dict], dict[Path, str]]:
+def _estimate_chunk(chunk: list[Input], options: EstimateOptions, device: torch.device
+                    ) -> tuple[dict[Input, dict], dict[Input, str]]:
     # Records and failure reasons of consecutive files: read, grouped by what can share a
     # batch, estimated group by group. Runs in this process or in a worker.
-    groups: dict[tuple, list[tuple[Path, Scene]]] = {}
-    done: dict[Path, dict] = {}
-    reasons: dict[Path, str] = {}
-    read_seconds: dict[Path, float] = {}
+    groups: dict[tuple, list[tuple[Input, Scene]]] = {}
+    done: dict[Input, dict] = {}
+    reasons: dict[Input, str] = {}
+    read_seconds: dict[Input, float] = {}
     for path in chunk:
         started = time.perf_counter()
         try:
-            scene = within_pixels(read_input(path), options)
+            scene = within_pixels(read_item(path), options)
         except Exception as error:  # noqa: BLE001 -- a frame that cannot be read is named, the others go on
             reasons[path] = failure_reason(error)
             continue
@@ -259,97 +210,178 @@ def worker_threads(workers: int) -> int:
     return max(1, usable_cores() // workers)
 
 
-def _chunk_results(chunks: list[list[Path]], options: EstimateOptions, device: torch.device, workers: int):
+# Chunks queued per worker process ahead of the one written: enough to keep each busy,
+# few enough that a million-frame input is never queued whole.
+CHUNKS_AHEAD = 2
+
+
+def _chunk_results(chunks: Iterator[list[Input]], options: EstimateOptions, device: torch.device, workers: int):
     # (chunk, done, reasons) of every chunk, in the chunks' order. With workers > 1 the
-    # chunks run in that many processes (forked or spawned: start_method); a chunk whose worker died (out of
-    # memory, killed) is estimated again in this process, so no file is lost with it.
+    # chunks run in that many processes (forked or spawned: start_method), at most
+    # CHUNKS_AHEAD a worker queued at a time; a chunk whose worker died (out of memory,
+    # killed) is estimated again in this process, so no file is lost with it.
     if workers == 1:
         for chunk in chunks:
             yield (chunk, *_estimate_chunk(chunk, options, device))
         return
     threads = worker_threads(workers)
     context = multiprocessing.get_context(start_method(threads, device))
+    queued: collections.deque = collections.deque()
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start, initargs=(threads,)) as pool:
-        futures = [pool.submit(_estimate_chunk, chunk, options, device) for chunk in chunks]
         try:
-            for chunk, future in zip(chunks, futures):
-                try:
-                    done, reasons = future.result()
-                except BrokenProcessPool as error:
-                    log.warning("a worker stopped (%s); estimating %s here", error, ", ".join(map(str, chunk)))
-                    done, reasons = _estimate_chunk(chunk, options, device)
-                yield chunk, done, reasons
+            for chunk in itertools.chain(chunks, [None]):
+                if chunk is not None:
+                    queued.append((chunk, pool.submit(_estimate_chunk, chunk, options, device)))
+                while queued and (chunk is None or len(queued) >= CHUNKS_AHEAD * workers):
+                    first, future = queued.popleft()
+                    try:
+                        done, reasons = future.result()
+                    except BrokenProcessPool as error:
+                        log.warning("a worker stopped (%s); estimating %s here", error, ", ".join(map(str, first)))
+                        done, reasons = _estimate_chunk(first, options, device)
+                    yield first, done, reasons
         finally:
             # Stopped early (Ctrl-C, a failed write): the pool's exit would otherwise
             # wait for every queued chunk to be estimated.
-            for future in futures:
+            for _, future in queued:
                 future.cancel()
+
+
+def _batches(items: Iterator[Input], size: int) -> Iterator[list[Input]]:
+    # Consecutive items, ``size`` at a time.
+    while batch := list(itertools.islice(items, size)):
+        yield batch
+
+
+def _write_records(chunks, out, bar, failed: dict[str, str], seconds: list[float]) -> None:
+    # Each chunk's records in its frames' order, one complete line at a time; failures named.
+    for chunk, done, reasons in chunks:
+        for item in chunk:
+            if item in reasons:
+                failed[str(item)] = reasons[item]
+                log.error("skipped %s: %s", item, reasons[item])
+            elif item in done:
+                try:
+                    line = record_line(done[item])
+                except ValueError as error:
+                    failed[str(item)] = str(error)
+                    log.error("skipped %s: %s", item, failed[str(item)])
+                    continue
+                seconds.append(done[item]["seconds"])
+                out.write(line + "\n")
+        out.flush()
+        if bar is not None:
+            bar.update(len(chunk))
 
 
 def estimate_files(input: str | Path, output: str | Path, options: EstimateOptions, progress: bool = True,
                    batch: int | str = 1, device: str = "cpu", workers: int | str = 1, depth: str | Path | None = None,
-                   depth_scale: float = 1000.0, intrinsics: tuple[float, float, float, float] | None = None) -> dict:
-    """Estimate every scene under ``input``; one JSON line per good one in ``output``.
+                   depth_scale: float = 1000.0, intrinsics: tuple[float, float, float, float] | None = None,
+                   overwrite: bool = False, shard: str | None = None) -> dict:
+    """Estimate every frame under ``input``; one JSON line per good one in ``output``.
 
-    ``input``: a capture folder, a colour image with its ``depth`` file, a directory
-    of ``.npz`` scene files or one (:func:`estimate_inputs`); ``depth_scale``: a
-    16-bit depth image's units per metre; ``intrinsics``: ``(fx, fy, cx, cy)``
-    overriding a capture's files. A bad file is logged with its name and reason and skipped; the summary returned
-    counts ``done``, ``failed`` (with reasons), the median seconds per scene, the wall
-    time of the whole run, the workers used and how they started (``start``:
-    :func:`start_method`, None for this process alone). ``batch`` > 1 estimates up to that
-    many consecutive files together (:func:`estimate_batch`; files of one size and
-    the same fields share a batch; ``auto``: :func:`batch_size`), each record's ``seconds``
-    being its reading and its share of the batch's time (its own time where
-    ``batch_size`` is 1); a failing batch is retried file by file. ``device``: ``cpu``,
-    ``cuda`` or ``auto``. ``workers``: processes the batches are spread over
-    (:func:`worker_count`; ``auto``: one per core on the CPU, started as
-    :func:`start_method` says); a record's ``seconds`` is then the time in its
-    worker, and the run's time per scene is ``wall_seconds / done``. Records are
-    written in the files' order whatever the workers.
+    ``input``: a capture folder, a folder of them, a list file of frames, a colour image with
+    its ``depth`` file, a directory of ``.npz`` scene files or one
+    (:mod:`selfsup.estimation.inputs`); ``depth_scale``: a 16-bit depth image's units per
+    metre; ``intrinsics``: ``(fx, fy, cx, cy)`` overriding a capture's files. A bad frame is
+    logged with its name and reason and skipped; the summary returned counts ``done``,
+    ``failed`` (with reasons), ``skipped`` (already in ``output``), the median seconds per
+    frame, the wall time of the whole run, the workers used and how they started (``start``:
+    :func:`start_method`, None for this process alone).
+
+    ``output`` is never overwritten unless ``overwrite``: a rerun appends the frames whose ids
+    are not in it yet (:func:`selfsup.estimation.jobs.completed_ids`). ``shard`` ``"K/N"``:
+    every N-th frame from the K-th only. Under torchrun each rank takes its shard of that,
+    writes its own part and rank 0 merges the parts into ``output`` in the input's order
+    (:mod:`selfsup.estimation.jobs`; one rank per accelerator, ``workers`` 1).
+
+    ``batch`` > 1 estimates up to that many consecutive files together
+    (:func:`estimate_batch`; files of one size and the same fields share a batch; ``auto``:
+    :func:`batch_size`), each record's ``seconds`` being its reading and its share of the
+    batch's time (its own time where ``batch_size`` is 1); a failing batch is retried file
+    by file. ``device``: ``cpu``, ``cuda`` or ``auto``. ``workers``: processes the batches
+    are spread over (:func:`worker_count`; ``auto``: one per core on the CPU, started as
+    :func:`start_method` says); a record's ``seconds`` is then the time in its worker, and
+    the run's time per frame is ``wall_seconds / done``. Records are written in the
+    frames' order whatever the workers.
     """
     started = time.perf_counter()
-    where = resolve_device(device)
+    ranks = ranks_from_env()
+    where = _rank_device(resolve_device(device), ranks)
     batch = batch_size(batch, where)
-    files = estimate_inputs(input, depth, depth_scale, intrinsics)
-    chunks = [files[first : first + batch] for first in range(0, len(files), batch)]
-    workers = min(worker_count(workers, len(files), where), len(chunks))
+    index, count = parse_shard(shard)
+    if ranks is not None:  # each rank a shard of the shard
+        index, count = index + count * ranks.rank, count * ranks.world
+        workers = 1
+        torch.set_num_threads(max(1, usable_cores() // ranks.local_world))
+    frames = dict(input=input, depth=depth, depth_scale=depth_scale, intrinsics=intrinsics, nested=True)
+    total = len(range(index, count_inputs(**frames), count))
     if options.method in ("cnn", "cnn+refine"):
         cached_network(options.checkpoint, str(where))  # a missing or bad checkpoint stops here, before any file
     output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
+    target = output if ranks is None else part_path(output, ranks)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    if overwrite:
+        target.unlink(missing_ok=True)
+    elif ranks is None and parts_folder(output).exists():
+        log.warning("%s holds the parts of an unfinished torchrun job: rerun that job to merge them",
+                    parts_folder(output))
+    done_ids = set() if overwrite else completed_ids(target) | (completed_ids(output) if ranks else set())
+    pending = (item for item in sharded(iter_inputs(**frames), index, count)
+               if not done_ids or item_id(item) not in done_ids)
+    skipped = 0
+    if done_ids:  # a pass over the frames' names (no image read) to say how many are done
+        skipped = sum(item_id(item) in done_ids for item in sharded(iter_inputs(**frames), index, count))
+        log.info("%d frame(s) already in %s: skipped (estimate.overwrite=true starts over)", skipped,
+                 output if ranks is None else f"{output} and {target}")
+    workers = min(worker_count(workers, max(total - skipped, 1), where), max(1, -(-(total - skipped) // batch)))
     failed: dict[str, str] = {}
     seconds: list[float] = []
-    bar, printing = progress_bar(len(files), "estimate", "scene", progress)
-    with printing, output.open("w") as out:
-        for chunk, done, reasons in _chunk_results(chunks, options, where, workers):
-            for path in chunk:  # in the files' order
-                if path in reasons:
-                    failed[str(path)] = reasons[path]
-                    log.error("skipped %s: %s", path, reasons[path])
-                elif path in done:
-                    try:
-                        line = record_line(done[path])
-                    except ValueError as error:
-                        failed[str(path)] = str(error)
-                        log.error("skipped %s: %s", path, failed[str(path)])
-                        continue
-                    seconds.append(done[path]["seconds"])
-                    out.write(line + "\n")
-            out.flush()
-            if bar is not None:
-                bar.update(len(chunk))
+    bar, printing = progress_bar(total, "estimate", "scene", progress)
+    if bar is not None:
+        bar.update(skipped)
+    with printing, target.open("a") as out:
+        _write_records(_chunk_results(_batches(pending, batch), options, where, workers), out, bar, failed, seconds)
     if bar is not None:
         bar.close()
-    if not seconds:  # every file failed: no empty output left behind to be taken for a result
+    written = len(done_ids) + len(seconds)
+    if ranks is not None:
+        written = _merge_ranks(output, ranks, frames, shard, overwrite)
+    elif not written:  # every file failed: no empty output left behind to be taken for a result
         output.unlink(missing_ok=True)
     wall = time.perf_counter() - started
-    summary = {"done": len(seconds), "failed": len(failed), "failures": failed,
+    summary = {"done": len(seconds), "failed": len(failed), "failures": failed, "skipped": skipped,
                "median_seconds": sorted(seconds)[len(seconds) // 2] if seconds else None,
                "wall_seconds": round(wall, 3), "workers": workers,
                "start": start_method(worker_threads(workers), where) if workers > 1 else None,
-               "output": str(output) if seconds else None}
-    log.info("estimated %d scene(s), %d failed, in %.1f s (%d worker(s), %.3f s per file; median %.3f s each); "
-             "wrote %s", summary["done"], summary["failed"], wall, workers, wall / max(len(files), 1),
-             summary["median_seconds"] or 0.0, output if seconds else "nothing")
+               "output": str(output) if written else None}
+    log.info("estimated %d scene(s), %d failed, %d skipped, in %.1f s (%d worker(s), %.3f s per file; median %.3f s "
+             "each); %s", summary["done"], summary["failed"], skipped, wall, workers,
+             wall / max(len(seconds) + len(failed), 1), summary["median_seconds"] or 0.0,
+             f"{output} holds {written} record(s)" if written else "wrote nothing")
     return summary
+
+
+def _rank_device(device: torch.device, ranks: Ranks | None) -> torch.device:
+    # One accelerator a rank (its local rank's), the CPU shared.
+    if ranks is None or device.type != "cuda":
+        return device
+    return torch.device("cuda", ranks.local_rank % torch.cuda.device_count())
+
+
+def _merge_ranks(output: Path, ranks: Ranks, frames: dict, shard: str | None, overwrite: bool) -> int:
+    # Every rank waits for the others; rank 0 merges their parts into ``output`` (the
+    # records it holds already kept unless ``overwrite``). Returns the records in ``output``
+    # (rank 0; the others: their part's).
+    barrier(ranks)
+    written = len(completed_ids(part_path(output, ranks)))
+    if ranks.rank == 0:
+        index, count = parse_shard(shard)
+        parts = [part_path(output, Ranks(rank, ranks.world, 0, 1)) for rank in range(ranks.world)]
+        positions = sharded(iter_inputs(**frames), index, count)
+        order = ((item_id(item), position % ranks.world) for position, item in enumerate(positions))
+        written = merge_parts(output, parts, order, keep_output=not overwrite)
+        log.info("merged the parts of %d ranks into %s", ranks.world, output)
+    barrier(ranks)
+    finish_ranks()
+    return written

@@ -45,17 +45,19 @@ ASPECT_TOLERANCE = 0.01  # relative difference of the aspects of colour and dept
 class CaptureFrame:
     """One frame of a capture: its files and how to read them (picklable: it travels to
     worker processes). ``intrinsics``: ``(fx, fy, cx, cy)`` overriding the files, or None.
-    ``str(frame)`` is its colour file, the name errors and summaries use."""
+    ``str(frame)`` is its colour file, the name errors and summaries use. ``prefix``: put
+    before its id (a folder of capture folders: ``<sub-folder>/``, ids unique across them)."""
 
     color: Path
     depth: Path | None
     intrinsics_file: Path | None
     depth_scale: float = 1000.0
     intrinsics: tuple[float, float, float, float] | None = None
+    prefix: str = ""
 
     @property
     def id(self) -> str:
-        return self.color.stem
+        return self.prefix + self.color.stem
 
     def __str__(self) -> str:
         return str(self.color)
@@ -93,8 +95,8 @@ def _override(intrinsics) -> tuple[float, float, float, float] | None:
 
 
 def capture_frames(folder: str | Path, depth_scale: float = 1000.0,
-                   intrinsics: tuple[float, float, float, float] | None = None) -> list[CaptureFrame]:
-    """The frames of a capture folder, in the order of their stems.
+                   intrinsics: tuple[float, float, float, float] | None = None, prefix: str = "") -> list[CaptureFrame]:
+    """The frames of a capture folder, in the order of their stems (``prefix``: before each id).
 
     A colour file without a depth file of its stem is a frame too, with ``depth`` None:
     reading it fails with a message naming the missing file, so that the other frames
@@ -105,7 +107,7 @@ def capture_frames(folder: str | Path, depth_scale: float = 1000.0,
     colors = _by_stem(folder / "color", COLOR_SUFFIXES)
     depths = _by_stem(folder / "depth", DEPTH_SUFFIXES)
     return [CaptureFrame(colors[stem], depths.get(stem), _intrinsics_file(stem, [folder]), float(depth_scale),
-                         _override(intrinsics)) for stem in sorted(colors)]
+                         _override(intrinsics), prefix) for stem in sorted(colors)]
 
 
 def _check_depth_scale(depth_scale: float) -> None:
@@ -139,8 +141,10 @@ def _read_image(path: Path) -> np.ndarray:
                                    f"{path.suffix.lstrip('.').upper()} file?") from None
 
 
-def _color(path: Path) -> np.ndarray:
-    # Linear RGB (H, W, 3) float64 in [0, 1] of an 8- or 16-bit sRGB colour file.
+def _color_codes(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    # The 8- or 16-bit sRGB codes (H, W, 3) of a colour file and the table of their linear
+    # values (float64 in [0, 1], one entry a code: a decoded frame costs its codes, not
+    # three float64 arrays of its size).
     pixels = _read_image(path)
     if pixels.ndim == 2:  # grey: the same value in each channel
         pixels = np.repeat(pixels[..., None], 3, axis=2)
@@ -149,8 +153,8 @@ def _color(path: Path) -> np.ndarray:
     if pixels.dtype not in (np.uint8, np.uint16):
         raise SceneFileError(path, f"colour must be 8- or 16-bit sRGB, got {pixels.dtype}: save it as an 8- or "
                                    f"16-bit PNG or a JPEG")
-    full_scale = float(np.iinfo(pixels.dtype).max)
-    return srgb_to_linear(pixels[..., :3].astype(np.float64) / full_scale)
+    full_scale = np.iinfo(pixels.dtype).max
+    return pixels[..., :3], srgb_to_linear(np.arange(full_scale + 1, dtype=np.float64) / float(full_scale))
 
 
 def _depth(path: Path | None, color: Path, depth_scale: float) -> np.ndarray:
@@ -227,18 +231,33 @@ def _intrinsics(frame: CaptureFrame) -> np.ndarray:
     return K
 
 
-def _area_resample(linear: np.ndarray, height: int, width: int) -> np.ndarray:
-    # linear (h, w, 3) area-averaged onto a (height, width) grid of the same extent: each
-    # target pixel the mean of the source area it covers, partial source pixels weighted.
-    def weights(source: int, target: int) -> np.ndarray:  # (target, source): overlap of target and source pixels
-        edges = np.arange(target + 1) * (source / target)
-        lo, hi = edges[:-1, None], edges[1:, None]
-        pixel = np.arange(source)[None]
-        overlap = np.clip(np.minimum(hi, pixel + 1) - np.maximum(lo, pixel), 0, None)
-        return overlap / overlap.sum(1, keepdims=True)
+# Target rows resampled at a time from a colour larger than its depth: an 8000x6000 frame
+# onto 256x192 holds about 500 of its rows as floats at once, not all 6000.
+RESAMPLE_ROWS = 16
 
-    rows, cols = weights(linear.shape[0], height), weights(linear.shape[1], width)
-    return np.einsum("ih,hwc,jw->ijc", rows, linear, cols, optimize=True)
+
+def _area_weights(source: int, target: int) -> np.ndarray:
+    # (target, source): the overlap of each target pixel with each source pixel, rows summing to 1.
+    edges = np.arange(target + 1) * (source / target)
+    lo, hi = edges[:-1, None], edges[1:, None]
+    pixel = np.arange(source)[None]
+    overlap = np.clip(np.minimum(hi, pixel + 1) - np.maximum(lo, pixel), 0, None)
+    return overlap / overlap.sum(1, keepdims=True)
+
+
+def _area_resample(codes: np.ndarray, table: np.ndarray, height: int, width: int) -> np.ndarray:
+    # The linear values ``table[codes]`` of (h, w, 3) codes area-averaged onto a (height, width)
+    # grid of the same extent: each target pixel the mean of the source area it covers,
+    # partial source pixels weighted; RESAMPLE_ROWS target rows at a time.
+    rows, cols = _area_weights(codes.shape[0], height), _area_weights(codes.shape[1], width)
+    out = np.empty((height, width, 3))
+    for start in range(0, height, RESAMPLE_ROWS):
+        band = rows[start : start + RESAMPLE_ROWS]
+        used = np.flatnonzero(band.any(0))  # the source rows this band covers, consecutive
+        lo, hi = int(used[0]), int(used[-1]) + 1
+        out[start : start + RESAMPLE_ROWS] = np.einsum("ih,hwc,jw->ijc", band[:, lo:hi], table[codes[lo:hi]], cols,
+                                                       optimize=True)
+    return out
 
 
 def read_capture(frame: CaptureFrame) -> Scene:
@@ -249,16 +268,18 @@ def read_capture(frame: CaptureFrame) -> Scene:
         SceneFileError: naming the file and the fix (unreadable image, 8-bit or empty
             depth, no depth of the stem, no intrinsics, sizes whose aspects differ).
     """
-    image = _color(frame.color)
+    codes, table = _color_codes(frame.color)
     depth = _depth(frame.depth, frame.color, frame.depth_scale)
     K = _intrinsics(frame)
-    (h, w), (H, W) = image.shape[:2], depth.shape
+    (h, w), (H, W) = codes.shape[:2], depth.shape
     if (h, w) != (H, W):
         if abs((w / h) / (W / H) - 1) > ASPECT_TOLERANCE:
             raise SceneFileError(frame.color, f"colour {w}x{h} and depth {W}x{H} differ in aspect "
                                               f"({w / h:.4f} against {W / H:.4f}): crop or register them to one "
                                               "field of view")
-        image = _area_resample(image, H, W)  # the intrinsics are the depth image's
+        image = _area_resample(codes, table, H, W)  # the intrinsics are the depth image's
+    else:
+        image = table[codes]
     meta = {"id": frame.id, "generator": "capture", "falloff": "inverse_square",
             "albedo": f"unknown: kd {ASSUMED_ALBEDO} assumed everywhere", "color": str(frame.color),
             "depth": str(frame.depth), "color_size": [w, h]}
@@ -287,11 +308,16 @@ def frame_of_color(color: str | Path, depth_scale: float = 1000.0) -> CaptureFra
     depth and intrinsics found by the layout (a missing depth fails on reading, named)."""
     color = Path(color)
     root = color.parent.parent
-    if not (color.is_file() and is_capture_folder(root)):
+    if not (color.is_file() and color.parent.name == "color" and is_capture_folder(root)):
         raise SceneFileError(color, f"not a colour image of a capture folder ({root}/color/ beside {root}/depth/)")
     _check_depth_scale(depth_scale)
-    return CaptureFrame(color, _by_stem(root / "depth", DEPTH_SUFFIXES).get(color.stem),
-                        _intrinsics_file(color.stem, [root]), float(depth_scale))
+    # The depth file of the stem by its names alone: a list of a million frames of one
+    # folder costs a few lookups a frame, not a listing of the folder each.
+    depth = next((path for path in (root / "depth" / f"{color.stem}{suffix}" for suffix in DEPTH_SUFFIXES)
+                  if path.is_file()), None)
+    if depth is None:  # upper-case suffixes: the folder's listing
+        depth = _by_stem(root / "depth", DEPTH_SUFFIXES).get(color.stem)
+    return CaptureFrame(color, depth, _intrinsics_file(color.stem, [root]), float(depth_scale))
 
 
 def read_input(item: str | Path | CaptureFrame) -> Scene:

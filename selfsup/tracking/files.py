@@ -1,6 +1,6 @@
 """A sequence of frames in, one JSON line per frame out: ``mode=track``.
 
-The frames are those ``mode=estimate`` reads (:func:`selfsup.estimation.files.estimate_inputs`:
+The frames are those ``mode=estimate`` reads (:func:`selfsup.estimation.inputs.estimate_inputs`:
 a capture folder, or a directory of ``.npz`` scene files) in the natural order of their
 names (``frame_9`` before ``frame_10``). A frame that cannot be read or estimated is
 named with its reason and skipped; the tracker goes on from the frames before it.
@@ -14,7 +14,8 @@ import time
 from pathlib import Path
 
 
-from selfsup.estimation.files import estimate_inputs, failure_reason, progress_bar, record_line, resolve_device
+from selfsup.estimation.files import failure_reason, progress_bar, record_line, resolve_device
+from selfsup.estimation.inputs import estimate_inputs
 from selfsup.estimation.network import cached_network
 from selfsup.estimation.options import EstimateOptions
 from selfsup.scenes.io import SceneFileError

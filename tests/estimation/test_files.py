@@ -10,6 +10,7 @@ import pytest
 import torch
 from selfsup.estimation.options import EstimateOptions, Tuning, RefineOptions
 
+from selfsup.estimation.inputs import estimate_inputs
 from selfsup.estimation.files import estimate_files
 
 
@@ -82,13 +83,21 @@ def test_a_record_with_a_non_finite_number_fails_its_file_not_the_output(tmp_pat
     assert len(lines) == 1 and json.loads(lines[0], parse_constant=lambda c: pytest.fail(c))["id"] == _scene(6).id
 
 
-def test_a_folder_of_folders_names_the_ones_with_scenes(tmp_path):
-    # The devset's root holds direct/, gi/ and noisy/, not scenes.
-    for folder in ("gi", "empty"):
+def test_a_folder_of_folders_is_estimated_with_ids_that_name_the_sub_folder(tmp_path):
+    # The devset's root holds direct/, gi/ and noisy/: every sub-folder's frames, each id
+    # prefixed with its folder (two folders may hold a.npz); a folder without frames is none.
+    for folder in ("gi", "empty", "noisy"):
         (tmp_path / folder).mkdir()
-    write_scene(tmp_path / "gi" / "a.npz", _scene(6))
-    with pytest.raises(FileNotFoundError, match=r"no \.npz scene files or capture folder .* in .* \(its sub-folders gi hold some"):
-        estimate_files(tmp_path, tmp_path / "o.jsonl", EstimateOptions(), progress=False)
+    tiny = dataclasses.replace(SMALL, height=24, width=32)
+    write_scene(tmp_path / "gi" / "a.npz", _scene(6, config=tiny))
+    write_scene(tmp_path / "noisy" / "a.npz", _scene(7, config=tiny))
+    summary = estimate_files(tmp_path, tmp_path / "o.jsonl", EstimateOptions(method="refine", max_lights=1),
+                             progress=False)
+    ids = [json.loads(line)["id"] for line in (tmp_path / "o.jsonl").read_text().splitlines()]
+    assert summary["done"] == 2 and ids == [f"gi/{_scene(6, config=tiny).id}", f"noisy/{_scene(7, config=tiny).id}"]
+    # mode=track wants one sequence: it names the sub-folders instead.
+    with pytest.raises(FileNotFoundError, match=r"\(its sub-folders gi, noisy hold some: give one of them\)"):
+        estimate_inputs(tmp_path, key="track.input")
 
 
 def test_estimate_command_exits_non_zero_when_a_file_fails(tmp_path):

@@ -12,7 +12,7 @@ import torch
 
 from benchmarks.captures import make_capture, read_truth
 from selfsup.estimation import EstimateOptions, RefineOptions, Tuning, estimate_files
-from selfsup.estimation.files import estimate_inputs
+from selfsup.estimation.inputs import estimate_inputs
 from selfsup.scenes.capture import (ASSUMED_ALBEDO, capture_frames, linear_to_srgb, read_capture,
                                     color_and_depth_frame, srgb_to_linear)
 from selfsup.scenes.exact import render_spec
@@ -157,9 +157,9 @@ def test_a_single_colour_file_takes_its_depth_from_estimate_depth(tmp_path):
         estimate_inputs(color)
     with pytest.raises(FileNotFoundError, match="estimate.depth .* does not exist"):
         estimate_inputs(color, tmp_path / "none.png")
-    (tmp_path / "notes.txt").write_text("x")
+    (tmp_path / "notes.md").write_text("x")
     with pytest.raises(ValueError, match="is not a .npz scene file"):
-        estimate_inputs(tmp_path / "notes.txt")
+        estimate_inputs(tmp_path / "notes.md")
 
 
 def test_a_folder_of_capture_folders_names_them(tmp_path):
@@ -227,10 +227,29 @@ def test_hostile_frames_beside_a_good_one_are_each_named_and_the_good_one_estima
         iio.imwrite(cap / "depth" / f"{name}.png", depth)
         (cap / "intrinsics" / f"{name}.json").write_text('{"fx": 50, "fy": 50, "cx": 1, "cy": 1}')
     (cap / "intrinsics" / "nan.json").write_text('{"fx": 50, "fy": 50, "cx": 32, "cy": 24}')
-    for batch in (1, 5):  # alone, and in one batch retried frame by frame
-        summary = estimate_files(cap, tmp_path / "o.jsonl", FAST, progress=False, batch=batch, workers=1)
-        assert summary["done"] == 1 and summary["failed"] == 4, summary["failures"]
+    # A phone's 8000x6000 colour beside its 256x192 depth: a good frame, estimated on the
+    # depth's grid (read in bands: 0.8 GB peak for the whole command, 5.1 GB when decoded at once).
+    iio.imwrite(cap / "color" / "huge.png", np.tile(rng.integers(40, 200, (6000, 1, 3), dtype=np.uint8), (1, 8000, 1)))
+    iio.imwrite(cap / "depth" / "huge.png", np.full((192, 256), 2000, np.uint16) + np.arange(256, dtype=np.uint16))
+    (cap / "intrinsics" / "huge.json").write_text('{"fx": 200, "fy": 200, "cx": 128, "cy": 96}')
+    for batch in (1, 6):  # alone, and in one batch retried frame by frame
+        summary = estimate_files(cap, tmp_path / "o.jsonl", FAST, progress=False, batch=batch, workers=1,
+                                 overwrite=True)
+        assert summary["done"] == 2 and summary["failed"] == 4, summary["failures"]
         assert all(name in " ".join(summary["failures"]) for name in hostile)
         assert all("\n" not in reason for reason in summary["failures"].values())
-        (record,) = [json.loads(line) for line in (tmp_path / "o.jsonl").read_text().splitlines()]
-        assert record["id"] == "frame_003"
+        records = [json.loads(line) for line in (tmp_path / "o.jsonl").read_text().splitlines()]
+        assert [record["id"] for record in records] == ["frame_003", "huge"]
+    (huge,) = [frame for frame in capture_frames(cap) if frame.id == "huge"]
+    assert read_capture(huge).image.shape[:2] == (192, 256)
+
+
+def test_a_larger_colour_resampled_in_bands_is_the_whole_images_area_average():
+    from selfsup.scenes.capture import RESAMPLE_ROWS, _area_resample, _area_weights
+
+    rng = np.random.default_rng(1)
+    codes = rng.integers(0, 256, (300, 400, 3), dtype=np.uint8)
+    table = srgb_to_linear(np.arange(256) / 255.0)
+    height, width = 3 * RESAMPLE_ROWS + 5, 52  # bands that end mid-pixel of the source
+    whole = np.einsum("ih,hwc,jw->ijc", _area_weights(300, height), table[codes], _area_weights(400, width))
+    np.testing.assert_allclose(_area_resample(codes, table, height, width), whole, rtol=1e-12, atol=1e-15)
