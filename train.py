@@ -169,7 +169,7 @@ def _track(settings: dict) -> dict:
     from selfsup.tracking import TrackTuning, track_files
 
     io = {k: settings.pop(k) for k in ("input", "output", "progress", "device", "depth_scale", "intrinsics",
-                                       "refresh")}
+                                       "refresh", "overwrite")}
     tuning = TrackTuning(**settings.pop("tuning", {}))
     estimate_tuning = Tuning(**settings.pop("estimate_tuning", {}))
     return track_files(options=EstimateOptions(**settings, tuning=estimate_tuning), tuning=tuning, **io)

@@ -21,7 +21,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["completed_ids", "Ranks", "ranks_from_env", "part_path", "parts_folder", "merge_parts", "barrier",
+__all__ = ["completed_ids", "resume_track", "Ranks", "ranks_from_env", "part_path", "parts_folder", "merge_parts", "barrier",
            "finish_ranks"]
 
 log = logging.getLogger(__name__)
@@ -55,6 +55,32 @@ def completed_ids(path: Path) -> set[str]:
     if good_bytes < path.stat().st_size:
         os.truncate(path, good_bytes)
     return ids
+
+
+def resume_track(path: Path) -> set[str]:
+    """Where a tracked sequence's rerun starts: the ids of the records of ``path`` before its
+    last full estimate (the tracker's state is not in the file, so it is redone from a frame
+    that needs none); the file is cut there. A torn last line counts as no record.
+
+    Raises:
+        ValueError: a line before the last that is not a record of ours (as :func:`completed_ids`).
+    """
+    completed_ids(path)  # cuts a torn last line off, refuses a file that is not ours
+    if not path.exists():
+        return set()
+    ids: list[str] = []
+    last_full = (0, 0)  # (records before it, bytes before it) of the last full estimate
+    offset = 0
+    with path.open("rb") as lines:
+        for line in lines:
+            record = json.loads(line)
+            if record.get("full"):
+                last_full = (len(ids), offset)
+            ids.append(str(record["id"]))
+            offset += len(line)
+    before, cut = last_full
+    os.truncate(path, cut)
+    return set(ids[:before])
 
 
 def _record_id(line: bytes) -> str | None:

@@ -15,7 +15,8 @@ from pathlib import Path
 
 
 from selfsup.estimation.files import failure_reason, progress_bar, record_line, resolve_device
-from selfsup.estimation.inputs import estimate_inputs
+from selfsup.estimation.inputs import estimate_inputs, item_id
+from selfsup.estimation.jobs import resume_track
 from selfsup.estimation.network import cached_network
 from selfsup.estimation.options import EstimateOptions
 from selfsup.scenes.io import SceneFileError
@@ -36,15 +37,19 @@ def natural_order(items: list) -> list:
 
 def track_files(input: str | Path, output: str | Path, options: EstimateOptions | None = None,
                 tuning: TrackTuning | None = None, refresh: int = 30, progress: bool = True, device: str = "cpu",
-                depth_scale: float = 1000.0, intrinsics: tuple[float, float, float, float] | None = None) -> dict:
+                depth_scale: float = 1000.0, intrinsics: tuple[float, float, float, float] | None = None,
+                overwrite: bool = False) -> dict:
     """Track the lights through the frames under ``input``; one JSON line per frame in ``output``.
 
     ``input``: a capture folder or a directory of scene files (their frames in natural
     order); ``options``: the full estimates' settings (:class:`EstimateOptions`);
     ``tuning``: the tracker's constants; ``refresh``: a full estimate every that-many-th
     frame whatever the evidence (0: on evidence only); ``depth_scale``, ``intrinsics``:
-    as ``mode=estimate``. Returns a summary: ``done``, ``failed`` (with reasons),
-    ``full`` (frames estimated in full), the median warm latency in ms, the wall time.
+    as ``mode=estimate``. ``output`` is never overwritten unless ``overwrite``: a rerun
+    keeps its records before the last full estimate and tracks on from that frame
+    (:func:`selfsup.estimation.jobs.resume_track`). Returns a summary: ``done``, ``failed``
+    (with reasons), ``skipped`` (kept from the output), ``full`` (frames estimated in
+    full), the median warm latency in ms, the wall time.
     """
     started = time.perf_counter()
     options = options or EstimateOptions()
@@ -52,13 +57,20 @@ def track_files(input: str | Path, output: str | Path, options: EstimateOptions 
     frames = natural_order(estimate_inputs(input, None, depth_scale, intrinsics, key="track.input"))
     if options.method in ("cnn", "cnn+refine"):
         cached_network(options.checkpoint, str(where))  # a missing or bad checkpoint stops here, before any frame
-    tracker = Tracker(options, tuning or TrackTuning(), refresh, where)
     output = Path(output)
     output.parent.mkdir(parents=True, exist_ok=True)
+    if overwrite:
+        output.unlink(missing_ok=True)
+    kept = resume_track(output)
+    frames = [frame for frame in frames if item_id(frame) not in kept] if kept else frames
+    if kept:
+        log.info("%d frame(s) of %s kept, tracking on from its last full estimate (track.overwrite=true starts over)",
+                 len(kept), output)
+    tracker = Tracker(options, tuning or TrackTuning(), refresh, where, first_frame=len(kept))
     failed: dict[str, str] = {}
     warm, full = [], 0
     bar, printing = progress_bar(len(frames), "track", "frame", progress)
-    with printing, output.open("w") as out:
+    with printing, output.open("a") as out:
         for frame in frames:
             try:
                 record = tracker.update(frame)
@@ -78,12 +90,12 @@ def track_files(input: str | Path, output: str | Path, options: EstimateOptions 
     if bar is not None:
         bar.close()
     done = len(frames) - len(failed)
-    if not done:  # every frame failed: no empty output left behind to be taken for a result
+    if not done and not kept:  # every frame failed: no empty output left behind to be taken for a result
         output.unlink(missing_ok=True)
     wall = time.perf_counter() - started
-    summary = {"done": done, "failed": len(failed), "failures": failed, "full": full,
+    summary = {"done": done, "failed": len(failed), "failures": failed, "skipped": len(kept), "full": full,
                "warm_ms_median": sorted(warm)[len(warm) // 2] if warm else None, "wall_seconds": round(wall, 3),
-               "output": str(output) if done else None}
+               "output": str(output) if done or kept else None}
     log.info("tracked %d frame(s), %d failed, %d estimated in full, in %.1f s (warm frames %.1f ms median); wrote %s",
              done, len(failed), full, wall, summary["warm_ms_median"] or 0.0, output if done else "nothing")
     return summary

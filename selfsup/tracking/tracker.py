@@ -200,7 +200,8 @@ class Tracker:
     whether (and why) it was estimated in full. ``refresh``: estimate every that-many-th
     frame in full whatever the evidence (0: only on evidence); the tracked lights are kept
     unless that estimate explains the frame better (a wrong start is left within a second
-    at 30 frames per second).
+    at 30 frames per second). ``first_frame``: the number the first frame's record carries
+    (a sequence tracked on from a frame after its start).
 
     Example:
         >>> tracker = Tracker()
@@ -213,6 +214,7 @@ class Tracker:
     tuning: TrackTuning = field(default_factory=TrackTuning)
     refresh: int = 30
     device: str | torch.device = "cpu"
+    first_frame: int = 0
     _tracks: list[_Track] = field(default_factory=list, init=False, repr=False)
     _model: _Model | None = field(default=None, init=False, repr=False)
     _geometry: _Geometry | None = field(default=None, init=False, repr=False)
@@ -544,7 +546,7 @@ class Tracker:
                            "position_std": cov.diagonal().clamp_min(0).sqrt().tolist(),
                            "position_cov": cov.tolist()})
         model = self._model
-        return {"id": scene_id, "frame": self._frame - 1, "lights": lights,
+        return {"id": scene_id, "frame": self.first_frame + self._frame - 1, "lights": lights,
                 "ambient": (self._ambient_rgb / factor).tolist(),
                 "reflectance": "albedo_free" if model.albedo_free else "given", "specular": model.specular,
                 "coat": model.coat, "full": reason is not None, "reason": reason,

@@ -174,3 +174,22 @@ def test_frames_no_light_explains_are_tracked_without_lights_and_estimated_afres
     records = [tracker.update(flat), tracker.update(flat)]
     assert [r["lights"] for r in records] == [[], []]
     assert [r["reason"] for r in records] == ["first", "share"] and all(r["full"] for r in records)
+
+
+def test_a_rerun_tracks_on_from_the_last_full_estimate_and_keeps_the_frames_before(tmp_path, switch_frames):
+    folder = tmp_path / "seq"
+    write_sequence(switch_frames[:5], folder)
+    output = tmp_path / "track.jsonl"
+    assert track_files(folder, output, refresh=2, progress=False)["done"] == 5
+    whole = output.read_text().splitlines()
+    full = [json.loads(line)["full"] for line in whole]
+    last_full = max(k for k in range(4) if full[k])
+    assert full[0] and 0 < last_full < 4  # the first frame and a refresh (or a change) before the cut
+    # A kill after the fourth record, in the middle of writing the fifth.
+    output.write_text("\n".join(whole[:4]) + "\n" + whole[4][:20])
+    summary = track_files(folder, output, refresh=2, progress=False)
+    assert summary["skipped"] == last_full and summary["done"] == 5 - last_full  # tracked on from that full estimate
+    again = output.read_text().splitlines()
+    assert again[:last_full] == whole[:last_full]
+    assert [(r["id"], r["frame"]) for r in map(json.loads, again)] == [(s.id, k) for k, s in enumerate(switch_frames[:5])]
+    assert track_files(folder, output, refresh=2, progress=False, overwrite=True)["skipped"] == 0
