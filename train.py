@@ -22,6 +22,8 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 
+from selfsup.estimation.jobs import OutputInUseError
+
 log = logging.getLogger(__name__)
 MODES = ("train", "eval", "generate", "estimate", "track", "insert", "benchmark")
 FULL_ERROR = os.environ.get("HYDRA_FULL_ERROR") == "1"  # the user's: a traceback instead of one line
@@ -203,7 +205,8 @@ def _one_line(error: BaseException) -> str:
     return ": ".join(parts)
 
 
-USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError)  # raised with a message that names the fix
+USER_ERRORS = (ValueError, FileNotFoundError, NotADirectoryError,  # raised with a message that names the fix
+               OutputInUseError)
 
 
 def _unknown_key(message: str) -> str | None:

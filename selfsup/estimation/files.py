@@ -31,8 +31,8 @@ from selfsup.estimation.records import records
 from selfsup.estimation.stages import estimate_batch
 from selfsup.estimation.inputs import (Input, count_inputs, estimate_inputs, item_id, iter_inputs, parse_shard,
                                        read_item, scene_files, sharded)
-from selfsup.estimation.jobs import (Ranks, barrier, completed_ids, finish_ranks, merge_parts, part_path, parts_folder,
-                                     ranks_from_env)
+from selfsup.estimation.jobs import (Ranks, barrier, completed_ids, finish_ranks, locked, merge_parts, part_path,
+                                     parts_folder, ranks_from_env)
 from selfsup.scenes.io import Scene, SceneFileError
 
 __all__ = ["estimate_files", "estimate_inputs", "scene_files", "worker_count", "usable_cores", "start_method",
@@ -274,6 +274,31 @@ def _write_records(chunks, out, bar, failed: dict[str, str], seconds: list[float
             bar.update(len(chunk))
 
 
+def _estimate_pending(out, done_ids: set[str], frames: dict, shard: tuple[int, int], total: int,
+                      options: EstimateOptions, where: torch.device, batch: int, workers: int | str,
+                      progress: bool) -> dict:
+    # The frames of the shard not in ``done_ids`` estimated and appended to ``out``: the
+    # counts the summary reports (skipped, failed with reasons, seconds, workers).
+    index, count = shard
+    pending = (item for item in sharded(iter_inputs(**frames), index, count)
+               if not done_ids or item_id(item) not in done_ids)
+    skipped = 0
+    if done_ids:  # a pass over the frames' names (no image read) to say how many are done
+        skipped = sum(item_id(item) in done_ids for item in sharded(iter_inputs(**frames), index, count))
+        log.info("%d frame(s) already in %s: skipped (estimate.overwrite=true starts over)", skipped, out.name)
+    workers = min(worker_count(workers, max(total - skipped, 1), where), max(1, -(-(total - skipped) // batch)))
+    failed: dict[str, str] = {}
+    seconds: list[float] = []
+    bar, printing = progress_bar(total, "estimate", "scene", progress)
+    if bar is not None:
+        bar.update(skipped)
+    with printing:
+        _write_records(_chunk_results(_batches(pending, batch), options, where, workers), out, bar, failed, seconds)
+    if bar is not None:
+        bar.close()
+    return {"skipped": skipped, "failed": failed, "seconds": seconds, "workers": workers}
+
+
 def estimate_files(input: str | Path, output: str | Path, options: EstimateOptions, progress: bool = True,
                    batch: int | str = 1, device: str = "cpu", workers: int | str = 1, depth: str | Path | None = None,
                    depth_scale: float = 1000.0, intrinsics: tuple[float, float, float, float] | None = None,
@@ -320,30 +345,16 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
         cached_network(options.checkpoint, str(where))  # a missing or bad checkpoint stops here, before any file
     output = Path(output)
     target = output if ranks is None else part_path(output, ranks)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    if overwrite:
-        target.unlink(missing_ok=True)
-    elif ranks is None and parts_folder(output).exists():
+    if ranks is None and not overwrite and parts_folder(output).exists():
         log.warning("%s holds the parts of an unfinished torchrun job: rerun that job to merge them",
                     parts_folder(output))
-    done_ids = set() if overwrite else completed_ids(target) | (completed_ids(output) if ranks else set())
-    pending = (item for item in sharded(iter_inputs(**frames), index, count)
-               if not done_ids or item_id(item) not in done_ids)
-    skipped = 0
-    if done_ids:  # a pass over the frames' names (no image read) to say how many are done
-        skipped = sum(item_id(item) in done_ids for item in sharded(iter_inputs(**frames), index, count))
-        log.info("%d frame(s) already in %s: skipped (estimate.overwrite=true starts over)", skipped,
-                 output if ranks is None else f"{output} and {target}")
-    workers = min(worker_count(workers, max(total - skipped, 1), where), max(1, -(-(total - skipped) // batch)))
-    failed: dict[str, str] = {}
-    seconds: list[float] = []
-    bar, printing = progress_bar(total, "estimate", "scene", progress)
-    if bar is not None:
-        bar.update(skipped)
-    with printing, target.open("a") as out:
-        _write_records(_chunk_results(_batches(pending, batch), options, where, workers), out, bar, failed, seconds)
-    if bar is not None:
-        bar.close()
+    with locked(target) as out:
+        if overwrite:
+            out.truncate(0)
+        done_ids = set() if overwrite else completed_ids(target) | (completed_ids(output) if ranks else set())
+        summary = _estimate_pending(out, done_ids, frames, (index, count), total, options, where, batch, workers,
+                                    progress)
+    skipped, failed, seconds, workers = (summary[k] for k in ("skipped", "failed", "seconds", "workers"))
     written = len(done_ids) + len(seconds)
     if ranks is not None:
         written = _merge_ranks(output, ranks, frames, shard, overwrite)
@@ -380,7 +391,8 @@ def _merge_ranks(output: Path, ranks: Ranks, frames: dict, shard: str | None, ov
         parts = [part_path(output, Ranks(rank, ranks.world, 0, 1)) for rank in range(ranks.world)]
         positions = sharded(iter_inputs(**frames), index, count)
         order = ((item_id(item), position % ranks.world) for position, item in enumerate(positions))
-        written = merge_parts(output, parts, order, keep_output=not overwrite)
+        with locked(output):  # no single process appending to it meanwhile
+            written = merge_parts(output, parts, order, keep_output=not overwrite)
         log.info("merged the parts of %d ranks into %s", ranks.world, output)
     barrier(ranks)
     finish_ranks()

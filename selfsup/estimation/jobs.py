@@ -12,6 +12,7 @@ the input's order (:func:`merge_parts`) and removes them.
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import logging
@@ -20,11 +21,41 @@ import shutil
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TextIO
 
-__all__ = ["completed_ids", "resume_track", "Ranks", "ranks_from_env", "part_path", "parts_folder", "merge_parts", "barrier",
-           "finish_ranks"]
+__all__ = ["OutputInUseError", "locked", "completed_ids", "resume_track", "Ranks", "ranks_from_env", "part_path",
+           "parts_folder", "merge_parts", "barrier", "finish_ranks"]
 
 log = logging.getLogger(__name__)
+
+
+class OutputInUseError(RuntimeError):
+    """Another process is writing this output (or part) now."""
+
+
+@contextlib.contextmanager
+def locked(path: Path) -> Iterator[TextIO]:
+    """``path`` opened for appending under an exclusive lock, held while the block runs: a
+    second run on the same output (a rank of a killed torchrun job still running, a
+    command started twice) would write its frames twice. The OS drops the lock with its
+    process, however it ends. No lock where the OS has no ``flock`` (Windows).
+
+    Raises:
+        OutputInUseError: another process holds the lock.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("a") as out:
+        try:
+            import fcntl
+        except ImportError:  # not POSIX
+            yield out
+            return
+        try:
+            fcntl.flock(out.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise OutputInUseError(f"{path} is being written by another process (a run started twice, or a rank of "
+                                   "a killed torchrun job still running): wait for it or stop it") from None
+        yield out
 
 
 def completed_ids(path: Path) -> set[str]:

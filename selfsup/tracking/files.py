@@ -16,7 +16,7 @@ from pathlib import Path
 
 from selfsup.estimation.files import failure_reason, progress_bar, record_line, resolve_device
 from selfsup.estimation.inputs import estimate_inputs, item_id
-from selfsup.estimation.jobs import resume_track
+from selfsup.estimation.jobs import locked, resume_track
 from selfsup.estimation.network import cached_network
 from selfsup.estimation.options import EstimateOptions
 from selfsup.scenes.io import SceneFileError
@@ -58,37 +58,37 @@ def track_files(input: str | Path, output: str | Path, options: EstimateOptions 
     if options.method in ("cnn", "cnn+refine"):
         cached_network(options.checkpoint, str(where))  # a missing or bad checkpoint stops here, before any frame
     output = Path(output)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    if overwrite:
-        output.unlink(missing_ok=True)
-    kept = resume_track(output)
-    frames = [frame for frame in frames if item_id(frame) not in kept] if kept else frames
-    if kept:
-        log.info("%d frame(s) of %s kept, tracking on from its last full estimate (track.overwrite=true starts over)",
-                 len(kept), output)
-    tracker = Tracker(options, tuning or TrackTuning(), refresh, where, first_frame=len(kept))
-    failed: dict[str, str] = {}
-    warm, full = [], 0
-    bar, printing = progress_bar(len(frames), "track", "frame", progress)
-    with printing, output.open("a") as out:
-        for frame in frames:
-            try:
-                record = tracker.update(frame)
-                line = record_line(record)
-            except (SceneFileError, ValueError, RuntimeError) as error:
-                failed[str(frame)] = failure_reason(error)
-                log.error("skipped %s: %s", frame, failed[str(frame)])
-            else:
-                out.write(line + "\n")
-                out.flush()
-                if record["full"]:
-                    full += 1
+    with locked(output) as out:  # one run at a time on an output
+        if overwrite:
+            out.truncate(0)
+        kept = resume_track(output)
+        frames = [frame for frame in frames if item_id(frame) not in kept] if kept else frames
+        if kept:
+            log.info("%d frame(s) of %s kept, tracking on from its last full estimate (track.overwrite=true "
+                     "starts over)", len(kept), output)
+        tracker = Tracker(options, tuning or TrackTuning(), refresh, where, first_frame=len(kept))
+        failed: dict[str, str] = {}
+        warm, full = [], 0
+        bar, printing = progress_bar(len(frames), "track", "frame", progress)
+        with printing:
+            for frame in frames:
+                try:
+                    record = tracker.update(frame)
+                    line = record_line(record)
+                except (SceneFileError, ValueError, RuntimeError) as error:
+                    failed[str(frame)] = failure_reason(error)
+                    log.error("skipped %s: %s", frame, failed[str(frame)])
                 else:
-                    warm.append(record["latency_ms"])
-            if bar is not None:
-                bar.update(1)
-    if bar is not None:
-        bar.close()
+                    out.write(line + "\n")
+                    out.flush()
+                    if record["full"]:
+                        full += 1
+                    else:
+                        warm.append(record["latency_ms"])
+                if bar is not None:
+                    bar.update(1)
+        if bar is not None:
+            bar.close()
     done = len(frames) - len(failed)
     if not done and not kept:  # every frame failed: no empty output left behind to be taken for a result
         output.unlink(missing_ok=True)

@@ -15,7 +15,7 @@ import torch
 
 from selfsup.estimation.files import estimate_files
 from selfsup.estimation.inputs import count_inputs, item_id, iter_inputs, parse_shard, sharded
-from selfsup.estimation.jobs import completed_ids, merge_parts
+from selfsup.estimation.jobs import OutputInUseError, completed_ids, locked, merge_parts
 from tests.scenes.test_capture import FAST, _capture
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -73,6 +73,16 @@ def test_an_output_that_is_not_ours_is_refused_not_appended_to(capture, tmp_path
     with pytest.raises(ValueError, match="line 1 is not a record of ours.*estimate.overwrite=true"):
         estimate_files(capture, output, FAST, progress=False)
     assert completed_ids(tmp_path / "absent.jsonl") == set()
+
+
+def test_a_second_run_on_an_output_being_written_is_refused(capture, tmp_path):
+    # A rank of a killed torchrun job still running (torchrun starts its workers in their own
+    # sessions: killing the job's group leaves them) would write its frames twice beside a rerun.
+    output = tmp_path / "lights.jsonl"
+    with locked(output):
+        with pytest.raises(OutputInUseError, match="being written by another process"):
+            estimate_files(capture, output, FAST, progress=False)
+    assert estimate_files(capture, output, FAST, progress=False, workers=1)["done"] == len(SEEDS)
 
 
 def test_shards_cover_the_input_exactly_once_and_bad_shards_are_named(capture, reference, tmp_path):
