@@ -5,6 +5,7 @@
     python train.py mode=generate generate.out=data/test generate.count=200
     python train.py mode=estimate estimate.input=scenes/ estimate.output=lights.jsonl
     python train.py mode=track track.input=captures/ track.output=track.jsonl
+    python train.py mode=scan scan.input=posed_capture/ scan.output=room.json
     python train.py mode=insert insert.scene=scene.npz insert.estimates=lights.jsonl insert.output=insert.png
     python train.py mode=benchmark benchmark=render_speed benchmark.quick=true
 """
@@ -25,7 +26,7 @@ from omegaconf.errors import MissingMandatoryValue
 from selfsup.estimation.jobs import OutputInUseError
 
 log = logging.getLogger(__name__)
-MODES = ("train", "eval", "generate", "estimate", "track", "insert", "benchmark")
+MODES = ("train", "eval", "generate", "estimate", "track", "scan", "insert", "benchmark")
 FULL_ERROR = os.environ.get("HYDRA_FULL_ERROR") == "1"  # the user's: a traceback instead of one line
 
 
@@ -163,6 +164,19 @@ def run(cfg: DictConfig):
         return estimate_files(options=EstimateOptions(**est), **io)
     if cfg.mode == "track":
         return _track(_plain(cfg.track))
+    if cfg.mode == "scan":
+        return _scan(_plain(cfg.scan))
+
+
+def _scan(settings: dict) -> dict:
+    # mode=scan: the frames' estimate options and the fusion's constants from one config node.
+    from selfsup.estimation import EstimateOptions
+    from selfsup.scan import FuseOptions, scan_files
+
+    io = {k: settings.pop(k) for k in ("input", "output", "frames_output", "max_frames", "progress", "device",
+                                       "depth_scale", "intrinsics")}
+    fuse = FuseOptions(**settings.pop("fuse", {}))
+    return scan_files(options=EstimateOptions(**settings), fuse_options=fuse, **io)
 
 
 def _track(settings: dict) -> dict:
@@ -188,7 +202,7 @@ def main(cfg: DictConfig) -> None:
         _report(error)
     finally:
         _remove_temporary_run_dir()
-    if cfg.mode in ("estimate", "track") and result["failed"]:
+    if cfg.mode in ("estimate", "track", "scan") and result["failed"]:
         raise SystemExit(1)  # some files failed: each is named in the log above
 
 

@@ -63,11 +63,12 @@ def test_the_estimate_group_is_the_users_dozen_settings_with_the_codes_defaults(
     options = _defaults(EstimateOptions)
     files = {name: p.default for name, p in inspect.signature(estimate_files).parameters.items()
              if p.default is not inspect.Parameter.empty}
-    command = {"input", "output", "batch", "device", "workers", "progress", "depth", "depth_scale", "intrinsics"}
+    command = {"input", "output", "batch", "device", "workers", "progress", "depth", "depth_scale", "intrinsics",
+               "overwrite", "shard"}
     assert set(values) == (set(options) - {"tuning"}) | command
     for key in set(options) - {"tuning"}:
         assert _plain(values[key]) == options[key], f"estimate.{key}: YAML {values[key]!r}, EstimateOptions {options[key]!r}"
-    for key in ("progress", "device", "depth", "depth_scale", "intrinsics"):  # batch and workers: the command's
+    for key in ("progress", "device", "depth", "depth_scale", "intrinsics", "overwrite", "shard"):  # batch, workers: the command's
         assert values[key] == files[key], f"estimate.{key}: YAML {values[key]!r}, estimate_files {files[key]!r}"
 
 
@@ -78,10 +79,28 @@ def test_the_track_group_is_the_users_settings_with_the_codes_defaults(cfg):
     options = _defaults(EstimateOptions)
     files = {name: p.default for name, p in inspect.signature(track_files).parameters.items()
              if p.default is not inspect.Parameter.empty}
-    command = {"input", "output", "refresh", "device", "progress", "depth_scale", "intrinsics"}
+    command = {"input", "output", "refresh", "device", "progress", "depth_scale", "intrinsics", "overwrite"}
     assert set(values) == (set(options) - {"tuning"}) | command
     for key in set(options) - {"tuning"}:
         assert _plain(values[key]) == options[key], f"track.{key}: YAML {values[key]!r}, EstimateOptions {options[key]!r}"
     for key in command - {"input", "output"}:
         assert values[key] == files[key], f"track.{key}: YAML {values[key]!r}, track_files {files[key]!r}"
     assert values["refresh"] == Tracker().refresh
+
+
+def test_the_scan_group_is_the_users_settings_with_the_codes_defaults(cfg):
+    from selfsup.scan import FuseOptions, scan_files
+
+    values = OmegaConf.to_container(cfg.scan, resolve=False)
+    options = _defaults(EstimateOptions)
+    files = {name: p.default for name, p in inspect.signature(scan_files).parameters.items()
+             if p.default is not inspect.Parameter.empty}
+    command = {"input", "output", "frames_output", "max_frames", "device", "progress", "depth_scale", "intrinsics",
+               "fuse"}
+    assert set(values) - command <= set(options) - {"tuning"}, sorted(values)
+    for key in set(values) - command:
+        assert _plain(values[key]) == options[key], f"scan.{key}: YAML {values[key]!r}, EstimateOptions {options[key]!r}"
+    for key in command - {"input", "output", "fuse"}:
+        assert values[key] == files[key], f"scan.{key}: YAML {values[key]!r}, scan_files {files[key]!r}"
+    assert values["fuse"] == {} and FuseOptions()  # the fusion's constants: the dataclass's
+

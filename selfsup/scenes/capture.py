@@ -3,7 +3,7 @@
 The capture-folder layout (``docs/scene-format.md``, "Capture folders"; other tools write it)::
 
     DIR/color/<id>.png|.jpg        colour, 8- or 16-bit sRGB (decoded to linear RGB here)
-    DIR/depth/<id>.png             16-bit depth, metres = value / depth_scale (default 1000: millimetres); 0 = missing
+    DIR/depth/<id>.png             16-bit depth, metres = value / depth_scale (default 1000: millimetres); 0 or 65535 = missing
                                    (.npy / .tif float depth in metres accepted too)
     DIR/intrinsics.json            {"fx", "fy", "cx", "cy"} (pixels, OpenCV camera) for every frame, or {"K": 3x3}
     DIR/intrinsics/<id>.json       the same for one frame; takes precedence
@@ -54,10 +54,11 @@ class CaptureFrame:
     depth_scale: float = 1000.0
     intrinsics: tuple[float, float, float, float] | None = None
     prefix: str = ""
+    name: str | None = None  # the id's own part where the colour file's stem is not it (7-Scenes' "<id>.color.png")
 
     @property
     def id(self) -> str:
-        return self.prefix + self.color.stem
+        return self.prefix + (self.name or self.color.stem)
 
     def __str__(self) -> str:
         return str(self.color)
@@ -177,7 +178,9 @@ def _depth(path: Path | None, color: Path, depth_scale: float) -> np.ndarray:
         raise SceneFileError(path, "depth is 8-bit, which cannot hold a depth map (256 steps): save it as a 16-bit "
                                    "PNG of millimetres (estimate.depth_scale=1000) or as .npy / .tif float metres")
     if raw.dtype.kind in "iu":
-        depth = raw.astype(np.float64) / depth_scale
+        # 65535, the largest 16-bit value, marks a missing depth (7-Scenes) as 0 does: no
+        # RGB-D sensor measures 65 m (millimetres) or 13 m (TUM's 5000 a metre).
+        depth = np.where(raw == np.iinfo(np.uint16).max, 0, raw).astype(np.float64) / depth_scale
     elif raw.dtype.kind == "f":
         depth = raw.astype(np.float64)  # float depth is in metres
     else:

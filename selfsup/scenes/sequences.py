@@ -32,7 +32,8 @@ from selfsup.scenes.io import Scene, write_scene
 from selfsup.scenes.raycast import Primitives
 from selfsup.scenes.sampler import SamplerConfig, SceneSpec, sample_scene, signed_distance
 
-__all__ = ["SEQUENCE_KINDS", "sequence_specs", "render_sequence", "write_sequence", "CAMERA_SWING_DEG"]
+__all__ = ["SEQUENCE_KINDS", "sequence_specs", "render_sequence", "write_sequence", "CAMERA_SWING_DEG",
+           "render_orbit", "orbit_pose"]
 
 SEQUENCE_KINDS = ("static", "moving_light", "moving_camera", "switch", "two_lights")
 CAMERA_SWING_DEG = 8.0  # the moving camera's orbit, either side of the first frame's view
@@ -67,14 +68,31 @@ def _double(prims: Primitives) -> Primitives:
     return Primitives(*(getattr(prims, f.name).double() for f in dataclasses.fields(prims)))
 
 
-def _orbited(spec: SceneSpec, angle_deg: float) -> SceneSpec:
-    """``spec`` seen by its camera turned ``angle_deg`` about the vertical through a point
-    ahead (at the depth of the room's middle): everything turns the other way in the camera's frame."""
+def _orbit(spec: SceneSpec, angle_deg: float) -> tuple[Tensor, Tensor]:
+    # The rotation R (3, 3) and pivot (3,) of the camera turned ``angle_deg`` about the vertical
+    # through a point ahead (at the depth of the room's middle): a point x of the first
+    # camera's frame is R (x - pivot) + pivot in the turned camera's.
     up = _up(spec)
     pivot = torch.tensor([0.0, 0.0, 0.5 * spec.meta["room_size_m"][1]], dtype=torch.float64)
     a = math.radians(-angle_deg)
     k = torch.tensor([[0, -up[2], up[1]], [up[2], 0, -up[0]], [-up[1], up[0], 0]], dtype=torch.float64)
-    R = torch.eye(3, dtype=torch.float64) + math.sin(a) * k + (1 - math.cos(a)) * (k @ k)  # Rodrigues
+    return torch.eye(3, dtype=torch.float64) + math.sin(a) * k + (1 - math.cos(a)) * (k @ k), pivot  # Rodrigues
+
+
+def orbit_pose(spec: SceneSpec, angle_deg: float) -> Tensor:
+    """The camera-to-world ``(4, 4)`` float64 of the camera turned ``angle_deg`` as
+    ``moving_camera`` and ``orbit`` turn it, the world being the unturned camera's frame."""
+    R, pivot = _orbit(spec, angle_deg)
+    pose = torch.eye(4, dtype=torch.float64)
+    pose[:3, :3] = R.T
+    pose[:3, 3] = pivot - R.T @ pivot
+    return pose
+
+
+def _orbited(spec: SceneSpec, angle_deg: float) -> SceneSpec:
+    """``spec`` seen by its camera turned ``angle_deg`` about the vertical through a point
+    ahead (at the depth of the room's middle): everything turns the other way in the camera's frame."""
+    R, pivot = _orbit(spec, angle_deg)
 
     def point(x: Tensor) -> Tensor:
         return ((x.double() - pivot) @ R.T + pivot).float()
@@ -144,6 +162,28 @@ def render_sequence(kind: str, seed: int, frames: int = 24, config: SamplerConfi
         scene.meta.update(id=f"{kind}_{seed}_{f:03d}", sequence=kind, frame=f)
         scenes.append(scene)
     return scenes
+
+
+def render_orbit(seed: int, frames: int = 12, swing_deg: float = 30.0, config: SamplerConfig | None = None,
+                 n_lights: int = 1, degradations: Degradations | None = None, samples: int = 2
+                 ) -> tuple[list[Scene], list[Tensor], Tensor]:
+    """A posed scan of one still room: its camera turned from ``-swing_deg`` to ``swing_deg``
+    about the vertical through the room's middle (as ``moving_camera``, wider), ``frames``
+    frames. Returns the frames (ids ``orbit_<seed>_<frame>``, each with its camera-frame
+    truth), their camera-to-world poses ``(4, 4)`` and the lights in the world ``(L, 3)``
+    (the unturned camera's frame)."""
+    if not (isinstance(frames, int) and frames >= 1):
+        raise ValueError(f"a scan needs at least 1 frame, got {frames!r}")
+    config = config or SamplerConfig(height=120, width=160)
+    spec = sample_scene(seed, config, n_lights=n_lights)
+    angles = torch.linspace(-swing_deg, swing_deg, frames).tolist() if frames > 1 else [0.0]
+    degradations = degradations or Degradations()
+    scenes = []
+    for f, rendered in enumerate(render_specs([_orbited(spec, a) for a in angles], samples=samples)):
+        scene = degrade(rendered.scene, degradations, seed * 1000 + f, visibility=rendered.visibility)
+        scene.meta.update(id=f"orbit_{seed}_{f:03d}", sequence="orbit", frame=f, angle_deg=angles[f])
+        scenes.append(scene)
+    return scenes, [orbit_pose(spec, a) for a in angles], spec.light_position.double()
 
 
 def write_sequence(scenes: list[Scene], folder: str | Path) -> list[Path]:

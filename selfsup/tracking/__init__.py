@@ -11,6 +11,7 @@ Example:
 """
 
 from selfsup.tracking.files import natural_order, track_files
-from selfsup.tracking.tracker import REASONS, Tracker, TrackTuning
+from selfsup.tracking.tracker import REASONS, Tracker
+from selfsup.tracking.tuning import TrackTuning
 
 __all__ = ["Tracker", "TrackTuning", "REASONS", "track_files", "natural_order"]

@@ -19,8 +19,11 @@ from selfsup.estimation.inputs import estimate_inputs, item_id
 from selfsup.estimation.jobs import locked, resume_track
 from selfsup.estimation.network import cached_network
 from selfsup.estimation.options import EstimateOptions
+from selfsup.scenes.capture import is_capture_folder
 from selfsup.scenes.io import SceneFileError
-from selfsup.tracking.tracker import Tracker, TrackTuning
+from selfsup.scenes.poses import posed_frames
+from selfsup.tracking.tracker import Tracker
+from selfsup.tracking.tuning import TrackTuning
 
 __all__ = ["track_files", "natural_order"]
 
@@ -35,6 +38,20 @@ def natural_order(items: list) -> list:
     return sorted(items, key=key)
 
 
+def _poses(input: str | Path, depth_scale: float, intrinsics) -> dict:
+    # Each frame's camera-to-world pose where ``input`` is a posed sequence (a capture folder
+    # with poses.json or poses.txt, a TUM RGB-D or a 7-Scenes sequence), by frame; else {}.
+    path = Path(input)
+    if not path.is_dir():
+        return {}
+    if is_capture_folder(path) and not any((path / name).is_file() for name in ("poses.json", "poses.txt")):
+        return {}
+    try:
+        return {posed.frame: posed.pose for posed in posed_frames(path, depth_scale, intrinsics)}
+    except FileNotFoundError:  # no posed layout: frames alone
+        return {}
+
+
 def track_files(input: str | Path, output: str | Path, options: EstimateOptions | None = None,
                 tuning: TrackTuning | None = None, refresh: int = 30, progress: bool = True, device: str = "cpu",
                 depth_scale: float = 1000.0, intrinsics: tuple[float, float, float, float] | None = None,
@@ -42,7 +59,8 @@ def track_files(input: str | Path, output: str | Path, options: EstimateOptions 
     """Track the lights through the frames under ``input``; one JSON line per frame in ``output``.
 
     ``input``: a capture folder or a directory of scene files (their frames in natural
-    order); ``options``: the full estimates' settings (:class:`EstimateOptions`);
+    order), or a posed sequence (:func:`selfsup.scenes.poses.posed_frames`: the lights are then
+    carried through the camera's moves, and each gets its ``world_position``); ``options``: the full estimates' settings (:class:`EstimateOptions`);
     ``tuning``: the tracker's constants; ``refresh``: a full estimate every that-many-th
     frame whatever the evidence (0: on evidence only); ``depth_scale``, ``intrinsics``:
     as ``mode=estimate``. ``output`` is never overwritten unless ``overwrite``: a rerun
@@ -54,7 +72,9 @@ def track_files(input: str | Path, output: str | Path, options: EstimateOptions 
     started = time.perf_counter()
     options = options or EstimateOptions()
     where = resolve_device(device)
-    frames = natural_order(estimate_inputs(input, None, depth_scale, intrinsics, key="track.input"))
+    poses = _poses(input, depth_scale, intrinsics)
+    frames = natural_order(list(poses) if poses else estimate_inputs(input, None, depth_scale, intrinsics,
+                                                                     key="track.input"))
     if options.method in ("cnn", "cnn+refine"):
         cached_network(options.checkpoint, str(where))  # a missing or bad checkpoint stops here, before any frame
     output = Path(output)
@@ -73,7 +93,7 @@ def track_files(input: str | Path, output: str | Path, options: EstimateOptions 
         with printing:
             for frame in frames:
                 try:
-                    record = tracker.update(frame)
+                    record = tracker.update(frame, poses.get(frame) if poses else None)
                     line = record_line(record)
                 except (SceneFileError, ValueError, RuntimeError) as error:
                     failed[str(frame)] = failure_reason(error)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-__all__ = ["LightState", "start_state", "predict", "update", "pair_lights"]
+__all__ = ["LightState", "start_state", "predict", "update", "pair_lights", "moved"]
 
 
 @dataclass
@@ -71,6 +71,19 @@ def update(state: LightState, position: Tensor, position_cov: Tensor) -> LightSt
     keep = torch.eye(6, dtype=torch.float64) - gain @ H
     cov = keep @ state.cov @ keep.T + gain @ R @ gain.T
     return LightState(state.mean + gain @ innovation, (cov + cov.T) / 2)
+
+
+def moved(state: LightState, rotation: Tensor, translation: Tensor) -> LightState:
+    """The state seen from a camera that moved: ``rotation (3, 3)`` and ``translation (3,)``
+    take a point of the old camera's frame to the new one's (``x' = R x + t``); the velocity
+    and every covariance block turn with ``R`` (a still light stays still in the room)."""
+    R = rotation.double()
+    turn = torch.zeros(6, 6, dtype=torch.float64)
+    turn[:3, :3] = R
+    turn[3:, 3:] = R
+    mean = turn @ state.mean
+    mean[:3] += translation.double()
+    return LightState(mean, turn @ state.cov @ turn.T)
 
 
 def pair_lights(tracked: Tensor, found: Tensor, radius: float) -> list[int | None]:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import time
 from collections import deque
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -28,7 +28,7 @@ from torch import Tensor
 from render import Material
 from selfsup.estimation import albedo_free
 from selfsup.estimation.criterion import block_px, light_shares
-from selfsup.estimation.options import ALBEDO_FREE_RESIDUALS, EstimateOptions
+from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.prepare import prepare, saturated_pixels, within_pixels, working_range
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
@@ -39,7 +39,9 @@ from selfsup.estimation.stages import estimate_batch, with_coat
 from selfsup.estimation.uncertainty import position_covariance
 from selfsup.scenes.capture import CaptureFrame, read_input
 from selfsup.scenes.io import Scene, SceneFileError
-from selfsup.tracking.kalman import LightState, pair_lights, predict, start_state, update
+from selfsup.scenes.poses import check_pose
+from selfsup.tracking.kalman import LightState, moved, pair_lights, predict, start_state, update
+from selfsup.tracking.tuning import TrackTuning
 
 __all__ = ["Tracker", "TrackTuning", "REASONS"]
 
@@ -48,78 +50,7 @@ MOVED_BLOCK_PX = 8  # the blocks over which the depth's change is averaged (Trac
 MOVED_HOLES = 0.05  # or when this share of the pixels gained or lost their depth (a sensor's holes come and go)
 
 # Why a frame was estimated in full (a record's "reason"; None: a warm step).
-REASONS = ("first", "refresh", "change", "residual", "motion", "share")
-
-
-@dataclass(frozen=True)
-class TrackTuning:
-    """The tracker's tuned constants (``docs/tracking.md`` gives how each was chosen).
-
-    Lengths are shares of the scene size (the valid points' bounding-box diagonal).
-
-    warm_iterations: LM steps of a warm frame.
-    warm_stride: a warm frame is fitted on every that-many-th pixel of each row and
-        column; full estimates use every pixel.
-    relabel_motion: the albedo segments (whose edges include the cast shadows') are kept
-        while every light stays this close to where it was when they were found.
-    warm_residuals: the albedo-free warm step's residuals: ``segments`` (as the full
-        estimate: each frame's albedo segments, found at full resolution, the kept
-        geometry's surfaces cut by the frame's image edges, merged into albedo classes
-        under the tracked lights where ``estimate.tuning.albedo_class_rounds`` > 0) |
-        ``pairs`` (neighbours' differences: no segmentation, faster, biased where the
-        shadows move).
-    change_cooldown: after a ``change`` whose full estimate found the lights it had
-        (the change was light the model cannot explain, not a switch), the change test
-        rests for this many frames.
-    change_step, change_share: while the geometry is kept, a frame where more than
-        ``change_share`` of the valid pixels changed by more than ``change_step`` (relative,
-        beyond the image noise) from the last frame in a way the warm fit does not explain
-        is estimated in full: ``log(image / model)`` compared pixel by pixel with the
-        last frame's, so the albedo cancels (a light switched on or off).
-    jump_ratio, reference_frames: a warm frame whose loss per residual exceeds this
-        multiple of the median of the last ``reference_frames`` frames' is estimated in full.
-    fast_motion: a warm step that puts a light farther than this from the filter's
-        prediction sends the frame to the full estimate.
-    acceleration_std: the filter's process noise (per frame squared).
-    velocity_std: a new track's velocity uncertainty (per frame).
-    measurement_floor: standard deviation added to every measured position (the
-        covariance of a few LM steps from a warm start is a lower bound).
-    match_radius: after a full estimate, a light this close to a tracked one continues its track.
-    moved_sigma, moved_blocks: the camera moved (the geometry is found again) when more
-        than ``moved_blocks`` of the ``MOVED_BLOCK_PX``-pixel square blocks changed their
-        mean inverse depth by more than ``moved_sigma`` standard deviations of its noise
-        (or ``MOVED_HOLES`` of the pixels gained or lost their depth).
-    """
-
-    warm_iterations: int = 3
-    warm_stride: int = 2
-    relabel_motion: float = 0.01
-    warm_residuals: str = "segments"
-    change_step: float = 0.1
-    change_cooldown: int = 8
-    change_share: float = 0.05
-    jump_ratio: float = 2.0
-    reference_frames: int = 8
-    fast_motion: float = 0.1
-    acceleration_std: float = 0.004
-    velocity_std: float = 0.02
-    measurement_floor: float = 0.001
-    match_radius: float = 0.15
-    moved_sigma: float = 4.0
-    moved_blocks: float = 0.1
-
-    def __post_init__(self):
-        if self.warm_residuals not in ALBEDO_FREE_RESIDUALS:
-            raise ValueError(f"track.tuning.warm_residuals must be one of {ALBEDO_FREE_RESIDUALS}, "
-                             f"got {self.warm_residuals!r}")
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.name in ("warm_iterations", "warm_stride", "reference_frames", "change_cooldown"):
-                if isinstance(value, bool) or not isinstance(value, int) or value < (f.name != "change_cooldown"):
-                    raise ValueError(f"track.tuning.{f.name} must be an integer >= 1, got {value!r}")
-            elif f.name != "warm_residuals" and not (isinstance(value, (int, float)) and math.isfinite(value)
-                                                     and value > 0):
-                raise ValueError(f"track.tuning.{f.name} must be a finite number > 0, got {value!r}")
+REASONS = ("first", "refresh", "change", "residual", "motion", "share", "cut")
 
 
 def _inverse_depth(depth: Tensor) -> Tensor:
@@ -222,6 +153,8 @@ class Tracker:
     _frame: int = field(default=0, init=False, repr=False)
     _since_full: int = field(default=0, init=False, repr=False)
     _change_rests: int = field(default=0, init=False, repr=False)  # frames the change test still rests
+    _cut: bool = field(default=False, init=False, repr=False)  # the frame shows another place than the last
+    _pose: Tensor | None = field(default=None, init=False, repr=False)  # the last frame's camera-to-world
     _next_id: int = field(default=0, init=False, repr=False)
     _ambient: Tensor | None = field(default=None, init=False, repr=False)  # the albedo-free ambient's log weight (1,)
     _ambient_rgb: Tensor | None = field(default=None, init=False, repr=False)  # (3,) working units
@@ -250,18 +183,25 @@ class Tracker:
             return torch.zeros(0, 3, dtype=torch.float64)
         return torch.stack([t.state.position for t in self._tracks])
 
-    def update(self, frame: Scene | str | Path | CaptureFrame) -> dict:
-        """The record of the next frame (see the class). Reading the frame is part of its latency."""
+    def update(self, frame: Scene | str | Path | CaptureFrame, pose=None) -> dict:
+        """The record of the next frame (see the class). Reading the frame is part of its latency.
+
+        ``pose``: the frame's camera-to-world ``(4, 4)`` (OpenCV axes, metres), where the
+        sequence has poses: the tracked lights are then carried from the last frame's camera
+        into this one's before they are predicted (a still light stays still in the room
+        while the camera moves), and each light of the record also gets its
+        ``world_position``."""
         started = time.perf_counter()
         scene = frame if isinstance(frame, Scene) else read_input(frame)
         read = time.perf_counter() - started
         _check_frame(scene)
+        self._follow(pose, scene.id)
         scene, factor = working_range(within_pixels(scene, self.options))
         with torch.no_grad():
             full_resolution = self._problem(scene)
             problem = subsample(full_resolution, self.tuning.warm_stride)
             size = float(centre_and_size(problem)[1][0])
-            reason = self._due()
+            reason = self._due() or ("cut" if self._cut else None)
             measured = None
             if reason is None:
                 predicted = [predict(t.state, self.tuning.acceleration_std * size) for t in self._tracks]
@@ -276,12 +216,27 @@ class Tracker:
                 measured = self._refreshed(problem, scene, measured, predicted, size, labels)
             else:
                 measured = self._full(scene)
+                if reason == "cut":  # another place: no light continues a track of the last one
+                    self._tracks = []
                 same = self._restarted(measured, size)
                 if reason == "change" and same:  # a change the lights it has cannot explain: not a switch
                     self._change_rests = self.tuning.change_cooldown
             self._unexplained = self._log_ratio(problem, measured.model)
         self._frame += 1
         return self._record(scene.id, reason, factor, time.perf_counter() - started, read)
+
+    def _follow(self, pose, name: str) -> None:
+        # The camera's move since the last posed frame applied to every track (states in the
+        # new camera's frame); no pose: the tracks stay as they are.
+        if pose is None:
+            self._pose = None
+            return
+        pose = torch.as_tensor(check_pose(pose, f"{name}: its pose"), dtype=torch.float64)
+        if self._pose is not None:
+            relative = torch.linalg.inv(pose) @ self._pose  # the last camera's points in this one's frame
+            for track in self._tracks:
+                track.state = moved(track.state, relative[:3, :3], relative[:3, 3])
+        self._pose = pose
 
     # -- the frame's problem, its geometry kept while the depth stays --------------------------
 
@@ -290,7 +245,8 @@ class Tracker:
         kept = self._geometry
         depth = scene.depth.to(self.device)
         inverse = _inverse_depth(depth)
-        if kept is None or not self._same_depth(kept, depth, inverse):
+        self._cut = kept is not None and self._is_cut(kept, inverse)
+        if kept is None or not self._depth_change(kept, depth, inverse):
             base = prepare([scene], self.options.tuned(mask_saturated=False), self.device)
             self._geometry = _Geometry(depth, base, inverse)
             self._unexplained = None  # pixels no longer correspond
@@ -308,7 +264,23 @@ class Tracker:
         return FitProblem(replace(base.gbuffer, mask=mask), material, image, ambient, base.falloff, base.shadows,
                           normal_tilt=base.normal_tilt)
 
-    def _same_depth(self, kept: _Geometry, depth: Tensor, inverse: Tensor) -> bool:
+    def _is_cut(self, kept: _Geometry, inverse: Tensor) -> bool:
+        # Whether the frame of ``inverse`` (inverse depth, 0 where missing) shows another place
+        # than the kept frame: its size changed, or more than cut_blocks of the blocks seen in
+        # both changed their mean inverse depth by more than cut_change of it.
+        if kept.inverse.shape != inverse.shape:
+            return True
+        both = ((kept.inverse > 0) & (inverse > 0))[None, None].to(inverse.dtype)
+        px = MOVED_BLOCK_PX
+        pool = lambda x: torch.nn.functional.avg_pool2d(x, px, px, ceil_mode=True)[0, 0]  # noqa: E731
+        before, after, seen = pool(kept.inverse[None, None] * both), pool(inverse[None, None] * both), pool(both)
+        usable = seen >= 0.5
+        if not bool(usable.any()):
+            return True
+        change = (after - before).abs()[usable] / before[usable].clamp_min(torch.finfo(before.dtype).tiny)
+        return float((change > self.tuning.cut_change).float().mean()) > self.tuning.cut_blocks
+
+    def _depth_change(self, kept: _Geometry, depth: Tensor, inverse: Tensor) -> bool:
         # Whether ``depth`` (``inverse``: its inverse, 0 where missing) is the kept frame's seen
         # from the same place: its inverse depth (affine in the pixel on a plane) changed,
         # averaged over blocks, by no more than its noise allows on all but ``moved_blocks`` of them.
@@ -545,6 +517,9 @@ class Tracker:
                            "intensity": (track.intensity / factor).tolist(),
                            "position_std": cov.diagonal().clamp_min(0).sqrt().tolist(),
                            "position_cov": cov.tolist()})
+            if self._pose is not None:
+                world = self._pose[:3, :3] @ track.state.position + self._pose[:3, 3]
+                lights[-1]["world_position"] = world.tolist()
         model = self._model
         return {"id": scene_id, "frame": self.first_frame + self._frame - 1, "lights": lights,
                 "ambient": (self._ambient_rgb / factor).tolist(),

@@ -1,0 +1,223 @@
+"""A room's lights from a posed scan against each frame estimated on its own.
+
+    python -m benchmarks.scan make --out data/scans          # posed capture folders, once
+    python -m benchmarks.scan run --scans data/scans          # writes benchmarks/results/scan_<device>_<date>.*
+    python -m benchmarks.scan figure --scan data/scans/indirect_noisy/scan_4109 --room room.json --out docs/scan_top.png
+
+``make`` renders posed scans of our procedural rooms with the exact ray caster
+(:func:`selfsup.scenes.sequences.render_orbit`: the camera turned from -30 to +30 degrees
+about the vertical through the room's middle, 12 frames, 160x120, one or two lights) and
+writes each as a capture folder (the recipe's 8-bit sRGB at one exposure, millimetre
+depth) with ``poses.json`` and the world's true lights (``truth.json``), in two sets:
+``direct`` (the exact render) and ``indirect_noisy`` (indirect light and a sensor's noise).
+
+``run`` estimates every frame on its own (``mode=estimate``'s defaults) and the whole scan
+(``mode=scan``'s defaults), and scores both in the world against the truth: a frame's
+worst light error (its estimate mapped by its pose; a missing or extra light: the
+worst), the scan's, both as shares of the scene size, and whether the count is right;
+and, without the truth, the spread: the median distance of the frames' lights mapped to the
+world from the scan's nearest light.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmarks.common import write_results
+
+SEEDS = tuple(range(4100, 4112))
+COLUMNS = ["scan", "lights", "frames", "per_frame_median_error", "per_frame_success", "per_frame_count_right",
+           "scan_error", "scan_success", "scan_count_right", "scan_lights", "spread", "scan_seconds"]
+
+
+# The sets: the exact render, and the render with indirect light (a first bounce and the
+# later ones, at up to twice their strength, drawn per frame) through the sensor's depth
+# noise, holes and image noise (benchmarks.captures.SENSOR).
+SETS = ("direct", "indirect_noisy")
+
+
+def make(out: Path, seeds=SEEDS, frames: int = 12, swing_deg: float = 30.0, sets=SETS) -> list[Path]:
+    """One posed capture folder per set and seed under ``out/<set>``: the first half of the
+    seeds one light, the rest two."""
+    from benchmarks.captures import SENSOR, capture_exposure, write_capture
+    from selfsup.scenes.degrade import Degradations
+    from selfsup.scenes.sampler import SamplerConfig
+    from selfsup.scenes.sequences import render_orbit
+
+    degradations = {"direct": Degradations(), "indirect_noisy": Degradations(indirect=2.0, **SENSOR)}
+    folders = []
+    for set_name in sets:
+        for k, seed in enumerate(seeds):
+            n_lights = 1 if k < len(seeds) // 2 else 2
+            scenes, poses, truth = render_orbit(seed, frames, swing_deg, SamplerConfig(height=120, width=160),
+                                                n_lights=n_lights, degradations=degradations[set_name])
+            folder = out / set_name / f"scan_{seed}"
+            exposure = capture_exposure(scenes[len(scenes) // 2], folder.name)  # one exposure: a locked camera
+            for scene in scenes:
+                write_capture(scene, folder, scene.id, exposure=exposure)
+            (folder / "poses.json").write_text(json.dumps({s.id: p.tolist() for s, p in zip(scenes, poses)}))
+            (folder / "truth.json").write_text(json.dumps({"lights": truth.tolist(),
+                                                           "scene_size": float(scenes[0].scene_scale)}))
+            folders.append(folder)
+            print(f"{folder}: {frames} frames, {n_lights} light(s)", flush=True)
+    return folders
+
+
+def _worst(found: np.ndarray, truth: np.ndarray) -> tuple[float, bool]:
+    # The worst light error (metres) of ``found (n, 3)`` against ``truth (m, 3)``, each true
+    # light paired with the nearest found one; a wrong count: inf. And whether the count is right.
+    if len(found) != len(truth) or len(found) == 0:
+        return float("inf"), len(found) == len(truth)
+    distance = np.linalg.norm(found[:, None] - truth[None], axis=-1)
+    if len(truth) == 2:
+        return float(min(max(distance[0, 0], distance[1, 1]), max(distance[0, 1], distance[1, 0]))), True
+    return float(distance.min(0).max()), True
+
+
+def score(folder: Path, frames_records: list[dict], room: dict) -> dict:
+    """One row: the frames' and the scan's world errors, counts and the spread."""
+    truth = json.loads((folder / "truth.json").read_text())
+    world, size = np.array(truth["lights"]), truth["scene_size"]
+    poses = {key: np.array(value) for key, value in json.loads((folder / "poses.json").read_text()).items()}
+    errors, counts, mapped = [], [], []
+    for record in frames_records:
+        pose = poses[record["id"]]
+        found = np.array([pose[:3, :3] @ light["position"] + pose[:3, 3] for light in record["lights"]]).reshape(-1, 3)
+        error, right = _worst(found, world)
+        errors.append(error / size)
+        counts.append(right)
+        mapped.extend(found)
+    scan_found = np.array([light["position"] for light in room["lights"]]).reshape(-1, 3)
+    scan_error, scan_right = _worst(scan_found, world)
+    spread = (statistics.median(float(np.linalg.norm(scan_found - p, axis=1).min()) / size for p in mapped)
+              if mapped and len(scan_found) else None)
+    return {"scan": folder.name, "lights": len(world), "frames": len(frames_records),
+            "per_frame_median_error": round(statistics.median(errors), 4),
+            "per_frame_success": f"{sum(e < 0.05 for e in errors)}/{len(errors)}",
+            "per_frame_count_right": f"{sum(counts)}/{len(counts)}", "scan_error": round(scan_error / size, 4),
+            "scan_success": scan_error / size < 0.05, "scan_count_right": scan_right, "scan_lights": len(scan_found),
+            "spread": None if spread is None else round(spread, 4), "scan_seconds": room["seconds"]}
+
+
+def run(scans: Path, write: bool = True) -> list[dict]:
+    """Every posed folder under each set of ``scans`` estimated frame by frame and as a scan:
+    a row per scan and a summary row per set."""
+    from selfsup.estimation import EstimateOptions, estimate_files
+    from selfsup.scan import scan_files
+
+    rows = []
+    for set_folder in sorted(p for p in scans.iterdir() if p.is_dir()):
+        scored = []
+        for folder in sorted(p for p in set_folder.iterdir() if (p / "poses.json").is_file()):
+            with tempfile.TemporaryDirectory() as tmp:
+                estimate_files(folder, Path(tmp) / "frames.jsonl", EstimateOptions(), progress=False, workers=1)
+                records = [json.loads(line) for line in (Path(tmp) / "frames.jsonl").read_text().splitlines()]
+                started = time.perf_counter()
+                scan_files(folder, Path(tmp) / "room.json", progress=False)
+                room = json.loads((Path(tmp) / "room.json").read_text())
+                room["seconds"] = round(time.perf_counter() - started, 1)
+            scored.append({**score(folder, records, room), "scan": f"{set_folder.name}/{folder.name}"})
+            print(scored[-1], flush=True)
+        rows += scored + [_summary(set_folder.name, scored)]
+    if write:
+        header = (f"`python -m benchmarks.scan run --scans {scans}` (made by `python -m benchmarks.scan make`). "
+                  + " ".join(__doc__.split("\n\n", 2)[2].split()))
+        write_results("scan", torch.device("cpu"), rows, header, COLUMNS)
+    return rows
+
+
+def _summary(name: str, rows: list[dict]) -> dict:
+    # A set's row: medians of the errors, sums of the successes and counts.
+    return {"scan": f"{name}: median over {len(rows)} scans", "lights": "", "frames": sum(r["frames"] for r in rows),
+            "per_frame_median_error": round(statistics.median(r["per_frame_median_error"] for r in rows), 4),
+            "per_frame_success": _sum_fraction(r["per_frame_success"] for r in rows),
+            "per_frame_count_right": _sum_fraction(r["per_frame_count_right"] for r in rows),
+            "scan_error": round(statistics.median(r["scan_error"] for r in rows), 4),
+            "scan_success": f"{sum(r['scan_success'] for r in rows)}/{len(rows)}",
+            "scan_count_right": f"{sum(r['scan_count_right'] for r in rows)}/{len(rows)}", "scan_lights": "",
+            "spread": round(statistics.median(r["spread"] for r in rows if r["spread"] is not None), 4),
+            "scan_seconds": round(statistics.median(r["scan_seconds"] for r in rows), 1)}
+
+
+def figure(folder: Path, room: Path, out: Path, up: int = 1) -> Path:
+    """The scan's fused points seen from above (the world's axis ``up``, down in OpenCV's
+    y-down camera of the first frame) with its lights (crosses), their 2-sigma ellipses in
+    that view, the true lights (circles, where ``truth.json`` is there) and the cameras."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from selfsup.scan import scene_points
+    from selfsup.scenes.capture import read_capture
+    from selfsup.scenes.poses import posed_frames
+
+    frames = posed_frames(folder)
+    points = np.concatenate([scene_points(read_capture(f.frame), f.pose, stride=6) for f in frames])
+    axes = [a for a in range(3) if a != up]
+    fig, ax = plt.subplots(figsize=(6, 6))
+    ax.scatter(points[:, axes[0]], points[:, axes[1]], s=0.6, c=points[:, up], cmap="viridis", alpha=0.5)
+    cameras = np.stack([f.pose[:3, 3] for f in frames])
+    ax.plot(cameras[:, axes[0]], cameras[:, axes[1]], "-", color="tab:blue", label="cameras")
+    result = json.loads(room.read_text())
+    circle = np.stack([np.cos(np.linspace(0, 2 * np.pi, 64)), np.sin(np.linspace(0, 2 * np.pi, 64))])
+    for k, light in enumerate(result["lights"]):
+        centre = np.array(light["position"])[axes]
+        cov = np.array(light["position_cov"])[np.ix_(axes, axes)]
+        values, vectors = np.linalg.eigh(cov)
+        ellipse = centre[:, None] + vectors @ (2 * np.sqrt(np.clip(values, 0, None))[:, None] * circle)
+        ax.plot(*ellipse, color="tab:orange")
+        ax.scatter(*centre, marker="x", s=120, color="tab:orange", label="scan's lights (2 sigma)" if k == 0 else None)
+    if (folder / "truth.json").is_file():
+        truth = np.array(json.loads((folder / "truth.json").read_text())["lights"])
+        ax.scatter(truth[:, axes[0]], truth[:, axes[1]], s=140, facecolors="none", edgecolors="tab:green",
+                   linewidths=2, label="true lights")
+    ax.set_aspect("equal")
+    ax.invert_yaxis()
+    ax.set_xlabel(f"world {'xyz'[axes[0]]} (m)")
+    ax.set_ylabel(f"world {'xyz'[axes[1]]} (m)")
+    ax.set_title(f"{folder.name}: {len(frames)} posed frames fused, seen from above", fontsize=10)
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=80)
+    plt.close(fig)
+    return out
+
+
+def _sum_fraction(values) -> str:
+    pairs = [tuple(int(x) for x in v.split("/")) for v in values]
+    return f"{sum(a for a, _ in pairs)}/{sum(b for _, b in pairs)}"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    m = sub.add_parser("make", help="posed capture folders of procedural rooms")
+    m.add_argument("--out", type=Path, default=Path("data/scans"))
+    r = sub.add_parser("run", help="frames against scans; writes the results file")
+    r.add_argument("--scans", type=Path, default=Path("data/scans"))
+    r.add_argument("--no-write", action="store_true")
+    f = sub.add_parser("figure", help="one scan's fused points from above with its lights")
+    f.add_argument("--scan", type=Path, required=True, help="a posed capture folder")
+    f.add_argument("--room", type=Path, required=True, help="its mode=scan output")
+    f.add_argument("--out", type=Path, default=Path("docs/scan_top.png"))
+    args = parser.parse_args(argv)
+    if args.command == "make":
+        make(args.out)
+    elif args.command == "figure":
+        print(f"wrote {figure(args.scan, args.room, args.out)}")
+    else:
+        run(args.scans, not args.no_write)
+
+
+if __name__ == "__main__":
+    main()

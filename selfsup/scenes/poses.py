@@ -1,0 +1,221 @@
+"""Posed RGB-D sequences in: capture frames with their camera-to-world poses.
+
+Layouts read as they are (``docs/scan.md``):
+
+- a capture folder (``color/``, ``depth/``, intrinsics) with ``poses.json``
+  (``{"<id>": 4x4 camera-to-world}``) or ``poses.txt`` (one frame a line, TUM's order:
+  ``<id> tx ty tz qx qy qz qw``, the first field the frame's id);
+- a TUM RGB-D sequence (``rgb.txt``, ``depth.txt``, ``groundtruth.txt``; depth 5000 a
+  metre): each colour image takes the depth image and the ground-truth pose nearest in
+  time (within :data:`TUM_MAX_DT` seconds; the others are left out); intrinsics from
+  ``intrinsics.json`` beside them, else the TUM's default (Freiburg 1: 517.3, 516.5, 318.6, 255.3);
+- a 7-Scenes sequence (``frame-NNNNNN.color.png|jpg``, ``frame-NNNNNN.depth.png`` in mm with
+  65535 missing, ``frame-NNNNNN.pose.txt`` a 4x4 camera-to-world); intrinsics from
+  ``intrinsics.json``, else 7-Scenes' (585, 585, 320, 240).
+
+Poses are camera-to-world with OpenCV camera axes (x right, y down, z forward), in metres.
+Each is checked: finite, a rotation (orthonormal within :data:`ROTATION_TOLERANCE`, determinant
++1: a determinant of -1 is a mirrored, left-handed convention), last row ``0 0 0 1``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from selfsup.scenes.capture import COLOR_SUFFIXES, CaptureFrame, capture_frames, is_capture_folder
+
+__all__ = ["PosedFrame", "posed_frames", "check_pose", "quaternion_pose", "ROTATION_TOLERANCE", "TUM_MAX_DT",
+           "PoseError"]
+
+ROTATION_TOLERANCE = 1e-3  # |R^T R - I| and |det R - 1| beyond this: not a rotation
+TUM_MAX_DT = 0.02  # seconds between a colour image and the depth image or pose it takes (TUM's associate.py)
+TUM_DEFAULT_INTRINSICS = (517.3, 516.5, 318.6, 255.3)  # Freiburg 1, the TUM benchmark's colour camera
+SEVEN_SCENES_INTRINSICS = (585.0, 585.0, 320.0, 240.0)
+
+
+class PoseError(ValueError):
+    """A pose that cannot be a camera-to-world rigid transform, or frames without poses."""
+
+
+@dataclass(frozen=True)
+class PosedFrame:
+    """A capture frame and its pose ``(4, 4)`` float64 camera-to-world (OpenCV axes, metres)."""
+
+    frame: CaptureFrame
+    pose: np.ndarray
+
+    @property
+    def id(self) -> str:
+        return self.frame.id
+
+    def __str__(self) -> str:
+        return str(self.frame)
+
+
+def check_pose(pose, name: str) -> np.ndarray:
+    """``pose`` as a checked ``(4, 4)`` float64 camera-to-world matrix; ``name`` says whose.
+
+    Raises:
+        PoseError: naming the frame and how the pose fails (shape, non-finite, not a rotation,
+            a mirror, a last row other than 0 0 0 1).
+    """
+    matrix = np.asarray(pose, dtype=np.float64)
+    if matrix.shape != (4, 4):
+        raise PoseError(f"{name}: a pose must be a 4x4 camera-to-world matrix, got shape {matrix.shape}")
+    if not np.isfinite(matrix).all():
+        raise PoseError(f"{name}: the pose holds non-finite values")
+    if not np.allclose(matrix[3], [0, 0, 0, 1], atol=1e-6):
+        raise PoseError(f"{name}: the pose's last row is {matrix[3].tolist()}, not [0, 0, 0, 1]: a rigid transform's is")
+    rotation = matrix[:3, :3]
+    error = float(np.abs(rotation.T @ rotation - np.eye(3)).max())
+    if error > ROTATION_TOLERANCE:
+        raise PoseError(f"{name}: the pose's 3x3 part is not a rotation (R^T R differs from the identity by {error:.3g}):"
+                        " scaled or sheared poses are not rigid")
+    if np.linalg.det(rotation) < 0:
+        raise PoseError(f"{name}: the pose's rotation has determinant -1, a mirror: a left-handed convention (flip one "
+                        "axis to get OpenCV's x right, y down, z forward)")
+    return matrix
+
+
+def quaternion_pose(tx: float, ty: float, tz: float, qx: float, qy: float, qz: float, qw: float,
+                    name: str) -> np.ndarray:
+    """The 4x4 camera-to-world of a position and a unit quaternion (TUM's ``tx ty tz qx qy qz qw``)."""
+    norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+    if not math.isfinite(norm) or abs(norm - 1) > 0.01:
+        raise PoseError(f"{name}: the quaternion ({qx}, {qy}, {qz}, {qw}) is not of unit length ({norm:.4g})")
+    x, y, z, w = qx / norm, qy / norm, qz / norm, qw / norm
+    pose = np.eye(4)
+    pose[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                    [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                    [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    pose[:3, 3] = [tx, ty, tz]
+    return pose
+
+
+def _pose_lines(path: Path) -> dict[str, np.ndarray]:
+    # ``<key> tx ty tz qx qy qz qw`` lines (``#`` comments skipped) by their first field.
+    poses = {}
+    for number, line in enumerate(path.read_text().splitlines(), 1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        if len(fields) != 8:
+            raise PoseError(f"{path} line {number}: expected 'id tx ty tz qx qy qz qw', got {len(fields)} fields")
+        try:
+            values = [float(v) for v in fields[1:]]
+        except ValueError:
+            raise PoseError(f"{path} line {number}: the pose's fields must be numbers") from None
+        poses[fields[0]] = quaternion_pose(*values, name=f"{path} line {number}")
+    return poses
+
+
+def _folder_poses(folder: Path) -> dict[str, np.ndarray]:
+    # A capture folder's poses.json or poses.txt by frame id.
+    if (folder / "poses.json").is_file():
+        try:
+            data = json.loads((folder / "poses.json").read_text())
+        except json.JSONDecodeError as error:
+            raise PoseError(f"{folder / 'poses.json'} is not JSON ({error})") from None
+        if not isinstance(data, dict):
+            raise PoseError(f"{folder / 'poses.json'} must be an object {{\"<id>\": 4x4 camera-to-world}}")
+        return {str(key): check_pose(value, f"{folder / 'poses.json'} [{key!r}]") for key, value in data.items()}
+    if (folder / "poses.txt").is_file():
+        return _pose_lines(folder / "poses.txt")
+    raise PoseError(f"{folder}: no poses.json or poses.txt beside color/ and depth/ (a scan needs each frame's "
+                    "camera-to-world pose)")
+
+
+def _intrinsics_override(folder: Path, default: tuple[float, float, float, float]) -> tuple | None:
+    # ``intrinsics.json`` beside a sequence's files, else ``default`` (its dataset's camera).
+    path = folder / "intrinsics.json"
+    if not path.is_file():
+        return default
+    data = json.loads(path.read_text())
+    return tuple(float(data[key]) for key in ("fx", "fy", "cx", "cy"))
+
+
+def _timed_list(path: Path) -> list[tuple[float, str]]:
+    # TUM's ``timestamp filename`` lines.
+    entries = []
+    for line in path.read_text().splitlines():
+        fields = line.split()
+        if fields and not fields[0].startswith("#"):
+            entries.append((float(fields[0]), fields[1] if len(fields) > 1 else " ".join(fields[1:])))
+    return entries
+
+
+def _nearest(times: np.ndarray, t: float) -> int | None:
+    if times.size == 0:
+        return None
+    i = int(np.abs(times - t).argmin())
+    return i if abs(times[i] - t) <= TUM_MAX_DT else None
+
+
+def _tum_frames(folder: Path) -> list[PosedFrame]:
+    colours, depths = _timed_list(folder / "rgb.txt"), _timed_list(folder / "depth.txt")
+    truth = []
+    for line in (folder / "groundtruth.txt").read_text().splitlines():
+        fields = line.split()
+        if fields and not fields[0].startswith("#"):
+            truth.append((float(fields[0]), [float(v) for v in fields[1:8]]))
+    depth_times = np.array([t for t, _ in depths])
+    pose_times = np.array([t for t, _ in truth])
+    intrinsics = _intrinsics_override(folder, TUM_DEFAULT_INTRINSICS)
+    frames = []
+    for t, name in colours:
+        d, p = _nearest(depth_times, t), _nearest(pose_times, t)
+        if d is None or p is None:
+            continue  # no depth or pose near it in time: not a posed frame
+        color = folder / name
+        frame = CaptureFrame(color, folder / depths[d][1], None, 5000.0, intrinsics)
+        frames.append(PosedFrame(frame, quaternion_pose(*truth[p][1], name=f"{folder / 'groundtruth.txt'} at {t}")))
+    return frames
+
+
+def _seven_scenes_frames(folder: Path) -> list[PosedFrame]:
+    intrinsics = _intrinsics_override(folder, SEVEN_SCENES_INTRINSICS)
+    frames = []
+    for color in sorted(p for p in folder.iterdir() if p.name.endswith(tuple(f".color{s}" for s in COLOR_SUFFIXES))):
+        stem = color.name.split(".color")[0]
+        depth, pose_file = folder / f"{stem}.depth.png", folder / f"{stem}.pose.txt"
+        if not pose_file.is_file():
+            raise PoseError(f"{color}: no pose file {pose_file.name} beside it")
+        pose = check_pose(np.loadtxt(pose_file), str(pose_file))
+        frame = CaptureFrame(color, depth if depth.is_file() else None, None, 1000.0, intrinsics, name=stem)
+        frames.append(PosedFrame(frame, pose))
+    return frames
+
+
+def posed_frames(folder: str | Path, depth_scale: float = 1000.0,
+                 intrinsics: tuple[float, float, float, float] | None = None) -> list[PosedFrame]:
+    """The posed frames of ``folder`` in any layout of the module's doc, in order (a capture
+    folder's by id, TUM's by time, 7-Scenes' by name); ``depth_scale`` and ``intrinsics`` as
+    :func:`selfsup.scenes.capture.capture_frames` (capture folders; the other layouts carry theirs).
+
+    Raises:
+        FileNotFoundError: no layout of posed frames in ``folder``.
+        PoseError: a frame without its pose, or a pose that is not camera-to-world rigid.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"scan.input {folder} is not a folder")
+    if is_capture_folder(folder):
+        poses = _folder_poses(folder)
+        frames = capture_frames(folder, depth_scale, intrinsics)
+        missing = [frame.id for frame in frames if frame.id not in poses]
+        if missing:
+            raise PoseError(f"{folder}: {len(missing)} frame(s) without a pose ({', '.join(missing[:5])}"
+                            f"{', ...' if len(missing) > 5 else ''}): every frame of a scan needs one")
+        return [PosedFrame(frame, poses[frame.id]) for frame in frames]
+    if all((folder / name).is_file() for name in ("rgb.txt", "depth.txt", "groundtruth.txt")):
+        return _tum_frames(folder)
+    if any(p.name.endswith(".pose.txt") for p in folder.iterdir()):
+        return _seven_scenes_frames(folder)
+    raise FileNotFoundError(f"{folder}: no posed frames: a capture folder with poses.json or poses.txt, a TUM RGB-D "
+                            "sequence (rgb.txt, depth.txt, groundtruth.txt) or a 7-Scenes sequence "
+                            "(frame-NNNNNN.color.png, .depth.png, .pose.txt)")
