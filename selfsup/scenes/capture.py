@@ -55,6 +55,9 @@ class CaptureFrame:
     intrinsics: tuple[float, float, float, float] | None = None
     prefix: str = ""
     name: str | None = None  # the id's own part where the colour file's stem is not it (7-Scenes' "<id>.color.png")
+    video_frame: int | None = None  # the colour is this frame of the video ``color`` (a phone app's rgb.mp4)
+    confidence: Path | None = None  # a depth confidence image (0, 1, 2): depth below ``min_confidence`` is missing
+    min_confidence: int = 1
 
     @property
     def id(self) -> str:
@@ -142,11 +145,16 @@ def _read_image(path: Path) -> np.ndarray:
                                    f"{path.suffix.lstrip('.').upper()} file?") from None
 
 
-def _color_codes(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    # The 8- or 16-bit sRGB codes (H, W, 3) of a colour file and the table of their linear
-    # values (float64 in [0, 1], one entry a code: a decoded frame costs its codes, not
-    # three float64 arrays of its size).
-    pixels = _read_image(path)
+def _color_codes(path: Path, video_frame: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    # The 8- or 16-bit sRGB codes (H, W, 3) of a colour file (or of frame ``video_frame`` of a
+    # video) and the table of their linear values (float64 in [0, 1], one entry a code: a
+    # decoded frame costs its codes, not three float64 arrays of its size).
+    if video_frame is not None:
+        from selfsup.scenes.video import video_frame as read_frame
+
+        pixels = read_frame(path, video_frame)
+    else:
+        pixels = _read_image(path)
     if pixels.ndim == 2:  # grey: the same value in each channel
         pixels = np.repeat(pixels[..., None], 3, axis=2)
     if pixels.ndim != 3 or pixels.shape[2] not in (3, 4):
@@ -271,8 +279,14 @@ def read_capture(frame: CaptureFrame) -> Scene:
         SceneFileError: naming the file and the fix (unreadable image, 8-bit or empty
             depth, no depth of the stem, no intrinsics, sizes whose aspects differ).
     """
-    codes, table = _color_codes(frame.color)
+    codes, table = _color_codes(frame.color, frame.video_frame)
     depth = _depth(frame.depth, frame.color, frame.depth_scale)
+    if frame.confidence is not None:
+        confidence = _read_image(frame.confidence)
+        if confidence.shape[:2] != depth.shape:
+            raise SceneFileError(frame.confidence, f"confidence {confidence.shape[1]}x{confidence.shape[0]} is not "
+                                                   f"the depth's size {depth.shape[1]}x{depth.shape[0]}")
+        depth = np.where(confidence.reshape(depth.shape) >= frame.min_confidence, depth, 0.0)
     K = _intrinsics(frame)
     (h, w), (H, W) = codes.shape[:2], depth.shape
     if (h, w) != (H, W):

@@ -11,7 +11,12 @@ Layouts read as they are (``docs/scan.md``):
   ``intrinsics.json`` beside them, else the TUM's default (Freiburg 1: 517.3, 516.5, 318.6, 255.3);
 - a 7-Scenes sequence (``frame-NNNNNN.color.png|jpg``, ``frame-NNNNNN.depth.png`` in mm with
   65535 missing, ``frame-NNNNNN.pose.txt`` a 4x4 camera-to-world); intrinsics from
-  ``intrinsics.json``, else 7-Scenes' (585, 585, 320, 240).
+  ``intrinsics.json``, else 7-Scenes' (585, 585, 320, 240);
+- a Stray Scanner export (``rgb.mp4``, ``depth/NNNNNN.png`` in mm at 256x192,
+  ``confidence/NNNNNN.png``, ``camera_matrix.csv`` the video's intrinsics, ``odometry.csv``
+  ``timestamp, frame, x, y, z, qx, qy, qz, qw`` with ARKit's camera axes, turned to OpenCV's):
+  the video's frames averaged onto the depth's grid, its intrinsics scaled to it, depth of
+  low confidence left out; reading the video needs the ``video`` extra (PyAV).
 
 Poses are camera-to-world with OpenCV camera axes (x right, y down, z forward), in metres.
 Each is checked: finite, a rotation (orthonormal within :data:`ROTATION_TOLERANCE`, determinant
@@ -30,7 +35,7 @@ import numpy as np
 from selfsup.scenes.capture import COLOR_SUFFIXES, CaptureFrame, capture_frames, is_capture_folder
 
 __all__ = ["PosedFrame", "posed_frames", "check_pose", "quaternion_pose", "ROTATION_TOLERANCE", "TUM_MAX_DT",
-           "PoseError"]
+           "PoseError", "ARKIT_TO_OPENCV"]
 
 ROTATION_TOLERANCE = 1e-3  # |R^T R - I| and |det R - 1| beyond this: not a rotation
 TUM_MAX_DT = 0.02  # seconds between a colour image and the depth image or pose it takes (TUM's associate.py)
@@ -191,6 +196,44 @@ def _seven_scenes_frames(folder: Path) -> list[PosedFrame]:
     return frames
 
 
+# ARKit's camera axes (x right, y up, z backwards) to OpenCV's (x right, y down, z forwards).
+ARKIT_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
+STRAY_MIN_CONFIDENCE = 1  # Stray Scanner's depth confidence (0 low, 1 medium, 2 high): low is left out
+
+
+def _stray_frames(folder: Path) -> list[PosedFrame]:
+    # Stray Scanner's export: rgb.mp4, depth/NNNNNN.png (mm), confidence/NNNNNN.png,
+    # camera_matrix.csv (the video's intrinsics), odometry.csv (ARKit camera-to-world).
+    from selfsup.scenes.video import video_size
+
+    video = folder / "rgb.mp4"
+    K = np.loadtxt(folder / "camera_matrix.csv", delimiter=",")
+    if K.shape != (3, 3):
+        raise PoseError(f"{folder / 'camera_matrix.csv'}: expected a 3x3 matrix, got shape {K.shape}")
+    width, _ = video_size(video)
+    rows = [line.split(",") for line in (folder / "odometry.csv").read_text().splitlines()[1:] if line.strip()]
+    frames = []
+    for number, row in enumerate(rows, 2):
+        if len(row) != 9:
+            raise PoseError(f"{folder / 'odometry.csv'} line {number}: expected 'timestamp, frame, x, y, z, qx, qy, "
+                            f"qz, qw', got {len(row)} fields")
+        index = int(float(row[1]))
+        pose = quaternion_pose(*map(float, row[2:]), name=f"{folder / 'odometry.csv'} line {number}")
+        pose[:3, :3] = pose[:3, :3] @ ARKIT_TO_OPENCV
+        depth = folder / "depth" / f"{index:06d}.png"
+        confidence = folder / "confidence" / f"{index:06d}.png"
+        if not frames:  # the depth grid's intrinsics: the video's, scaled (pixel centres kept)
+            import imageio.v3 as iio
+
+            scale = iio.improps(depth).shape[1] / width
+            intrinsics = (K[0, 0] * scale, K[1, 1] * scale, (K[0, 2] + 0.5) * scale - 0.5, (K[1, 2] + 0.5) * scale - 0.5)
+        frame = CaptureFrame(video, depth if depth.is_file() else None, None, 1000.0, intrinsics, name=f"{index:06d}",
+                             video_frame=index, confidence=confidence if confidence.is_file() else None,
+                             min_confidence=STRAY_MIN_CONFIDENCE)
+        frames.append(PosedFrame(frame, pose))
+    return frames
+
+
 def posed_frames(folder: str | Path, depth_scale: float = 1000.0,
                  intrinsics: tuple[float, float, float, float] | None = None) -> list[PosedFrame]:
     """The posed frames of ``folder`` in any layout of the module's doc, in order (a capture
@@ -216,6 +259,9 @@ def posed_frames(folder: str | Path, depth_scale: float = 1000.0,
         return _tum_frames(folder)
     if any(p.name.endswith(".pose.txt") for p in folder.iterdir()):
         return _seven_scenes_frames(folder)
+    if all((folder / name).exists() for name in ("rgb.mp4", "depth", "odometry.csv", "camera_matrix.csv")):
+        return _stray_frames(folder)
     raise FileNotFoundError(f"{folder}: no posed frames: a capture folder with poses.json or poses.txt, a TUM RGB-D "
-                            "sequence (rgb.txt, depth.txt, groundtruth.txt) or a 7-Scenes sequence "
-                            "(frame-NNNNNN.color.png, .depth.png, .pose.txt)")
+                            "sequence (rgb.txt, depth.txt, groundtruth.txt), a 7-Scenes sequence "
+                            "(frame-NNNNNN.color.png, .depth.png, .pose.txt) or a Stray Scanner export (rgb.mp4, "
+                            "depth/, odometry.csv, camera_matrix.csv)")

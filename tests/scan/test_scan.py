@@ -127,9 +127,17 @@ def test_tum_and_seven_scenes_layouts_read_as_posed_frames(orbit, tmp_path):
 
 
 def _quaternion(R):
-    # (qx, qy, qz, qw) of a rotation matrix (its trace is > -1 here: small turns).
-    w = np.sqrt(1 + np.trace(R)) / 2
-    return [(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w), w]
+    # (qx, qy, qz, qw) of a rotation matrix, from its largest diagonal term (any turn).
+    trace = np.trace(R)
+    if trace > max(R[0, 0], R[1, 1], R[2, 2]):
+        w = np.sqrt(1 + trace) / 2
+        return [(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w), w]
+    i = int(np.argmax(np.diag(R)))
+    j, k = (i + 1) % 3, (i + 2) % 3
+    s = np.sqrt(1 + R[i, i] - R[j, j] - R[k, k]) * 2
+    q = [0.0, 0.0, 0.0, (R[k, j] - R[j, k]) / s]
+    q[i], q[j], q[k] = s / 4, (R[j, i] + R[i, j]) / s, (R[k, i] + R[i, k]) / s
+    return q
 
 
 def test_fusion_keeps_lights_many_views_agree_on_and_leaves_one_views_invention_out():
@@ -172,3 +180,50 @@ def test_tracking_a_posed_scan_keeps_a_still_light_still_in_the_world(orbit, tmp
         assert np.linalg.norm(world - truth[0].numpy()) / size < SUCCESS_THRESHOLD, (record["frame"], record["reason"])
         np.testing.assert_allclose(pose[:3, :3].numpy() @ light["position"] + pose[:3, 3].numpy(), world, atol=1e-9)
     assert [r["reason"] for r in records].count(None) >= FRAMES - 2  # warm frames: the camera's move is not the light's
+
+
+def test_a_stray_scanner_export_reads_as_posed_frames(orbit, tmp_path):
+    # rgb.mp4 at twice the depth's size with the video's intrinsics, depth/ and confidence/
+    # (0 low, 2 high), odometry.csv with ARKit's camera axes (y up, z backwards).
+    av = pytest.importorskip("av")  # the video extra
+    from selfsup.scenes.capture import read_capture
+    from selfsup.scenes.poses import ARKIT_TO_OPENCV
+
+    scenes, poses, _ = orbit
+    cap = _write_posed(orbit, tmp_path / "cap")
+    stray = tmp_path / "stray"
+    (stray / "depth").mkdir(parents=True)
+    (stray / "confidence").mkdir()
+    height, width = scenes[0].depth.shape
+    with av.open(str(stray / "rgb.mp4"), mode="w") as video:
+        stream = video.add_stream("mpeg4", rate=30)
+        stream.width, stream.height, stream.pix_fmt = 2 * width, 2 * height, "yuv420p"
+        stream.bit_rate = 20_000_000  # a phone records at about this rate
+        for k, scene in enumerate(scenes):
+            colour = iio.imread(cap / "color" / f"{scene.id}.png")
+            big = np.repeat(np.repeat(colour, 2, axis=0), 2, axis=1)
+            for packet in stream.encode(av.VideoFrame.from_ndarray(big, format="rgb24")):
+                video.mux(packet)
+            millimetres = iio.imread(cap / "depth" / f"{scene.id}.png")
+            iio.imwrite(stray / "depth" / f"{k:06d}.png", millimetres)
+            confidence = np.full(millimetres.shape, 2, np.uint8)
+            confidence[:4] = 0  # the top rows' depth of low confidence: left out
+            iio.imwrite(stray / "confidence" / f"{k:06d}.png", confidence)
+        for packet in stream.encode():
+            video.mux(packet)
+    K = json.loads((cap / "intrinsics" / f"{scenes[0].id}.json").read_text())
+    video_K = [[K["fx"] * 2, 0, (K["cx"] + 0.5) * 2 - 0.5], [0, K["fy"] * 2, (K["cy"] + 0.5) * 2 - 0.5], [0, 0, 1]]
+    np.savetxt(stray / "camera_matrix.csv", np.array(video_K), delimiter=",")
+    rows = ["timestamp, frame, x, y, z, qx, qy, qz, qw"]
+    for k, pose in enumerate(poses):
+        q = _quaternion(pose[:3, :3].numpy() @ ARKIT_TO_OPENCV)
+        rows.append(", ".join(str(v) for v in [k / 30, k, *pose[:3, 3].tolist(), *q]))
+    (stray / "odometry.csv").write_text("\n".join(rows) + "\n")
+    frames = posed_frames(stray)
+    assert [f.id for f in frames] == [f"{k:06d}" for k in range(FRAMES)]
+    np.testing.assert_allclose(frames[3].pose, poses[3].numpy(), atol=1e-6)
+    for k in (1, 4, 2):  # forward, then back (the video is opened again)
+        read, same = read_capture(frames[k].frame), read_capture(posed_frames(cap)[k].frame)
+        np.testing.assert_allclose(read.K.numpy(), same.K.numpy(), atol=1e-4)
+        assert (read.depth[:4] == 0).all() and torch.equal(read.depth[4:], same.depth[4:])
+        assert float((read.image - same.image).abs().mean()) < 0.02  # the video's compression
