@@ -174,7 +174,7 @@ def _scan(settings: dict) -> dict:
     from selfsup.scan import FuseOptions, scan_files
 
     io = {k: settings.pop(k) for k in ("input", "output", "frames_output", "max_frames", "progress", "device",
-                                       "depth_scale", "intrinsics")}
+                                       "workers", "depth_scale", "intrinsics")}
     fuse = FuseOptions(**settings.pop("fuse", {}))
     return scan_files(options=EstimateOptions(**settings), fuse_options=fuse, **io)
 

@@ -1,8 +1,10 @@
 """A room's lights from a posed scan against each frame estimated on its own.
 
     python -m benchmarks.scan make --out data/scans          # posed capture folders, once
-    python -m benchmarks.scan run --scans data/scans          # writes benchmarks/results/scan_<device>_<date>.*
-    python -m benchmarks.scan figure --scan data/scans/indirect_noisy/scan_4109 --room room.json --out docs/scan_top.png
+    python -m benchmarks.scan make --out data/scans30 --frames 30 --seeds 4106 4110
+    python -m benchmarks.scan run --scans data/scans --timing data/scans30   # benchmarks/results/scan_<device>_<date>.*
+    python -m benchmarks.scan figure --scan data/scans/indirect_noisy/scan_4110 --room room.json --out docs/scan_top.png
+    python -m benchmarks.scan animate --scan data/scans30/indirect_noisy/scan_4110 --out docs/scan.gif
 
 ``make`` renders posed scans of our procedural rooms with the exact ray caster
 (:func:`selfsup.scenes.sequences.render_orbit`: the camera turned from -30 to +30 degrees
@@ -16,7 +18,7 @@ depth) with ``poses.json`` and the world's true lights (``truth.json``), in two 
 worst light error (its estimate mapped by its pose; a missing or extra light: the
 worst), the scan's, both as shares of the scene size, and whether the count is right;
 and, without the truth, the spread: the median distance of the frames' lights mapped to the
-world from the scan's nearest light.
+world from the scan's nearest light. With ``--timing``, the command's wall time on 30-frame scans.
 """
 
 from __future__ import annotations
@@ -107,9 +109,32 @@ def score(folder: Path, frames_records: list[dict], room: dict) -> dict:
             "spread": None if spread is None else round(spread, 4), "scan_seconds": room["seconds"]}
 
 
-def run(scans: Path, write: bool = True) -> list[dict]:
+def timed_scans(scans: Path) -> list[dict]:
+    """``python train.py mode=scan`` (its defaults) on every posed folder under each set of
+    ``scans`` (``make --frames 30``): a row per scan with the command's wall time (start-up included)."""
+    import subprocess
+    import sys
+
+    rows = []
+    root = Path(__file__).resolve().parents[1]
+    for folder in sorted(scans.glob("*/*/poses.json")):
+        folder = folder.parent
+        with tempfile.TemporaryDirectory() as tmp:
+            started = time.perf_counter()
+            subprocess.run([sys.executable, "train.py", "mode=scan", f"scan.input={folder.resolve()}",
+                            f"scan.output={tmp}/room.json", "scan.progress=false"], cwd=root, check=True,
+                           capture_output=True)
+            wall = time.perf_counter() - started
+            room = json.loads((Path(tmp) / "room.json").read_text())
+        rows.append({"scan": f"timing: {folder.parent.name}/{folder.name}", "lights": "", "frames": room["frames"],
+                     "scan_lights": len(room["lights"]), "scan_seconds": round(wall, 1)})
+        print(rows[-1], flush=True)
+    return rows
+
+
+def run(scans: Path, write: bool = True, timing: Path | None = None) -> list[dict]:
     """Every posed folder under each set of ``scans`` estimated frame by frame and as a scan:
-    a row per scan and a summary row per set."""
+    a row per scan and a summary row per set; with ``timing``, :func:`timed_scans` of it."""
     from selfsup.estimation import EstimateOptions, estimate_files
     from selfsup.scan import scan_files
 
@@ -127,6 +152,8 @@ def run(scans: Path, write: bool = True) -> list[dict]:
             scored.append({**score(folder, records, room), "scan": f"{set_folder.name}/{folder.name}"})
             print(scored[-1], flush=True)
         rows += scored + [_summary(set_folder.name, scored)]
+    if timing is not None:
+        rows += timed_scans(timing)
     if write:
         header = (f"`python -m benchmarks.scan run --scans {scans}` (made by `python -m benchmarks.scan make`). "
                   + " ".join(__doc__.split("\n\n", 2)[2].split()))
@@ -193,6 +220,48 @@ def figure(folder: Path, room: Path, out: Path, up: int = 1) -> Path:
     return out
 
 
+def animate(folder: Path, out: Path, size: float = 0.04, pixel: tuple[float, float] = (0.5, 0.75),
+            scale: int = 2, fps: float = 4.0, stride: int = 2) -> Path:
+    """A GIF of a posed scan: each frame beside the same frame with a virtual cube anchored in
+    the room (placed where the first frame puts it, :func:`selfsup.insert.place_object`, and
+    carried to each frame by the poses) lit by the scan's lights (``mode=scan``'s
+    ``frames_output``: the fused world lights in that frame's camera, intensities solved on it);
+    every ``stride``-th frame, ``scale`` times enlarged."""
+    import dataclasses
+
+    import imageio.v3 as iio
+
+    from selfsup.insert import Mesh, insert_object, lights_from_record, place_object
+    from selfsup.scan import scan_files
+    from selfsup.scenes.capture import linear_to_srgb, read_capture
+    from selfsup.scenes.io import render_inputs
+    from selfsup.scenes.poses import posed_frames
+
+    frames = posed_frames(folder)
+    with tempfile.TemporaryDirectory() as tmp:
+        scan_files(folder, Path(tmp) / "room.json", Path(tmp) / "frames.jsonl", progress=False)
+        records = {r["id"]: r for r in map(json.loads, (Path(tmp) / "frames.jsonl").read_text().splitlines())}
+    first = read_capture(frames[0].frame)
+    cube = place_object(render_inputs(first)[0], Mesh.cube(), pixel, size)
+    pose0 = torch.as_tensor(frames[0].pose, dtype=cube.vertices.dtype)
+    world = cube.vertices @ pose0[:3, :3].T + pose0[:3, 3]
+    pictures = []
+    for frame in frames[::stride]:
+        scene = read_capture(frame.frame)
+        pose = torch.as_tensor(frame.pose, dtype=world.dtype)
+        here = dataclasses.replace(cube, vertices=(world - pose[:3, 3]) @ pose[:3, :3])  # R^T (p - t), row-wise
+        composite, _ = insert_object(scene, *lights_from_record(records[frame.id]), here)
+        level = float(scene.image[scene.depth > 0].quantile(0.99)) or 1.0
+        panels = [linear_to_srgb((x / level).clamp(0, 1).numpy()) for x in (scene.image, composite)]
+        row = np.concatenate([panels[0], np.ones_like(panels[0][:, :2]), panels[1]], 1)
+        row = np.round(np.clip(row, 0, 1) * 255).astype(np.uint8)
+        pictures.append(row.repeat(scale, 0).repeat(scale, 1))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(out, np.stack(pictures), duration=1000 / fps, loop=0)
+    print(f"{out}: {len(pictures)} frames, {out.stat().st_size / 1024:.0f} KiB", flush=True)
+    return out
+
+
 def _sum_fraction(values) -> str:
     pairs = [tuple(int(x) for x in v.split("/")) for v in values]
     return f"{sum(a for a, _ in pairs)}/{sum(b for _, b in pairs)}"
@@ -203,20 +272,28 @@ def main(argv: list[str] | None = None) -> None:
     sub = parser.add_subparsers(dest="command", required=True)
     m = sub.add_parser("make", help="posed capture folders of procedural rooms")
     m.add_argument("--out", type=Path, default=Path("data/scans"))
+    m.add_argument("--frames", type=int, default=12)
+    m.add_argument("--seeds", type=int, nargs="*", default=list(SEEDS))
     r = sub.add_parser("run", help="frames against scans; writes the results file")
     r.add_argument("--scans", type=Path, default=Path("data/scans"))
     r.add_argument("--no-write", action="store_true")
+    r.add_argument("--timing", type=Path, help="posed scans to time the command on (make --frames 30)")
     f = sub.add_parser("figure", help="one scan's fused points from above with its lights")
     f.add_argument("--scan", type=Path, required=True, help="a posed capture folder")
     f.add_argument("--room", type=Path, required=True, help="its mode=scan output")
     f.add_argument("--out", type=Path, default=Path("docs/scan_top.png"))
+    a = sub.add_parser("animate", help="a GIF of a virtual cube anchored in a scan's room, lit by its lights")
+    a.add_argument("--scan", type=Path, required=True, help="a posed capture folder")
+    a.add_argument("--out", type=Path, default=Path("docs/scan.gif"))
     args = parser.parse_args(argv)
-    if args.command == "make":
-        make(args.out)
+    if args.command == "animate":
+        animate(args.scan, args.out)
+    elif args.command == "make":
+        make(args.out, tuple(args.seeds), args.frames)
     elif args.command == "figure":
         print(f"wrote {figure(args.scan, args.room, args.out)}")
     else:
-        run(args.scans, not args.no_write)
+        run(args.scans, not args.no_write, args.timing)
 
 
 if __name__ == "__main__":

@@ -95,8 +95,8 @@ def test_the_scan_group_is_the_users_settings_with_the_codes_defaults(cfg):
     options = _defaults(EstimateOptions)
     files = {name: p.default for name, p in inspect.signature(scan_files).parameters.items()
              if p.default is not inspect.Parameter.empty}
-    command = {"input", "output", "frames_output", "max_frames", "device", "progress", "depth_scale", "intrinsics",
-               "fuse"}
+    command = {"input", "output", "frames_output", "max_frames", "device", "workers", "progress", "depth_scale",
+               "intrinsics", "fuse"}
     assert set(values) - command <= set(options) - {"tuning"}, sorted(values)
     for key in set(values) - command:
         assert _plain(values[key]) == options[key], f"scan.{key}: YAML {values[key]!r}, EstimateOptions {options[key]!r}"

@@ -36,7 +36,7 @@ from selfsup.estimation.jobs import (Ranks, barrier, completed_ids, finish_ranks
 from selfsup.scenes.io import Scene, SceneFileError
 
 __all__ = ["estimate_files", "estimate_inputs", "scene_files", "worker_count", "usable_cores", "start_method",
-           "failure_reason", "record_line", "progress_bar", "resolve_device", "worker_threads"]
+           "failure_reason", "record_line", "progress_bar", "resolve_device", "worker_threads", "estimate_items"]
 
 log = logging.getLogger(__name__)
 
@@ -251,6 +251,21 @@ def _batches(items: Iterator[Input], size: int) -> Iterator[list[Input]]:
     # Consecutive items, ``size`` at a time.
     while batch := list(itertools.islice(items, size)):
         yield batch
+
+
+def estimate_items(items: list[Input], options: EstimateOptions, device: str = "cpu", workers: int | str = "auto",
+                   batch: int | str = 1) -> Iterator[tuple[Input, dict | None, str | None]]:
+    """``(item, record, None)`` or ``(item, None, reason)`` of each of ``items`` in order,
+    estimated as :func:`estimate_files` estimates files (batched, over worker processes)
+    but kept in memory: for callers that go on with the records (``mode=scan``)."""
+    where = resolve_device(device)
+    batch = batch_size(batch, where)
+    workers = min(worker_count(workers, len(items), where), max(1, -(-len(items) // batch)))
+    if options.method in ("cnn", "cnn+refine"):
+        cached_network(options.checkpoint, str(where))  # loaded before the workers fork
+    for chunk, done, reasons in _chunk_results(_batches(iter(items), batch), options, where, workers):
+        for item in chunk:
+            yield item, done.get(item), reasons.get(item)
 
 
 def _write_records(chunks, out, bar, failed: dict[str, str], seconds: list[float]) -> None:

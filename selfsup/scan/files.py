@@ -21,12 +21,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from selfsup.estimation.files import failure_reason, progress_bar, record_line, resolve_device
+from selfsup.estimation.files import estimate_items, failure_reason, progress_bar, record_line, resolve_device
 from selfsup.estimation.jobs import locked
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.prepare import prepare, within_pixels, working_range
 from selfsup.estimation.problem import solve_at
-from selfsup.estimation.stages import estimate_scene
 from selfsup.scan.fuse import FusedLight, FuseOptions, fuse, world_lights
 from selfsup.scenes.capture import read_capture
 from selfsup.scenes.io import Scene
@@ -77,7 +76,7 @@ def _size(points: np.ndarray) -> float:
 
 def _camera_record(frame: PosedFrame, scene: Scene, lights: list[FusedLight], options: EstimateOptions) -> dict:
     # The scan's lights in ``frame``'s camera: positions and covariances mapped, intensities
-    # and ambient solved on the frame at those positions (the frame's exposure).
+    # and ambient solved on the frame at those positions (the frame's exposure), grey.
     R, t = frame.pose[:3, :3], frame.pose[:3, 3]
     positions = np.stack([R.T @ (light.position - t) for light in lights]) if lights else np.zeros((0, 3))
     record = {"id": frame.id, "lights": [], "ambient": [0.0, 0.0, 0.0], "light_found": bool(lights)}
@@ -87,8 +86,9 @@ def _camera_record(frame: PosedFrame, scene: Scene, lights: list[FusedLight], op
         with torch.no_grad():
             _, intensity, ambient, *_ = solve_at(problem, torch.as_tensor(positions, dtype=problem.image.dtype)[None],
                                                  replace(options.tuning.refine, specular=False))
-        intensity = (intensity[0].clamp_min(0) / factor).tolist()
-        record["ambient"] = (ambient[0].clamp_min(0) / factor).tolist()
+        # Grey, as the estimator's lights of a capture (light_colour=neutral): each channel's mean.
+        intensity = (intensity[0].clamp_min(0).mean(-1, keepdim=True).expand(-1, 3) / factor).tolist()
+        record["ambient"] = (ambient[0].clamp_min(0).mean().expand(3) / factor).tolist()
         for light, position, value in zip(lights, positions, intensity):
             cov = R.T @ light.cov @ R
             record["lights"].append({"position": position.tolist(), "intensity": value,
@@ -115,11 +115,12 @@ def _scan_record(lights: list[FusedLight], frames: list[PosedFrame], used: list[
 def scan_files(input: str | Path, output: str | Path, frames_output: str | Path | None = None,
                options: EstimateOptions | None = None, fuse_options: FuseOptions | None = None, max_frames: int = 30,
                progress: bool = True, device: str = "cpu", depth_scale: float = 1000.0,
-               intrinsics: tuple[float, float, float, float] | None = None) -> dict:
+               intrinsics: tuple[float, float, float, float] | None = None, workers: int | str = "auto") -> dict:
     """Fit one set of world-frame lights to the posed frames under ``input``; write the
     scan's JSON object to ``output`` and, with ``frames_output``, every frame's record of
-    those lights in its camera (JSON Lines). ``max_frames``: keyframes estimated (0: all).
-    A frame that cannot be read or estimated is named and left out. Returns a summary:
+    those lights in its camera (JSON Lines). ``max_frames``: keyframes estimated (0: all),
+    spread over ``workers`` processes as ``mode=estimate`` spreads files. A frame that cannot
+    be read or estimated is named and left out. Returns a summary:
     ``lights`` (how many), ``frames``, ``used``, ``failed`` (with reasons), the wall time.
     """
     started = time.perf_counter()
@@ -136,17 +137,15 @@ def scan_files(input: str | Path, output: str | Path, frames_output: str | Path 
     per_frame, points, kept = [], [], []
     bar, printing = progress_bar(len(used), "scan", "frame", progress)
     with printing:
-        for index in used:
+        for item, record, reason in estimate_items([frames[i].frame for i in used], options, device, workers):
+            index = used[len(kept) + len(failed)]
             frame = frames[index]
-            try:
-                scene = read_capture(frame.frame)
-                record = estimate_scene(scene, options, device)
-            except (ValueError, RuntimeError) as error:
-                failed[str(frame)] = failure_reason(error)
-                log.error("skipped %s: %s", frame, failed[str(frame)])
+            if record is None:
+                failed[str(frame)] = reason
+                log.error("skipped %s: %s", frame, reason)
             else:
                 per_frame.append(world_lights(record, frame.pose, len(kept)))
-                points.append(scene_points(scene, frame.pose))
+                points.append(scene_points(read_capture(frame.frame), frame.pose))
                 kept.append(index)
             if bar is not None:
                 bar.update(1)
