@@ -127,3 +127,30 @@ def write_results(name: str, device: torch.device, rows: list[dict], header: str
         lines.append("| " + " | ".join(str(row.get(c, "")) for c in columns) + " |")
     stem.with_suffix(".md").write_text("\n".join(lines) + "\n")
     return stem.with_suffix(".md")
+
+
+def side_by_side(image: torch.Tensor, composite: torch.Tensor, depth: torch.Tensor, scale: int = 1):
+    """A frame's ``image`` beside its ``composite`` (both linear ``(H, W, 3)``), sRGB-encoded at
+    the image's 99th percentile on valid ``depth`` (> 0), 8 bits, ``scale`` times enlarged:
+    an animation's frame (``(H scale, (2 W + 2) scale, 3)`` uint8)."""
+    import numpy as np
+
+    from selfsup.scenes.capture import linear_to_srgb
+
+    level = float(image[depth > 0].quantile(0.99)) or 1.0
+    panels = [linear_to_srgb((x / level).clamp(0, 1).numpy()) for x in (image, composite)]
+    row = np.concatenate([panels[0], np.ones_like(panels[0][:, :2]), panels[1]], 1)
+    row = np.round(np.clip(row, 0, 1) * 255).astype(np.uint8)
+    return row.repeat(scale, 0).repeat(scale, 1)
+
+
+def write_animation(out: Path, pictures: list, fps: float) -> Path:
+    """``pictures`` (equal ``(H, W, 3)`` uint8 arrays) as a looping GIF at ``fps``; says its size."""
+    import imageio.v3 as iio
+    import numpy as np
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(out, np.stack(pictures), duration=1000 / fps, loop=0)
+    print(f"{out}: {len(pictures)} frames, {out.stat().st_size / 1024:.0f} KiB", flush=True)
+    return out
+

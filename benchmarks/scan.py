@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import write_results
+from benchmarks.common import side_by_side, write_animation, write_results
 
 SEEDS = tuple(range(4100, 4112))
 COLUMNS = ["scan", "lights", "frames", "per_frame_median_error", "per_frame_success", "per_frame_count_right",
@@ -229,11 +229,9 @@ def animate(folder: Path, out: Path, size: float = 0.04, pixel: tuple[float, flo
     every ``stride``-th frame, ``scale`` times enlarged."""
     import dataclasses
 
-    import imageio.v3 as iio
-
     from selfsup.insert import Mesh, insert_object, lights_from_record, place_object
     from selfsup.scan import scan_files
-    from selfsup.scenes.capture import linear_to_srgb, read_capture
+    from selfsup.scenes.capture import read_capture
     from selfsup.scenes.io import render_inputs
     from selfsup.scenes.poses import posed_frames
 
@@ -251,15 +249,8 @@ def animate(folder: Path, out: Path, size: float = 0.04, pixel: tuple[float, flo
         pose = torch.as_tensor(frame.pose, dtype=world.dtype)
         here = dataclasses.replace(cube, vertices=(world - pose[:3, 3]) @ pose[:3, :3])  # R^T (p - t), row-wise
         composite, _ = insert_object(scene, *lights_from_record(records[frame.id]), here)
-        level = float(scene.image[scene.depth > 0].quantile(0.99)) or 1.0
-        panels = [linear_to_srgb((x / level).clamp(0, 1).numpy()) for x in (scene.image, composite)]
-        row = np.concatenate([panels[0], np.ones_like(panels[0][:, :2]), panels[1]], 1)
-        row = np.round(np.clip(row, 0, 1) * 255).astype(np.uint8)
-        pictures.append(row.repeat(scale, 0).repeat(scale, 1))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(out, np.stack(pictures), duration=1000 / fps, loop=0)
-    print(f"{out}: {len(pictures)} frames, {out.stat().st_size / 1024:.0f} KiB", flush=True)
-    return out
+        pictures.append(side_by_side(scene.image, composite, scene.depth, scale))
+    return write_animation(out, pictures, fps)
 
 
 def _sum_fraction(values) -> str:

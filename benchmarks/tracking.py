@@ -34,7 +34,7 @@ from pathlib import Path
 import torch
 
 from benchmarks.captures import SENSOR, read_truth, write_capture
-from benchmarks.common import score_record, write_results
+from benchmarks.common import score_record, side_by_side, write_animation, write_results
 from selfsup.scenes.sequences import SEQUENCE_KINDS
 
 SETS = ("files", "captures", "noisy")
@@ -247,11 +247,8 @@ def animate(sequence: Path, out: Path, size: float = 0.04, pixel: tuple[float, f
     """A GIF of ``sequence``'s frames: each captured frame beside the same frame with a
     virtual object inserted under the lights the tracker gives for it (placed where the
     first frame puts it, as :func:`selfsup.insert.place_object`), ``scale`` times enlarged."""
-    import imageio.v3 as iio
-    import numpy as np
-
     from selfsup.insert import Mesh, Sphere, insert_object, lights_from_record, place_object
-    from selfsup.scenes.capture import linear_to_srgb, read_input
+    from selfsup.scenes.capture import read_input
     from selfsup.scenes.io import render_inputs
     from selfsup.tracking import Tracker
 
@@ -264,15 +261,8 @@ def animate(sequence: Path, out: Path, size: float = 0.04, pixel: tuple[float, f
         if placed is None:
             placed = place_object(render_inputs(scene)[0], shape, pixel, size)
         composite, _ = insert_object(scene, *lights_from_record(record), placed)
-        level = float(scene.image[scene.depth > 0].quantile(0.99)) or 1.0
-        panels = [linear_to_srgb((x / level).clamp(0, 1).numpy()) for x in (scene.image, composite)]
-        row = np.concatenate([panels[0], np.ones_like(panels[0][:, :2]), panels[1]], 1)
-        row = np.round(np.clip(row, 0, 1) * 255).astype(np.uint8)
-        pictures.append(row.repeat(scale, 0).repeat(scale, 1))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(out, np.stack(pictures), duration=1000 / fps, loop=0)
-    print(f"{out}: {len(pictures)} frames, {out.stat().st_size / 1024:.0f} KiB", flush=True)
-    return out
+        pictures.append(side_by_side(scene.image, composite, scene.depth, scale))
+    return write_animation(out, pictures, fps)
 
 
 def main() -> None:
