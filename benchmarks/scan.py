@@ -2,6 +2,8 @@
 
     python -m benchmarks.scan make --out data/scans          # posed capture folders, once
     python -m benchmarks.scan make --out data/scans30 --frames 30 --seeds 4106 4110
+    python -m benchmarks.scan make --mitsuba --out data/scans_mitsuba   # Mitsuba 3 renders (the mitsuba extra)
+    python -m benchmarks.scan run --scans data/scans_mitsuba --name scan_mitsuba
     python -m benchmarks.scan run --scans data/scans --timing data/scans30   # benchmarks/results/scan_<device>_<date>.*
     python -m benchmarks.scan figure --scan data/scans/indirect_noisy/scan_4110 --room room.json --out docs/scan_top.png
     python -m benchmarks.scan animate --scan data/scans30/indirect_noisy/scan_4110 --out docs/scan.gif
@@ -11,7 +13,9 @@
 about the vertical through the room's middle, 12 frames, 160x120, one or two lights) and
 writes each as a capture folder (the recipe's 8-bit sRGB at one exposure, millimetre
 depth) with ``poses.json`` and the world's true lights (``truth.json``), in two sets:
-``direct`` (the exact render) and ``indirect_noisy`` (indirect light and a sensor's noise).
+``direct`` (the exact render) and ``indirect_noisy`` (indirect light and a sensor's noise);
+with ``--mitsuba`` the same rooms' scans (8 of them) rendered by Mitsuba 3, ``mitsuba_direct``
+and ``mitsuba_gi`` (path traced, 256 samples a pixel a light).
 
 ``run`` estimates every frame on its own (``mode=estimate``'s defaults) and the whole scan
 (``mode=scan``'s defaults), and scores both in the world against the truth: a frame's
@@ -70,6 +74,46 @@ def make(out: Path, seeds=SEEDS, frames: int = 12, swing_deg: float = 30.0, sets
                                                            "scene_size": float(scenes[0].scene_scale)}))
             folders.append(folder)
             print(f"{folder}: {frames} frames, {n_lights} light(s)", flush=True)
+    return folders
+
+
+def make_mitsuba(out: Path, seeds=SEEDS[:4] + SEEDS[6:10], frames: int = 12, swing_deg: float = 30.0
+                 ) -> list[Path]:
+    """Posed scans rendered by Mitsuba 3 (the ``mitsuba`` extra), ``out/mitsuba_direct`` and
+    ``out/mitsuba_gi`` (path traced): the rooms of :func:`make` (the same seeds' specs, the
+    camera turned as :func:`selfsup.scenes.sequences.render_orbit` turns it), each frame
+    rendered by :func:`benchmarks.mitsuba_scenes.render_variants` at the first frame's exposure."""
+    import mitsuba as mi
+
+    from benchmarks.captures import capture_exposure, write_capture
+    from benchmarks.mitsuba_scenes import render_variants
+    from selfsup.scenes.sampler import SamplerConfig, sample_scene
+    from selfsup.scenes.sequences import orbit_pose, orbited
+
+    mi.set_variant("scalar_rgb")
+    folders = []
+    for k, seed in enumerate(seeds):
+        n_lights = 1 if k < len(seeds) // 2 else 2
+        spec = sample_scene(seed, SamplerConfig(height=120, width=160), n_lights=n_lights)
+        angles = torch.linspace(-swing_deg, swing_deg, frames).tolist()
+        exposure, capture = None, {}
+        for f, angle in enumerate(angles):
+            rendered = render_variants(orbited(spec, angle), f"mitsuba_orbit_{seed}_{f:03d}", exposure=exposure,
+                                       variants=("direct", "gi"))
+            if exposure is None:  # the first frame's, kept: a camera with its exposure locked
+                exposure = float(rendered["direct"].light_intensity[0, 0] / spec.light_relative_intensity[0, 0])
+            for variant, scene in rendered.items():
+                folder = out / f"mitsuba_{variant}" / f"scan_{seed}"
+                capture.setdefault(variant, capture_exposure(scene, folder.name))
+                write_capture(scene, folder, f"orbit_{seed}_{f:03d}", exposure=capture[variant])
+        for variant in ("direct", "gi"):
+            folder = out / f"mitsuba_{variant}" / f"scan_{seed}"
+            (folder / "poses.json").write_text(json.dumps({f"orbit_{seed}_{f:03d}": orbit_pose(spec, a).tolist()
+                                                           for f, a in enumerate(angles)}))
+            (folder / "truth.json").write_text(json.dumps({"lights": spec.light_position.double().tolist(),
+                                                           "scene_size": float(rendered["direct"].scene_scale)}))
+            folders.append(folder)
+        print(f"scan_{seed}: {frames} frames, {n_lights} light(s), Mitsuba direct and path traced", flush=True)
     return folders
 
 
@@ -132,7 +176,7 @@ def timed_scans(scans: Path) -> list[dict]:
     return rows
 
 
-def run(scans: Path, write: bool = True, timing: Path | None = None) -> list[dict]:
+def run(scans: Path, write: bool = True, timing: Path | None = None, name: str = "scan") -> list[dict]:
     """Every posed folder under each set of ``scans`` estimated frame by frame and as a scan:
     a row per scan and a summary row per set; with ``timing``, :func:`timed_scans` of it."""
     from selfsup.estimation import EstimateOptions, estimate_files
@@ -155,9 +199,10 @@ def run(scans: Path, write: bool = True, timing: Path | None = None) -> list[dic
     if timing is not None:
         rows += timed_scans(timing)
     if write:
-        header = (f"`python -m benchmarks.scan run --scans {scans}` (made by `python -m benchmarks.scan make`). "
+        command = f"python -m benchmarks.scan run --scans {scans} --name {name}" + (f" --timing {timing}" if timing else "")
+        header = (f"`{command}` (made by `python -m benchmarks.scan make`). "
                   + " ".join(__doc__.split("\n\n", 2)[2].split()))
-        write_results("scan", torch.device("cpu"), rows, header, COLUMNS)
+        write_results(name, torch.device("cpu"), rows, header, COLUMNS)
     return rows
 
 
@@ -265,10 +310,12 @@ def main(argv: list[str] | None = None) -> None:
     m.add_argument("--out", type=Path, default=Path("data/scans"))
     m.add_argument("--frames", type=int, default=12)
     m.add_argument("--seeds", type=int, nargs="*", default=list(SEEDS))
+    m.add_argument("--mitsuba", action="store_true", help="render the scans with Mitsuba 3 instead (8 rooms, the mitsuba extra)")
     r = sub.add_parser("run", help="frames against scans; writes the results file")
     r.add_argument("--scans", type=Path, default=Path("data/scans"))
     r.add_argument("--no-write", action="store_true")
     r.add_argument("--timing", type=Path, help="posed scans to time the command on (make --frames 30)")
+    r.add_argument("--name", default="scan", help="the results file's name")
     f = sub.add_parser("figure", help="one scan's fused points from above with its lights")
     f.add_argument("--scan", type=Path, required=True, help="a posed capture folder")
     f.add_argument("--room", type=Path, required=True, help="its mode=scan output")
@@ -279,12 +326,14 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.command == "animate":
         animate(args.scan, args.out)
+    elif args.command == "make" and args.mitsuba:
+        make_mitsuba(args.out, frames=args.frames)
     elif args.command == "make":
         make(args.out, tuple(args.seeds), args.frames)
     elif args.command == "figure":
         print(f"wrote {figure(args.scan, args.room, args.out)}")
     else:
-        run(args.scans, not args.no_write, args.timing)
+        run(args.scans, not args.no_write, args.timing, args.name)
 
 
 if __name__ == "__main__":

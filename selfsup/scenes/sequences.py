@@ -33,7 +33,7 @@ from selfsup.scenes.raycast import Primitives
 from selfsup.scenes.sampler import SamplerConfig, SceneSpec, sample_scene, signed_distance
 
 __all__ = ["SEQUENCE_KINDS", "sequence_specs", "render_sequence", "write_sequence", "CAMERA_SWING_DEG",
-           "render_orbit", "orbit_pose"]
+           "render_orbit", "orbit_pose", "orbited"]
 
 SEQUENCE_KINDS = ("static", "moving_light", "moving_camera", "switch", "two_lights")
 CAMERA_SWING_DEG = 8.0  # the moving camera's orbit, either side of the first frame's view
@@ -89,7 +89,7 @@ def orbit_pose(spec: SceneSpec, angle_deg: float) -> Tensor:
     return pose
 
 
-def _orbited(spec: SceneSpec, angle_deg: float) -> SceneSpec:
+def orbited(spec: SceneSpec, angle_deg: float) -> SceneSpec:
     """``spec`` seen by its camera turned ``angle_deg`` about the vertical through a point
     ahead (at the depth of the room's middle): everything turns the other way in the camera's frame."""
     R, pivot = _orbit(spec, angle_deg)
@@ -116,7 +116,7 @@ def _frames_of(kind: str, spec: SceneSpec, frames: int, margin: float) -> list[S
         return [spec] * frames
     if kind == "moving_camera":
         swing = torch.linspace(-CAMERA_SWING_DEG, CAMERA_SWING_DEG, frames).tolist()
-        return [_orbited(spec, angle) for angle in swing]
+        return [orbited(spec, angle) for angle in swing]
     if kind == "switch":
         first, last = frames // 3, 2 * frames // 3
         one = dataclasses.replace(spec, light_position=spec.light_position[:1],
@@ -179,7 +179,7 @@ def render_orbit(seed: int, frames: int = 12, swing_deg: float = 30.0, config: S
     angles = torch.linspace(-swing_deg, swing_deg, frames).tolist() if frames > 1 else [0.0]
     degradations = degradations or Degradations()
     scenes = []
-    for f, rendered in enumerate(render_specs([_orbited(spec, a) for a in angles], samples=samples)):
+    for f, rendered in enumerate(render_specs([orbited(spec, a) for a in angles], samples=samples)):
         scene = degrade(rendered.scene, degradations, seed * 1000 + f, visibility=rendered.visibility)
         scene.meta.update(id=f"orbit_{seed}_{f:03d}", sequence="orbit", frame=f, angle_deg=angles[f])
         scenes.append(scene)
