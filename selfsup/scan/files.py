@@ -29,11 +29,14 @@ from selfsup.estimation.problem import solve_at
 from selfsup.scan.fuse import FusedLight, FuseOptions, fuse, world_lights
 from selfsup.scenes.capture import read_capture
 from selfsup.scenes.io import Scene
-from selfsup.scenes.poses import PosedFrame, posed_frames
+from selfsup.scenes.poses import PosedFrame, check_convention, posed_frames
 
 __all__ = ["scan_files", "keyframes", "scene_points"]
 
 log = logging.getLogger(__name__)
+# The first frames whose depths, seen from one another, tell a pose file's convention
+# (:func:`selfsup.scenes.poses.check_convention`).
+CONVENTION_FRAMES = 4
 
 
 def keyframes(frames: list[PosedFrame], count: int) -> list[int]:
@@ -132,6 +135,9 @@ def scan_files(input: str | Path, output: str | Path, frames_output: str | Path 
     frames = posed_frames(input, depth_scale, intrinsics)
     if not frames:
         raise FileNotFoundError(f"scan.input {input}: no posed frames")
+    first = [read_capture(f.frame) for f in frames[:CONVENTION_FRAMES]]
+    check_convention([(s.depth.double().numpy(), s.K.double().numpy(), f.pose) for s, f in zip(first, frames)],
+                     f"scan.input {input}")
     used = keyframes(frames, max_frames)
     failed: dict[str, str] = {}
     per_frame, points, kept = [], [], []

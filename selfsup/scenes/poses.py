@@ -35,7 +35,7 @@ import numpy as np
 from selfsup.scenes.capture import COLOR_SUFFIXES, CaptureFrame, capture_frames, is_capture_folder
 
 __all__ = ["PosedFrame", "posed_frames", "check_pose", "quaternion_pose", "ROTATION_TOLERANCE", "TUM_MAX_DT",
-           "PoseError", "ARKIT_TO_OPENCV"]
+           "PoseError", "ARKIT_TO_OPENCV", "depth_agreement", "check_convention", "CONVENTIONS"]
 
 ROTATION_TOLERANCE = 1e-3  # |R^T R - I| and |det R - 1| beyond this: not a rotation
 TUM_MAX_DT = 0.02  # seconds between a colour image and the depth image or pose it takes (TUM's associate.py)
@@ -232,6 +232,69 @@ def _stray_frames(folder: Path) -> list[PosedFrame]:
                              min_confidence=STRAY_MIN_CONFIDENCE)
         frames.append(PosedFrame(frame, pose))
     return frames
+
+
+# The conventions a pose file may be in by mistake, each as what turns it into ours: the
+# inverse (world-to-camera given), and OpenGL's camera axes (y up, z backwards).
+CONVENTIONS = {"world-to-camera (give camera-to-world: invert each pose)": "inverse",
+               "OpenGL camera axes, y up and z backwards (turn them to OpenCV's: pose @ diag(1, -1, -1, 1))": "opengl"}
+AGREEMENT_MARGIN = 0.25  # another convention must agree on this share of points more to be named
+
+
+def _converted(pose: np.ndarray, how: str) -> np.ndarray:
+    if how == "inverse":
+        return np.linalg.inv(pose)
+    if how == "opengl":
+        return pose @ np.diag([1.0, -1.0, -1.0, 1.0])
+    return pose
+
+
+def depth_agreement(depth_a: np.ndarray, K_a: np.ndarray, pose_a: np.ndarray, depth_b: np.ndarray,
+                    K_b: np.ndarray, pose_b: np.ndarray, stride: int = 4) -> float:
+    """The share of frame a's points (every ``stride``-th valid pixel) that frame b sees where
+    its own depth puts a surface (within 5% of the depth), of those that fall in b's image in
+    front of its camera (0 where none does): how well two frames' depths agree under their
+    poses. Depths ``(H, W)`` metres, ``K`` ``(3, 3)``, poses camera-to-world."""
+    v, u = np.mgrid[0 : depth_a.shape[0] : stride, 0 : depth_a.shape[1] : stride]
+    z = depth_a[::stride, ::stride]
+    valid = np.isfinite(z) & (z > 0)
+    z, u, v = z[valid], u[valid], v[valid]
+    points = np.stack([(u - K_a[0, 2]) / K_a[0, 0] * z, (v - K_a[1, 2]) / K_a[1, 1] * z, z], 1)
+    relative = np.linalg.inv(pose_b) @ pose_a
+    seen = points @ relative[:3, :3].T + relative[:3, 3]
+    front = seen[:, 2] > 1e-6
+    x = np.round(seen[front, 0] / seen[front, 2] * K_b[0, 0] + K_b[0, 2]).astype(int)
+    y = np.round(seen[front, 1] / seen[front, 2] * K_b[1, 1] + K_b[1, 2]).astype(int)
+    inside = (x >= 0) & (x < depth_b.shape[1]) & (y >= 0) & (y < depth_b.shape[0])
+    if not inside.any():
+        return 0.0
+    there = depth_b[y[inside], x[inside]]
+    expected = seen[front][inside, 2]
+    return float(np.mean((there > 0) & (np.abs(there - expected) <= 0.05 * expected)))
+
+
+def check_convention(frames: list[tuple[np.ndarray, np.ndarray, np.ndarray]], name: str) -> None:
+    """Name a pose convention that makes the frames' depths agree much better than the
+    given poses do. ``frames``: ``(depth, K, pose)`` of a few frames of one scan, in order;
+    each neighbouring pair is compared (:func:`depth_agreement`) under the poses as given
+    and under each of :data:`CONVENTIONS`.
+
+    Raises:
+        PoseError: another convention agrees on :data:`AGREEMENT_MARGIN` more of the points.
+    """
+    if len(frames) < 2:
+        return
+
+    def agreement(how: str) -> float:
+        pairs = zip(frames[:-1], frames[1:])
+        return float(np.mean([depth_agreement(a[0], a[1], _converted(a[2], how), b[0], b[1], _converted(b[2], how))
+                              for a, b in pairs]))
+
+    given = agreement("given")
+    other, label = max((agreement(how), label) for label, how in CONVENTIONS.items())
+    if other > given + AGREEMENT_MARGIN:
+        raise PoseError(f"{name}: the poses look like {label}: the frames' depths agree on {other:.0%} of their "
+                        f"points that way and on {given:.0%} as given (each frame's points seen from the next)")
 
 
 def posed_frames(folder: str | Path, depth_scale: float = 1000.0,

@@ -227,3 +227,17 @@ def test_a_stray_scanner_export_reads_as_posed_frames(orbit, tmp_path):
         np.testing.assert_allclose(read.K.numpy(), same.K.numpy(), atol=1e-4)
         assert (read.depth[:4] == 0).all() and torch.equal(read.depth[4:], same.depth[4:])
         assert float((read.image - same.image).abs().mean()) < 0.02  # the video's compression
+
+
+@pytest.mark.parametrize("written, named", [
+    (lambda pose: np.linalg.inv(pose), "world-to-camera"),
+    (lambda pose: pose @ np.diag([1.0, -1.0, -1.0, 1.0]), "OpenGL camera axes"),
+])
+def test_poses_in_another_convention_are_named_by_how_the_depths_disagree(orbit, tmp_path, written, named):
+    # The frames' depths, each seen from the next under the poses: 98% agree with the right
+    # poses, 30-56% with inverted or OpenGL ones (the error says which convention agrees).
+    scenes, poses, _ = orbit
+    folder = _write_posed(orbit, tmp_path / "cap")
+    (folder / "poses.json").write_text(json.dumps({s.id: written(p.numpy()).tolist() for s, p in zip(scenes, poses)}))
+    with pytest.raises(PoseError, match=f"the poses look like {named}.*agree on 9[0-9]% of their points that way"):
+        scan_files(folder, tmp_path / "room.json", progress=False)
