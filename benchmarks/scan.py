@@ -22,7 +22,9 @@ and ``mitsuba_gi`` (path traced, 256 samples a pixel a light).
 worst light error (its estimate mapped by its pose; a missing or extra light: the
 worst), the scan's, both as shares of the scene size, and whether the count is right;
 and, without the truth, the spread: the median distance of the frames' lights mapped to the
-world from the scan's nearest light. With ``--timing``, the command's wall time on 30-frame scans.
+world from the scan's nearest light. ``mode=track`` through each scan (``track.refresh=0``) with
+its poses and without: the median over frames of the worst tracked light's world error and
+the full estimates it made. With ``--timing``, the command's wall time on 30-frame scans.
 """
 
 from __future__ import annotations
@@ -41,7 +43,8 @@ from benchmarks.common import side_by_side, write_animation, write_results
 
 SEEDS = tuple(range(4100, 4112))
 COLUMNS = ["scan", "lights", "frames", "per_frame_median_error", "per_frame_success", "per_frame_count_right",
-           "scan_error", "scan_success", "scan_count_right", "scan_lights", "spread", "scan_seconds"]
+           "scan_error", "scan_success", "scan_count_right", "scan_lights", "spread", "scan_seconds",
+           "tracked_posed_error", "tracked_posed_full", "tracked_unposed_error", "tracked_unposed_full"]
 
 
 # The sets: the exact render, and the render with indirect light (a first bounce and the
@@ -176,6 +179,33 @@ def timed_scans(scans: Path) -> list[dict]:
     return rows
 
 
+def tracked(folder: Path, posed: bool) -> dict:
+    """``mode=track`` (refresh 0: full estimates on evidence only) through a posed scan, with
+    its poses (the lights carried through the camera's moves) or without (a copy of the
+    folder without ``poses.json``): the median over frames of the worst tracked light's world
+    error (each frame's lights mapped by its pose; a wrong count: inf) and the full estimates."""
+    from selfsup.tracking import track_files
+
+    truth = json.loads((folder / "truth.json").read_text())
+    world, size = np.array(truth["lights"]), truth["scene_size"]
+    poses = {key: np.array(value) for key, value in json.loads((folder / "poses.json").read_text()).items()}
+    with tempfile.TemporaryDirectory() as tmp:
+        source = folder
+        if not posed:
+            source = Path(tmp) / "frames"
+            source.mkdir()
+            for sub in ("color", "depth", "intrinsics"):
+                (source / sub).symlink_to((folder / sub).resolve())
+        summary = track_files(source, Path(tmp) / "track.jsonl", refresh=0, progress=False)
+        records = [json.loads(line) for line in (Path(tmp) / "track.jsonl").read_text().splitlines()]
+    errors = []
+    for record in records:
+        pose = poses[record["id"]]
+        found = np.array([pose[:3, :3] @ light["position"] + pose[:3, 3] for light in record["lights"]]).reshape(-1, 3)
+        errors.append(_worst(found, world)[0] / size)
+    return {"error": round(statistics.median(errors), 4), "full": summary["full"]}
+
+
 def run(scans: Path, write: bool = True, timing: Path | None = None, name: str = "scan") -> list[dict]:
     """Every posed folder under each set of ``scans`` estimated frame by frame and as a scan:
     a row per scan and a summary row per set; with ``timing``, :func:`timed_scans` of it."""
@@ -193,7 +223,10 @@ def run(scans: Path, write: bool = True, timing: Path | None = None, name: str =
                 scan_files(folder, Path(tmp) / "room.json", progress=False)
                 room = json.loads((Path(tmp) / "room.json").read_text())
                 room["seconds"] = round(time.perf_counter() - started, 1)
-            scored.append({**score(folder, records, room), "scan": f"{set_folder.name}/{folder.name}"})
+            with_poses, without = tracked(folder, True), tracked(folder, False)
+            scored.append({**score(folder, records, room), "scan": f"{set_folder.name}/{folder.name}",
+                           "tracked_posed_error": with_poses["error"], "tracked_posed_full": with_poses["full"],
+                           "tracked_unposed_error": without["error"], "tracked_unposed_full": without["full"]})
             print(scored[-1], flush=True)
         rows += scored + [_summary(set_folder.name, scored)]
     if timing is not None:
@@ -216,7 +249,11 @@ def _summary(name: str, rows: list[dict]) -> dict:
             "scan_success": f"{sum(r['scan_success'] for r in rows)}/{len(rows)}",
             "scan_count_right": f"{sum(r['scan_count_right'] for r in rows)}/{len(rows)}", "scan_lights": "",
             "spread": round(statistics.median(r["spread"] for r in rows if r["spread"] is not None), 4),
-            "scan_seconds": round(statistics.median(r["scan_seconds"] for r in rows), 1)}
+            "scan_seconds": round(statistics.median(r["scan_seconds"] for r in rows), 1),
+            "tracked_posed_error": round(statistics.median(r["tracked_posed_error"] for r in rows), 4),
+            "tracked_posed_full": sum(r["tracked_posed_full"] for r in rows),
+            "tracked_unposed_error": round(statistics.median(r["tracked_unposed_error"] for r in rows), 4),
+            "tracked_unposed_full": sum(r["tracked_unposed_full"] for r in rows)}
 
 
 def figure(folder: Path, room: Path, out: Path, up: int = 1) -> Path:
