@@ -163,7 +163,7 @@ def _kill_trial(frames: Path, output: Path, draw: random.Random, total: int) -> 
         "; the whole job killed later and rerun" if whole else "; the job ended before the second kill, rerun")
 
 
-def _peak_at_first_record(frames: Path, listing: Path, output: Path) -> float:
+def _peak_at_first_record(listing: Path, output: Path) -> float:
     # Peak resident memory (MB) of the command when its first record is written.
     run = subprocess.Popen([sys.executable, *_command(listing, output)], cwd=ROOT, stdout=subprocess.DEVNULL,
                            stderr=subprocess.DEVNULL)
@@ -224,8 +224,8 @@ def run(frames: Path, work: Path, ranks: int = 2, kills: int = 3, list_lines: in
     with listing.open("w") as out:
         for line in range(list_lines):
             out.write(colours[line % len(colours)] + "\n")
-    one = _peak_at_first_record(frames, single, work / "one_list.jsonl")
-    million = _peak_at_first_record(frames, listing, work / "million_list.jsonl")
+    one = _peak_at_first_record(single, work / "one_list.jsonl")
+    million = _peak_at_first_record(listing, work / "million_list.jsonl")
     rows.append({"run": f"list of {list_lines} frames: peak memory at the first record", "processes": 1,
                  "threads_each": cores, "frames": list_lines, "wall_seconds": None, "frames_per_second": None,
                  "speed_up_vs_1_rank": None, "speed_up_vs_1_thread": None, "identical_to_reference": None,

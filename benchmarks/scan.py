@@ -266,11 +266,11 @@ def figure(folder: Path, room: Path, out: Path, up: int = 1) -> Path:
     import matplotlib.pyplot as plt
 
     from selfsup.scan import scene_points
-    from selfsup.scenes.capture import read_capture
+    from selfsup.scenes.capture import capture_geometry
     from selfsup.scenes.poses import posed_frames
 
     frames = posed_frames(folder)
-    points = np.concatenate([scene_points(read_capture(f.frame), f.pose, stride=6) for f in frames])
+    points = np.concatenate([scene_points(*capture_geometry(f.frame), f.pose, stride=6) for f in frames])
     axes = [a for a in range(3) if a != up]
     fig, ax = plt.subplots(figsize=(6, 6))
     ax.scatter(points[:, axes[0]], points[:, axes[1]], s=0.6, c=points[:, up], cmap="viridis", alpha=0.5)

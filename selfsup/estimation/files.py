@@ -295,22 +295,29 @@ def _estimate_pending(out, done_ids: set[str], frames: dict, shard: tuple[int, i
     # The frames of the shard not in ``done_ids`` estimated and appended to ``out``: the
     # counts the summary reports (skipped, failed with reasons, seconds, workers).
     index, count = shard
-    pending = (item for item in sharded(iter_inputs(**frames), index, count)
-               if not done_ids or item_id(item) not in done_ids)
-    skipped = 0
-    if done_ids:  # a pass over the frames' names (no image read) to say how many are done
-        skipped = sum(item_id(item) in done_ids for item in sharded(iter_inputs(**frames), index, count))
-        log.info("%d frame(s) already in %s: skipped (estimate.overwrite=true starts over)", skipped, out.name)
-    workers = min(worker_count(workers, max(total - skipped, 1), where), max(1, -(-(total - skipped) // batch)))
+    workers = min(worker_count(workers, max(total, 1), where), max(1, -(-total // batch)))
     failed: dict[str, str] = {}
     seconds: list[float] = []
     bar, printing = progress_bar(total, "estimate", "scene", progress)
-    if bar is not None:
-        bar.update(skipped)
+    skipped = 0
+
+    def pending() -> Iterator[Input]:
+        # The shard's frames whose ids are not done, the done ones counted as they pass.
+        nonlocal skipped
+        for item in sharded(iter_inputs(**frames), index, count):
+            if done_ids and item_id(item) in done_ids:
+                skipped += 1
+                if bar is not None:
+                    bar.update(1)
+            else:
+                yield item
+
     with printing:
-        _write_records(_chunk_results(_batches(pending, batch), options, where, workers), out, bar, failed, seconds)
+        _write_records(_chunk_results(_batches(pending(), batch), options, where, workers), out, bar, failed, seconds)
     if bar is not None:
         bar.close()
+    if skipped:
+        log.info("%d frame(s) already in %s: skipped (estimate.overwrite=true starts over)", skipped, out.name)
     return {"skipped": skipped, "failed": failed, "seconds": seconds, "workers": workers}
 
 
@@ -372,7 +379,7 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
     skipped, failed, seconds, workers = (summary[k] for k in ("skipped", "failed", "seconds", "workers"))
     written = len(done_ids) + len(seconds)
     if ranks is not None:
-        written = _merge_ranks(output, ranks, frames, shard, overwrite)
+        written = _merge_ranks(output, ranks, frames, shard, overwrite, written)
     elif not written:  # every file failed: no empty output left behind to be taken for a result
         output.unlink(missing_ok=True)
     wall = time.perf_counter() - started
@@ -395,12 +402,11 @@ def _rank_device(device: torch.device, ranks: Ranks | None) -> torch.device:
     return torch.device("cuda", ranks.local_rank % torch.cuda.device_count())
 
 
-def _merge_ranks(output: Path, ranks: Ranks, frames: dict, shard: str | None, overwrite: bool) -> int:
+def _merge_ranks(output: Path, ranks: Ranks, frames: dict, shard: str | None, overwrite: bool, written: int) -> int:
     # Every rank waits for the others; rank 0 merges their parts into ``output`` (the
     # records it holds already kept unless ``overwrite``). Returns the records in ``output``
-    # (rank 0; the others: their part's).
+    # (rank 0; the others: ``written``, their own).
     barrier(ranks)
-    written = len(completed_ids(part_path(output, ranks)))
     if ranks.rank == 0:
         index, count = parse_shard(shard)
         parts = [part_path(output, Ranks(rank, ranks.world, 0, 1)) for rank in range(ranks.world)]

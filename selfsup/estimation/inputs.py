@@ -125,26 +125,31 @@ def _folder_frames(folder: Path, depth_scale: float, intrinsics) -> list[Input]:
     return [SceneFile(path, prefix) for path in scene_files(folder)]
 
 
-def _list_frames(path: Path, depth_scale: float, intrinsics) -> Iterator[Input]:
-    # The frames of a list file, line by line (``intrinsics``: overriding each capture frame's).
+def _list_names(path: Path) -> Iterator[str]:
+    # A list file's frame names, line by line: blank lines and ``#`` comments skipped.
     with path.open() as lines:
         for line in lines:
             name = line.strip()
-            if not name or name.startswith("#"):
-                continue
-            frame = Path(name) if Path(name).is_absolute() else path.parent / name
-            if frame.suffix.lower() == ".npz":
-                yield frame if frame.is_file() else BadInput(name, f"{frame}: no such scene file")
-            elif frame.suffix.lower() in COLOR_SUFFIXES:
-                try:
-                    found = frame_of_color(frame, depth_scale)
-                except SceneFileError as error:
-                    yield BadInput(name, error.reason)
-                else:
-                    yield found if intrinsics is None else replace(found, intrinsics=tuple(map(float, intrinsics)))
+            if name and not name.startswith("#"):
+                yield name
+
+
+def _list_frames(path: Path, depth_scale: float, intrinsics) -> Iterator[Input]:
+    # The frames of a list file, line by line (``intrinsics``: overriding each capture frame's).
+    for name in _list_names(path):
+        frame = Path(name) if Path(name).is_absolute() else path.parent / name
+        if frame.suffix.lower() == ".npz":
+            yield frame if frame.is_file() else BadInput(name, f"{frame}: no such scene file")
+        elif frame.suffix.lower() in COLOR_SUFFIXES:
+            try:
+                found = frame_of_color(frame, depth_scale)
+            except SceneFileError as error:
+                yield BadInput(name, error.reason)
             else:
-                yield BadInput(name, f"not a .npz scene file or a colour image ({', '.join(COLOR_SUFFIXES)}) of a "
-                                     "capture folder")
+                yield found if intrinsics is None else replace(found, intrinsics=tuple(map(float, intrinsics)))
+        else:
+            yield BadInput(name, f"not a .npz scene file or a colour image ({', '.join(COLOR_SUFFIXES)}) of a "
+                                 "capture folder")
 
 
 def count_inputs(input: str | Path, **kwargs) -> int:
@@ -152,8 +157,7 @@ def count_inputs(input: str | Path, **kwargs) -> int:
     lines are counted as they are read, no frame looked up."""
     path = Path(input)
     if path.is_file() and path.suffix.lower() in LIST_SUFFIXES:
-        with path.open() as lines:
-            return sum(1 for line in lines if line.strip() and not line.strip().startswith("#"))
+        return sum(1 for _ in _list_names(path))
     return sum(1 for _ in iter_inputs(input, **kwargs))
 
 

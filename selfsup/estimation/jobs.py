@@ -58,6 +58,29 @@ def locked(path: Path) -> Iterator[TextIO]:
         yield out
 
 
+def _records(path: Path) -> Iterator[tuple[int, dict]]:
+    # (bytes before it, record) of each record of the JSON Lines file ``path`` (none where it
+    # does not exist). A last line without its newline, or not a JSON object with an id (a
+    # kill mid-write), is cut off the file once the records are read; such a line before the
+    # last is refused (ValueError): the file is not an output of ours, or was edited.
+    if not path.exists():
+        return
+    good_bytes = 0
+    with path.open("rb") as lines:
+        for number, line in enumerate(lines, 1):
+            record = _record(line) if line.endswith(b"\n") else None
+            if record is None:
+                if lines.read(1):  # not the last line
+                    raise ValueError(f"{path} line {number} is not a record of ours: give another output, or start "
+                                     "over with estimate.overwrite=true")
+                log.warning("%s: its last line was cut off mid-write (a killed run): redoing that frame", path)
+                break
+            yield good_bytes, record
+            good_bytes += len(line)
+    if good_bytes < path.stat().st_size:
+        os.truncate(path, good_bytes)
+
+
 def completed_ids(path: Path) -> set[str]:
     """The ids of the records in the JSON Lines file ``path`` (none where it does not exist).
 
@@ -68,24 +91,7 @@ def completed_ids(path: Path) -> set[str]:
         ValueError: a line before the last that is not a record: the file is not an output
             of ours (or was edited), and appending to it would mix the two.
     """
-    ids: set[str] = set()
-    if not path.exists():
-        return ids
-    good_bytes = 0
-    with path.open("rb") as lines:
-        for number, line in enumerate(lines, 1):
-            record = _record_id(line) if line.endswith(b"\n") else None
-            if record is None:
-                if lines.read(1):  # not the last line
-                    raise ValueError(f"{path} line {number} is not a record of ours: give another output, or start "
-                                     "over with estimate.overwrite=true")
-                log.warning("%s: its last line was cut off mid-write (a killed run): redoing that frame", path)
-                break
-            ids.add(record)
-            good_bytes += len(line)
-    if good_bytes < path.stat().st_size:
-        os.truncate(path, good_bytes)
-    return ids
+    return {str(record["id"]) for _, record in _records(path)}
 
 
 def resume_track(path: Path) -> set[str]:
@@ -96,31 +102,31 @@ def resume_track(path: Path) -> set[str]:
     Raises:
         ValueError: a line before the last that is not a record of ours (as :func:`completed_ids`).
     """
-    completed_ids(path)  # cuts a torn last line off, refuses a file that is not ours
-    if not path.exists():
-        return set()
     ids: list[str] = []
     last_full = (0, 0)  # (records before it, bytes before it) of the last full estimate
-    offset = 0
-    with path.open("rb") as lines:
-        for line in lines:
-            record = json.loads(line)
-            if record.get("full"):
-                last_full = (len(ids), offset)
-            ids.append(str(record["id"]))
-            offset += len(line)
+    for offset, record in _records(path):
+        if record.get("full"):
+            last_full = (len(ids), offset)
+        ids.append(str(record["id"]))
     before, cut = last_full
-    os.truncate(path, cut)
+    if path.exists():
+        os.truncate(path, cut)
     return set(ids[:before])
 
 
-def _record_id(line: bytes) -> str | None:
-    # The id of one JSON Lines record, or None where the line is no record.
+def _record(line: bytes) -> dict | None:
+    # One JSON Lines record (an object with an id), or None where the line is no record.
     try:
         record = json.loads(line)
     except ValueError:
         return None
-    return str(record["id"]) if isinstance(record, dict) and "id" in record else None
+    return record if isinstance(record, dict) and "id" in record else None
+
+
+def _record_id(line: bytes) -> str | None:
+    # The id of one JSON Lines record, or None where the line is no record.
+    record = _record(line)
+    return None if record is None else str(record["id"])
 
 
 @dataclass(frozen=True)

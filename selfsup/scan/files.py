@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -27,7 +26,7 @@ from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.prepare import prepare, within_pixels, working_range
 from selfsup.estimation.problem import solve_at
 from selfsup.scan.fuse import FusedLight, FuseOptions, fuse, world_lights
-from selfsup.scenes.capture import read_capture
+from selfsup.scenes.capture import capture_geometry, read_capture
 from selfsup.scenes.io import Scene
 from selfsup.scenes.poses import PosedFrame, check_convention, posed_frames
 
@@ -58,11 +57,11 @@ def keyframes(frames: list[PosedFrame], count: int) -> list[int]:
     return sorted(set(chosen))
 
 
-def scene_points(scene: Scene, pose: np.ndarray, stride: int = 4) -> np.ndarray:
-    """Every ``stride``-th valid pixel's point ``(N, 3)`` of ``scene`` in the world of ``pose``."""
-    depth = scene.depth.double().numpy()[::stride, ::stride]
-    K = scene.K.double().numpy()
-    v, u = np.mgrid[0 : scene.depth.shape[0] : stride, 0 : scene.depth.shape[1] : stride]
+def scene_points(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, stride: int = 4) -> np.ndarray:
+    """Every ``stride``-th valid pixel's point ``(N, 3)`` of a ``depth (H, W)`` map (metres,
+    intrinsics ``K (3, 3)``) in the world of ``pose`` (camera-to-world)."""
+    depth = depth[::stride, ::stride]
+    v, u = np.mgrid[0 : depth.shape[0] * stride : stride, 0 : depth.shape[1] * stride : stride]
     valid = np.isfinite(depth) & (depth > 0)
     z = depth[valid]
     camera = np.stack([(u[valid] - K[0, 2]) / K[0, 0] * z, (v[valid] - K[1, 2]) / K[1, 1] * z, z], 1)
@@ -135,23 +134,21 @@ def scan_files(input: str | Path, output: str | Path, frames_output: str | Path 
     frames = posed_frames(input, depth_scale, intrinsics)
     if not frames:
         raise FileNotFoundError(f"scan.input {input}: no posed frames")
-    first = [read_capture(f.frame) for f in frames[:CONVENTION_FRAMES]]
-    check_convention([(s.depth.double().numpy(), s.K.double().numpy(), f.pose) for s, f in zip(first, frames)],
-                     f"scan.input {input}")
+    check_convention([(*capture_geometry(f.frame), f.pose) for f in frames[:CONVENTION_FRAMES]], f"scan.input {input}")
     used = keyframes(frames, max_frames)
     failed: dict[str, str] = {}
     per_frame, points, kept = [], [], []
     bar, printing = progress_bar(len(used), "scan", "frame", progress)
     with printing:
-        for item, record, reason in estimate_items([frames[i].frame for i in used], options, device, workers):
-            index = used[len(kept) + len(failed)]
+        for index, (_, record, reason) in zip(used, estimate_items([frames[i].frame for i in used], options, device,
+                                                                   workers)):
             frame = frames[index]
             if record is None:
                 failed[str(frame)] = reason
                 log.error("skipped %s: %s", frame, reason)
             else:
                 per_frame.append(world_lights(record, frame.pose, len(kept)))
-                points.append(scene_points(read_capture(frame.frame), frame.pose))
+                points.append(scene_points(*capture_geometry(frame.frame), frame.pose))
                 kept.append(index)
             if bar is not None:
                 bar.update(1)
@@ -179,4 +176,4 @@ def scan_files(input: str | Path, output: str | Path, frames_output: str | Path 
              len(frames), len(kept), len(failed), len(lights), wall, output)
     return {"lights": len(lights), "frames": len(frames), "used": len(kept), "failed": len(failed),
             "failures": failed, "wall_seconds": round(wall, 3), "output": str(output),
-            "scene_size": math.floor(size * 1e4) / 1e4}
+            "scene_size": round(size, 4)}

@@ -31,8 +31,8 @@ import torch
 
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
-__all__ = ["CaptureFrame", "capture_frames", "is_capture_folder", "read_capture", "read_input", "frame_of_color",
-           "color_and_depth_frame", "srgb_to_linear", "linear_to_srgb", "COLOR_SUFFIXES", "DEPTH_SUFFIXES",
+__all__ = ["CaptureFrame", "capture_frames", "is_capture_folder", "read_capture", "capture_geometry", "read_input",
+           "frame_of_color", "color_and_depth_frame", "srgb_to_linear", "linear_to_srgb", "COLOR_SUFFIXES", "DEPTH_SUFFIXES",
            "ASSUMED_ALBEDO"]
 
 COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -271,6 +271,20 @@ def _area_resample(codes: np.ndarray, table: np.ndarray, height: int, width: int
     return out
 
 
+def capture_geometry(frame: CaptureFrame) -> tuple[np.ndarray, np.ndarray]:
+    """A frame's depth ``(H, W)`` float64 metres (0 where missing, or of low confidence where
+    the frame has a confidence image) and ``K (3, 3)`` of the depth image: its geometry,
+    without decoding its colour."""
+    depth = _depth(frame.depth, frame.color, frame.depth_scale)
+    if frame.confidence is not None:
+        confidence = _read_image(frame.confidence)
+        if confidence.shape[:2] != depth.shape:
+            raise SceneFileError(frame.confidence, f"confidence {confidence.shape[1]}x{confidence.shape[0]} is not "
+                                                   f"the depth's size {depth.shape[1]}x{depth.shape[0]}")
+        depth = np.where(confidence.reshape(depth.shape) >= frame.min_confidence, depth, 0.0)
+    return depth, _intrinsics(frame)
+
+
 def read_capture(frame: CaptureFrame) -> Scene:
     """The scene of one capture frame: linear image, depth in metres, K of the depth
     image, kd :data:`ASSUMED_ALBEDO` everywhere, no normals (from the depth), no ambient.
@@ -280,14 +294,7 @@ def read_capture(frame: CaptureFrame) -> Scene:
             depth, no depth of the stem, no intrinsics, sizes whose aspects differ).
     """
     codes, table = _color_codes(frame.color, frame.video_frame)
-    depth = _depth(frame.depth, frame.color, frame.depth_scale)
-    if frame.confidence is not None:
-        confidence = _read_image(frame.confidence)
-        if confidence.shape[:2] != depth.shape:
-            raise SceneFileError(frame.confidence, f"confidence {confidence.shape[1]}x{confidence.shape[0]} is not "
-                                                   f"the depth's size {depth.shape[1]}x{depth.shape[0]}")
-        depth = np.where(confidence.reshape(depth.shape) >= frame.min_confidence, depth, 0.0)
-    K = _intrinsics(frame)
+    depth, K = capture_geometry(frame)
     (h, w), (H, W) = codes.shape[:2], depth.shape
     if (h, w) != (H, W):
         if abs((w / h) / (W / H) - 1) > ASPECT_TOLERANCE:
