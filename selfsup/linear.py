@@ -14,7 +14,8 @@ from torch import Tensor
 
 from render.shading import Falloff
 
-__all__ = ["basis_images", "solve_intensities", "intensity_design", "solve_design", "single_light_costs", "pseudo_huber"]
+__all__ = ["basis_images", "solve_intensities", "intensity_design", "solve_design", "single_light_costs", "pseudo_huber",
+           "segment_albedo"]
 
 
 def basis_images(kd: Tensor, ks: Tensor | None, diffuse: Tensor, specular: Tensor | None) -> Tensor:
@@ -98,6 +99,62 @@ def solve_design(a: Tensor, kd: Tensor, image: Tensor, weights: Tensor, ambient:
     else:
         ambient = x[:, :, L]
     return x[:, :, :L].transpose(1, 2), ambient, model
+
+
+def _segment_sums(values: Tensor, segments: Tensor, slots: int) -> Tensor:
+    # (B, 3, P) values summed per segment: (B, 3, slots).
+    index = segments[:, None].expand_as(values).contiguous()
+    return values.new_zeros(*values.shape[:2], slots).scatter_add_(-1, index, values)
+
+
+@torch.no_grad()
+def segment_albedo(diffuse: Tensor, image: Tensor, weights: Tensor, segments: Tensor, count: int,
+                   iterations: int = 3, mean_albedo: float = 0.5, ridge: float = 1e-6) -> Tensor:
+    """The albedo ``(B, H, W, 3)`` that is one colour over each segment and, with the lights'
+    intensities and the ambient, best explains ``image`` under the unit-intensity
+    diffuse transport ``diffuse (B, L, H, W)`` (shadows included where they are).
+
+    The model ``I_c = rho_{s,c} (a_c + sum_i L_{i,c} D_i)`` is bilinear: alternating least
+    squares solves the intensities and ambient for the albedo (:func:`solve_intensities`),
+    then each segment's albedo for the shading in closed form
+    (``rho_{s,c} = sum w I S / sum w S^2`` over its pixels), ``iterations`` times, from each
+    segment's mean colour (the shading taken as even). Albedo and light trade one scale in
+    each channel (a white wall under a warm lamp looks as a warm wall under a white one):
+    each channel's ``weights``-weighted mean albedo is set to ``mean_albedo`` (grey on
+    average, a capture's convention, :data:`selfsup.scenes.capture.ASSUMED_ALBEDO`). Not
+    differentiated: a loss solves the intensities again at this albedo with gradients
+    (at the solution, the albedo's own derivative adds nothing to the cost's).
+
+    Args:
+        diffuse: ``(B, L, H, W)``; image ``(B, 3, H, W)``; weights ``(B, 3, H, W)`` (0 where
+            a pixel does not count); segments ``(B, H W)`` long, each pixel's segment in
+            ``0 .. count - 1`` or ``count`` (none: its albedo is ``mean_albedo``).
+    """
+    B, _, H, W = image.shape
+    if segments.shape != (B, H * W):
+        raise ValueError(f"segments must have shape {(B, H * W)}, got {tuple(segments.shape)}")
+    if iterations < 1:
+        raise ValueError(f"iterations must be >= 1, got {iterations}")
+    slots = count + 1
+    w = weights.flatten(2) * (segments < count)[:, None].to(weights.dtype)  # (B, 3, P)
+    observed = image.flatten(2)
+
+    def normalised(rho: Tensor) -> Tensor:  # (B, 3, slots) -> the albedo image (B, H, W, 3)
+        rho = rho.clamp_min(0)
+        rho[..., count] = 0
+        pixels = rho.gather(-1, segments[:, None].expand(-1, 3, -1))
+        mean = (pixels * w).sum(2) / w.sum(2).clamp_min(1e-30)  # (B, 3)
+        pixels = pixels * (mean_albedo / mean.clamp_min(1e-30))[..., None]
+        pixels = torch.where(segments[:, None] < count, pixels, torch.full_like(pixels, mean_albedo))
+        return pixels.view(B, 3, H, W).permute(0, 2, 3, 1)
+
+    kd = normalised(_segment_sums(w * observed, segments, slots) / _segment_sums(w, segments, slots).clamp_min(1e-30))
+    for _ in range(iterations):
+        intensity, ambient, _ = solve_intensities(basis_images(kd, None, diffuse, None), kd, image, weights, ridge=ridge)
+        shading = torch.einsum("blc,blhw->bchw", intensity, diffuse).flatten(2) + ambient[..., None]  # (B, 3, P)
+        kd = normalised(_segment_sums(w * observed * shading, segments, slots)
+                        / _segment_sums(w * shading * shading, segments, slots).clamp_min(1e-30))
+    return kd
 
 
 def pseudo_huber(residual: Tensor, scale: float) -> Tensor:

@@ -34,14 +34,14 @@ an auxiliary target (the only ground truth the default captures recipe reads).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from render import GBuffer, Material, ShadowedBlinnPhong
-from selfsup.linear import basis_images, pseudo_huber, single_light_costs, solve_intensities
+from selfsup.linear import basis_images, pseudo_huber, segment_albedo, single_light_costs, solve_intensities
 from selfsup.model import LightPrediction, residual_after, scene_frame
 
 __all__ = ["LossOptions", "LossTerms", "SceneBatch", "scene_batch", "reconstruction_loss"]
@@ -58,6 +58,8 @@ class LossOptions:
     when a slot counts as needed (see the module doc). ``supervised_weight``:
     ablation only; 0 (default) keeps the loss free of ground-truth lights.
     ``count_weight``: > 0 adds the true number of lights as the count head's target.
+    ``albedo_iterations``: alternations of the albedo-free fit (segments given to
+    :func:`reconstruction_loss`; :func:`selfsup.linear.segment_albedo`).
     """
 
     robust_scale: float = 0.05
@@ -70,12 +72,15 @@ class LossOptions:
     hypothesis_temperature: float = 0.05
     supervised_weight: float = 0.0
     count_weight: float = 0.0
+    albedo_iterations: int = 3
 
     def __post_init__(self):
         if self.robust_scale <= 0:
             raise ValueError(f"robust_scale must be > 0, got {self.robust_scale}")
         if self.hypothesis_stride < 1 or self.hypothesis_temperature <= 0:
             raise ValueError("hypothesis_stride must be >= 1 and hypothesis_temperature > 0")
+        if self.albedo_iterations < 1:
+            raise ValueError(f"albedo_iterations must be >= 1, got {self.albedo_iterations}")
         for name in ("presence_weight", "intensity_weight", "need_ratio", "need_floor", "hypothesis_weight",
                      "supervised_weight", "count_weight"):
             if getattr(self, name) < 0:
@@ -158,7 +163,8 @@ def hypothesis_costs(anchor_position: Tensor, scenes: SceneBatch, exposure: Tens
 
 
 def reconstruction_loss(prediction: LightPrediction, scenes: SceneBatch, renderer: ShadowedBlinnPhong,
-                        options: LossOptions, batch: dict[str, Tensor] | None = None) -> LossTerms:
+                        options: LossOptions, batch: dict[str, Tensor] | None = None,
+                        segments: tuple[Tensor, int] | None = None) -> LossTerms:
     """Robust photometric error of the re-rendered scene, plus the heads' terms.
 
     Args:
@@ -168,27 +174,44 @@ def reconstruction_loss(prediction: LightPrediction, scenes: SceneBatch, rendere
             per-light transport maps are what the closed-form fit combines.
         options: weights.
         batch: the collated batch; read only for the ``supervised_weight`` ablation.
+        segments: albedo-free (a capture's unknown albedo): ``(labels (B, H W) long,
+            count)``, each pixel's region of one albedo (``count``: none, left out of the
+            fit and the error). Each fit solves each region's colour beside the
+            intensities and the ambient (:func:`selfsup.linear.segment_albedo`, diffuse
+            only: highlights are the robust cost's outliers) and ``scenes.material`` is not
+            read for the albedo. None: the material's albedo is the scene's.
     """
     g, m, image = scenes.gbuffer, scenes.material, scenes.image
     transport = renderer.transport(g, m, prediction.position)
-    cols = basis_images(m.kd, m.ks, transport.diffuse, transport.specular)  # (B, 3, K, H, W)
     mask = g.mask[:, None].to(image.dtype).expand_as(image)
+    if segments is not None:
+        labels, count = segments
+        mask = mask * (labels < count).view(g.mask.shape)[:, None].to(image.dtype)
     frame = scene_frame(image, g)
     B, K = prediction.presence.shape
+    given = basis_images(m.kd, m.ks, transport.diffuse, transport.specular) if segments is None else None
 
     def fit(on: Tensor):
-        intensity, ambient, model = solve_intensities(cols * on[:, None, :, None, None], m.kd, image, mask, ridge=1e-6)
-        return intensity, ambient, model * mask, _robust_cost(model * mask, image, mask, frame.exposure, options.robust_scale)
+        if segments is None:
+            kd, cols = m.kd, given
+        else:
+            kd = segment_albedo(transport.diffuse.detach() * on[:, :, None, None], image, mask, labels, count,
+                                options.albedo_iterations)
+            cols = basis_images(kd, None, transport.diffuse, None)
+        intensity, ambient, model = solve_intensities(cols * on[:, None, :, None, None], kd, image, mask, ridge=1e-6)
+        return intensity, ambient, model * mask, _robust_cost(model * mask, image, mask, frame.exposure, options.robust_scale), kd
 
     everything = torch.ones(B, K, dtype=image.dtype, device=image.device)
-    _, _, _, cost_all = fit(everything)
+    _, _, _, cost_all, kd_all = fit(everything)
     with torch.no_grad():  # which slots the image needs: the error without each one
         rise = torch.stack([fit(everything - F.one_hot(torch.tensor(k), K).to(everything))[3] for k in range(K)], 1)
         rise = rise - cost_all[:, None]
         needed = rise > torch.maximum(options.need_ratio * cost_all, torch.full_like(cost_all, options.need_floor))[:, None]
         needed[:, 0] = True
-    intensity, ambient, model, cost_needed = fit(needed.to(image.dtype))
+    intensity, ambient, model, cost_needed, _ = fit(needed.to(image.dtype))
     photometric = 0.5 * (cost_all.mean() + cost_needed.mean())
+    if segments is not None:  # the hypotheses are scored on the pixels that count, with the albedo solved
+        scenes = SceneBatch(image, replace(g, mask=mask[:, 0] > 0), Material(kd=kd_all))
 
     hypotheses = torch.zeros((), dtype=image.dtype, device=image.device)
     for k in range(K):
