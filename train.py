@@ -6,6 +6,7 @@
     python train.py mode=estimate estimate.input=scenes/ estimate.output=lights.jsonl
     python train.py mode=track track.input=captures/ track.output=track.jsonl
     python train.py mode=scan scan.input=posed_capture/ scan.output=room.json
+    python train.py mode=adapt adapt.input=my_captures/ adapt.out=adapted.pt
     python train.py mode=insert insert.scene=scene.npz insert.estimates=lights.jsonl insert.output=insert.png
     python train.py mode=benchmark benchmark=render_speed benchmark.quick=true
 """
@@ -26,7 +27,7 @@ from omegaconf.errors import MissingMandatoryValue
 from selfsup.estimation.jobs import OutputInUseError
 
 log = logging.getLogger(__name__)
-MODES = ("train", "eval", "generate", "estimate", "track", "scan", "insert", "benchmark")
+MODES = ("train", "eval", "generate", "estimate", "track", "scan", "adapt", "insert", "benchmark")
 FULL_ERROR = os.environ.get("HYDRA_FULL_ERROR") == "1"  # the user's: a traceback instead of one line
 
 
@@ -166,6 +167,42 @@ def run(cfg: DictConfig):
         return _track(_plain(cfg.track))
     if cfg.mode == "scan":
         return _scan(_plain(cfg.scan))
+    if cfg.mode == "adapt":
+        return _adapt(cfg)
+
+
+def _adapt(cfg: DictConfig) -> dict:
+    # mode=adapt: the run's settings, what is refused, the loss (the experiment's), the
+    # renderer, and the procedural scenes (mixed in: the shipped network's recipe; the
+    # validation: the data group's scenes) from the config.
+    import dataclasses
+
+    from render import ShadowedBlinnPhong
+    from selfsup.adapt import AdaptOptions, FrameOptions, GuardOptions, Procedural, TeacherOptions, adapt_files
+    from selfsup.losses import LossOptions
+    from selfsup.scenes.degrade import Degradations
+
+    settings = _plain(cfg.adapt)
+    io = {k: settings.pop(k) for k in ("input", "out", "checkpoint")}
+    frames = settings.pop("frames")
+    frames["intrinsics"] = None if frames["intrinsics"] is None else tuple(frames["intrinsics"])
+    mixed = settings.pop("procedural")
+    validation_scenes = settings.pop("validation_scenes")
+    guards = GuardOptions(**settings.pop("guards"))
+    teacher = TeacherOptions(**settings.pop("teacher"))
+    sampler, degradations, samples = build_data(cfg)
+    procedural = Procedural(
+        sampler=dataclasses.replace(sampler, height=mixed["height"], width=mixed["width"],
+                                    n_lights_probs=tuple(mixed["n_lights_probs"]), light_margin=mixed["light_margin"],
+                                    light_power_range=tuple(mixed["light_power_range"])),
+        degradations=dataclasses.replace(degradations, indirect=mixed["indirect"], camera=mixed["camera"]),
+        samples=mixed["samples"], scenes=mixed["scenes"],
+        validation_sampler=dataclasses.replace(sampler, n_lights_probs=tuple(cfg.data.pool.n_lights_probs)),
+        validation_degradations=degradations, validation_samples=samples, validation_scenes=validation_scenes)
+    return adapt_files(io["input"], io["out"], io["checkpoint"], options=AdaptOptions(**settings),
+                       frame_options=FrameOptions(**frames), guards=guards,
+                       loss=LossOptions(**_plain(cfg.loss)), procedural=procedural, teacher=teacher,
+                       renderer=ShadowedBlinnPhong(**_plain(cfg.renderer), check_finite=False))
 
 
 def _scan(settings: dict) -> dict:

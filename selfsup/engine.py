@@ -43,7 +43,7 @@ from selfsup.evaluate import calibrate_count_threshold, summarise
 from selfsup.losses import LossOptions, reconstruction_loss, scene_batch
 from selfsup.model import LightNet, LightPrediction, scene_frame
 
-__all__ = ["DataOptions", "OptimOptions", "TrainerOptions", "LoggerOptions", "Trainer"]
+__all__ = ["DataOptions", "OptimOptions", "TrainerOptions", "LoggerOptions", "Trainer", "render_grid"]
 
 log = logging.getLogger(__name__)
 
@@ -390,12 +390,18 @@ class Trainer:
         prediction = network(scenes.image, scenes.gbuffer)
         network.train()
         terms = reconstruction_loss(prediction, scenes, renderer, self.loss, batch)
-        exposure = scene_frame(scenes.image, scenes.gbuffer).exposure
-        shadow = terms.visibility[:, :1].expand(-1, 3, -1, -1)
-        tiles = [_display(scenes.image, exposure), _display(terms.render, exposure),
-                 _display((terms.render - scenes.image).abs() * 4, exposure), shadow.clamp(0, 1)]
-        rows = torch.cat(tiles, 3)  # (n, 3, H, 4W)
-        return rows.permute(1, 0, 2, 3).reshape(3, -1, rows.shape[-1]).cpu()
+        return render_grid(scenes.image, terms.render, terms.visibility, scene_frame(scenes.image, scenes.gbuffer).exposure)
+
+
+def render_grid(image: Tensor, render: Tensor, visibility: Tensor, exposure: Tensor) -> Tensor:
+    """``(3, n H, 4 W)`` for TensorBoard: per image ``(n, 3, H, W)``, the input, its re-render
+    ``render``, 4 x the |residual| (each divided by ``exposure (n,)``, gamma-encoded) and
+    slot 0's shadow mask of ``visibility (n, K, H, W)``."""
+    shadow = visibility[:, :1].expand(-1, 3, -1, -1)
+    tiles = [_display(image, exposure), _display(render, exposure), _display((render - image).abs() * 4, exposure),
+             shadow.clamp(0, 1)]
+    rows = torch.cat(tiles, 3)  # (n, 3, H, 4W)
+    return rows.permute(1, 0, 2, 3).reshape(3, -1, rows.shape[-1]).cpu()
 
 
 def _log_terms(writer, terms, lr: float, scenes_per_second: float, step: int) -> None:

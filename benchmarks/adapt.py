@@ -1,0 +1,165 @@
+"""Self-supervised adaptation (``mode=adapt``) measured on rooms the network never saw.
+
+    python -m benchmarks.adapt make --out data/adapt          # Mitsuba 3 captures (the mitsuba extra), once
+    python -m benchmarks.adapt run --data data/adapt          # adapt, then score before and after
+
+``make`` renders ``--rooms`` Mitsuba 3 rooms (:mod:`benchmarks.mitsuba_scenes`: two of
+three with one light, the third with two), each seen from ``--views`` camera positions
+(the camera turned about the room's middle, -20 to +20 degrees), as capture folders of
+the recipe of :mod:`benchmarks.captures` (8-bit sRGB at an exposure drawn per frame,
+millimetre depth, no albedo) in two sets: ``gi`` (path traced, 256 samples a pixel a
+light) and ``noisy`` (direct light through a structured-light sensor's depth noise and
+holes and image noise). The rooms are split by room: the even ones into
+``out/adapt/<set>``, the odd ones into ``out/test/<set>``; the truth (``truth/``) is
+read only to score the test half.
+
+``run`` adapts the shipped network on both adapt folders with ``mode=adapt``'s settings
+(the command itself, timed), then scores the network alone (``estimate.method=cnn``)
+and the whole estimator (the default ``cnn+refine``) on the test folders with the
+shipped and the adapted checkpoint, and the network on the procedural validation set of
+``mode=eval`` (the captures' recipe, 200 scenes) with both. One results file,
+``benchmarks/results/adapt_<device>_<date>.*``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+SETS = ("gi", "noisy")
+COLUMNS = ["network", "estimator", "set", "frames", "success", "one_light_success", "two_light_right_count",
+           "median_worst_error", "seconds_per_frame"]
+
+
+def room_lights(room: int) -> int:
+    """Lights of room ``room``: two in every third pair of rooms (both halves get the same mix)."""
+    return 2 if (room // 2) % 3 == 2 else 1
+
+
+def make(out: Path, rooms: int = 48, views: int = 4, seed: int = 7300, swing_deg: float = 20.0,
+         extra_rooms: int = 0, extra_views: int = 2) -> None:
+    """Capture folders ``out/{adapt,test}/{gi,noisy}`` of ``rooms`` Mitsuba rooms, ``views``
+    frames each, split by room; then ``extra_rooms`` more rooms of ``extra_views`` frames
+    each, all into the adapt half (more rooms to learn from, the test half unchanged)."""
+    import mitsuba as mi
+
+    from benchmarks.captures import write_capture
+    from benchmarks.mitsuba_scenes import render_variants
+    from selfsup.scenes.sampler import SamplerConfig, sample_scene
+    from selfsup.scenes.sequences import orbited
+
+    mi.set_variant("scalar_rgb")
+    for room in range(rooms + extra_rooms):
+        half = "test" if room < rooms and room % 2 == 1 else "adapt"
+        count = views if room < rooms else extra_views
+        angles = torch.linspace(-swing_deg, swing_deg, count).tolist() if count > 1 else [0.0]
+        lights = room_lights(room)
+        spec = sample_scene(seed * 1_000_003 + room, SamplerConfig(height=120, width=160), n_lights=lights)
+        started = time.perf_counter()
+        for view, angle in enumerate(angles):
+            frame = f"room_{seed}_{room:03d}_{view}"
+            if all((out / half / s / "truth" / f"{frame}.npz").is_file() for s in SETS):
+                continue  # made by an earlier run
+            rendered = render_variants(orbited(spec, angle), frame, variants=("gi", "noisy"))
+            for set_name, scene in rendered.items():
+                write_capture(scene, out / half / set_name, frame)
+        print(json.dumps({"room": room, "half": half, "lights": lights, "views": count,
+                          "seconds": round(time.perf_counter() - started, 1)}), flush=True)
+
+
+def _adapt_command(data: Path, checkpoint: Path, extra: list[str]) -> tuple[float, str]:
+    """Run ``mode=adapt`` on the adapt half; its wall time (start-up included) and its summary line."""
+    folders = ",".join(str((data / "adapt" / s).resolve()) for s in SETS)
+    command = [sys.executable, "train.py", "mode=adapt", f"adapt.input=[{folders}]", f"adapt.out={checkpoint}",
+               "adapt.progress=false", *extra]
+    started = time.perf_counter()
+    done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
+    seconds = time.perf_counter() - started
+    if done.returncode != 0:
+        raise RuntimeError(f"mode=adapt failed ({done.returncode}):\n{done.stderr[-3000:]}")
+    return seconds, done.stdout.strip().splitlines()[-1] if done.stdout.strip() else ""
+
+
+def _procedural(checkpoint: Path | None, scenes: int) -> dict:
+    """The network alone on ``mode=eval``'s capture-like procedural set (camera and indirect light)."""
+    from selfsup.checkpoint import load_network
+    from selfsup.evaluate import evaluate_network, summarise
+    from selfsup.scenes.dataset import ProceduralScenes, materialise
+    from selfsup.scenes.degrade import Degradations
+    from selfsup.scenes.sampler import SamplerConfig
+
+    network = load_network(checkpoint)
+    dataset = ProceduralScenes(SamplerConfig(height=120, width=160), Degradations(indirect=2.0, camera=True),
+                               length=scenes, base_seed=9000, samples=2, max_lights=network.max_lights)
+    pool = materialise(dataset, workers=2, progress=False)
+    return summarise(evaluate_network(network, pool))
+
+
+def run(data: Path, out_checkpoint: Path, extra: list[str], procedural_scenes: int = 200, write: bool = True):
+    from benchmarks.captures import run as estimate_sets
+    from benchmarks.common import write_results
+    from selfsup.estimation import EstimateOptions
+
+    seconds, line = _adapt_command(data, out_checkpoint, extra)
+    print(f"adapted in {seconds:.0f} s: {line}", flush=True)
+    rows = []
+    for name, checkpoint in (("shipped", None), ("adapted", out_checkpoint)):
+        for method in ("cnn", "cnn+refine"):
+            options = EstimateOptions(method=method, checkpoint=None if checkpoint is None else str(checkpoint))
+            scored, _ = estimate_sets([data / "test"], SETS, write=False, options=options)
+            rows += [{"network": name, "estimator": "network alone" if method == "cnn" else "whole (cnn+refine)",
+                      **{k: v for k, v in row.items() if k in COLUMNS}} for row in scored]
+        summary = _procedural(checkpoint, procedural_scenes)
+        rows.append({"network": name, "estimator": "network alone", "set": "procedural validation",
+                     "frames": procedural_scenes, "success": f"{summary['success_rate']:.3f}",
+                     "one_light_success": f"{summary['one_light_success']:.3f}",
+                     "two_light_right_count": f"{summary['two_light_right_count']:.3f}",
+                     "median_worst_error": round(summary["median_position_error"], 4)})
+    for row in rows:
+        row.setdefault("frames", row.pop("scenes", ""))
+    if write:
+        header = (f"The shipped network adapted by `mode=adapt` on the adapt half of {data} (Mitsuba rooms split by "
+                  f"room; `python -m benchmarks.adapt make`), scored on the test half: success = every light within "
+                  f"0.05 of the scene size; procedural validation = `mode=eval`'s capture-like set (camera and indirect "
+                  f"light, seed 9000), the network alone. Adaptation: {seconds:.0f} s for the command, start-up "
+                  f"included ({line}). Settings changed: {' '.join(extra) or 'none'}.")
+        print(write_results("adapt", torch.device("cpu"), rows, header, COLUMNS))
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = parser.add_subparsers(dest="command", required=True)
+    m = commands.add_parser("make", help="render the Mitsuba rooms as capture folders")
+    m.add_argument("--out", type=Path, required=True)
+    m.add_argument("--rooms", type=int, default=48)
+    m.add_argument("--views", type=int, default=4)
+    m.add_argument("--seed", type=int, default=7300)
+    m.add_argument("--extra-rooms", type=int, default=72, help="more rooms, all in the adapt half")
+    m.add_argument("--extra-views", type=int, default=2)
+    r = commands.add_parser("run", help="adapt on the adapt half, score on the test half")
+    r.add_argument("--data", type=Path, required=True)
+    r.add_argument("--checkpoint", type=Path, default=Path("data/adapted.pt"), help="where the adapted network goes")
+    r.add_argument("--procedural", type=int, default=200, help="procedural validation scenes")
+    r.add_argument("--no-write", action="store_true")
+    r.add_argument("overrides", nargs="*", help="mode=adapt settings, e.g. adapt.steps=300")
+    args = parser.parse_args()
+    if args.command == "make":
+        try:
+            import mitsuba  # noqa: F401
+        except ImportError:
+            parser.exit(2, "benchmarks.adapt make needs Mitsuba 3: python -m pip install mitsuba\n")
+        make(args.out, args.rooms, args.views, args.seed, extra_rooms=args.extra_rooms, extra_views=args.extra_views)
+    else:
+        run(args.data, args.checkpoint.resolve(), args.overrides, args.procedural, write=not args.no_write)
+
+
+if __name__ == "__main__":
+    main()
