@@ -180,7 +180,6 @@ def _adapt(cfg: DictConfig) -> dict:
     from render import ShadowedBlinnPhong
     from selfsup.adapt import AdaptOptions, FrameOptions, GuardOptions, Procedural, TeacherOptions, adapt_files
     from selfsup.losses import LossOptions
-    from selfsup.scenes.degrade import Degradations
 
     settings = _plain(cfg.adapt)
     io = {k: settings.pop(k) for k in ("input", "out", "checkpoint")}

@@ -2,6 +2,7 @@
 
     python -m benchmarks.adapt make --out data/adapt          # Mitsuba 3 captures (the mitsuba extra), once
     python -m benchmarks.adapt run --data data/adapt          # adapt, then score before and after
+    python -m benchmarks.adapt landscape --data data/adapt    # where the re-render loss is least
 
 ``make`` renders ``--rooms`` Mitsuba 3 rooms (:mod:`benchmarks.mitsuba_scenes`: two of
 three with one light, the third with two), each seen from ``--views`` camera positions
@@ -10,14 +11,16 @@ the recipe of :mod:`benchmarks.captures` (8-bit sRGB at an exposure drawn per fr
 millimetre depth, no albedo) in two sets: ``gi`` (path traced, 256 samples a pixel a
 light) and ``noisy`` (direct light through a structured-light sensor's depth noise and
 holes and image noise). The rooms are split by room: the even ones into
-``out/adapt/<set>``, the odd ones into ``out/test/<set>``; the truth (``truth/``) is
-read only to score the test half.
+``out/adapt/<set>``, the odd ones into ``out/test/<set>``; then ``--extra-rooms`` (72) more
+rooms of ``--extra-views`` (2) frames each go into the adapt half (the network learns rooms,
+not views: more rooms, fewer views each; the test half stays 24 rooms of 4 views). The truth
+(``truth/``) is read only to score the test half.
 
 ``run`` adapts the shipped network on both adapt folders with ``mode=adapt``'s settings
 (the command itself, timed), then scores the network alone (``estimate.method=cnn``)
 and the whole estimator (the default ``cnn+refine``) on the test folders with the
-shipped and the adapted checkpoint, and the network on the procedural validation set of
-``mode=eval`` (the captures' recipe, 200 scenes) with both. One results file,
+shipped and the adapted checkpoint, and the network on two procedural sets of
+``mode=eval`` (true reflectance, and capture-like) with both. One results file,
 ``benchmarks/results/adapt_<device>_<date>.*``.
 """
 
@@ -25,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -79,27 +83,35 @@ def _adapt_command(data: Path, checkpoint: Path, extra: list[str]) -> tuple[floa
     folders = ",".join(str((data / "adapt" / s).resolve()) for s in SETS)
     command = [sys.executable, "train.py", "mode=adapt", f"adapt.input=[{folders}]", f"adapt.out={checkpoint}",
                "adapt.progress=false", *extra]
+    shutil.rmtree(f"{checkpoint}.run", ignore_errors=True)  # a run from scratch: its search and steps timed
     started = time.perf_counter()
     done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
     seconds = time.perf_counter() - started
     if done.returncode != 0:
         raise RuntimeError(f"mode=adapt failed ({done.returncode}):\n{done.stderr[-3000:]}")
-    return seconds, done.stdout.strip().splitlines()[-1] if done.stdout.strip() else ""
+    summary = [line for line in done.stderr.splitlines() if "adapted on" in line]  # the log's last line
+    return seconds, summary[-1].split(" - ", 1)[-1] if summary else ""
 
 
-def _procedural(checkpoint: Path | None, scenes: int) -> dict:
-    """The network alone on ``mode=eval``'s capture-like procedural set (camera and indirect light)."""
+def _procedural(checkpoint: Path | None, scenes: int) -> dict[str, dict]:
+    """The network alone on two of ``mode=eval``'s procedural sets (seed 9000, 160x120): ``true
+    reflectance`` (its cost volumes see the albedo; what mode=adapt's forgetting guard
+    validates on) and ``captures, camera and indirect light`` (no albedo, 1-3 lights)."""
     from selfsup.checkpoint import load_network
     from selfsup.evaluate import evaluate_network, summarise
-    from selfsup.scenes.dataset import ProceduralScenes, materialise
+    from selfsup.scenes.dataset import ProceduralScenes, materialise, sampler_config
     from selfsup.scenes.degrade import Degradations
-    from selfsup.scenes.sampler import SamplerConfig
 
-    network = load_network(checkpoint)
-    dataset = ProceduralScenes(SamplerConfig(height=120, width=160), Degradations(indirect=2.0, camera=True),
-                               length=scenes, base_seed=9000, samples=2, max_lights=network.max_lights)
-    pool = materialise(dataset, workers=2, progress=False)
-    return summarise(evaluate_network(network, pool))
+    network, _ = load_network(checkpoint)
+    sets = {"true reflectance": ((0.75, 0.25), Degradations(), True),
+            "captures, camera and indirect light": ((0.45, 0.35, 0.2), Degradations(camera=True, indirect=2.0), False)}
+    out = {}
+    for name, (probs, degradations, albedo) in sets.items():
+        pool = materialise(ProceduralScenes(sampler_config(height=120, width=160, n_lights_probs=list(probs)), degradations,
+                                            length=scenes, base_seed=9000, samples=2, max_lights=network.max_lights),
+                           workers=2, progress=False)
+        out[name] = summarise(evaluate_network(network, pool, albedo=albedo))
+    return out
 
 
 def run(data: Path, out_checkpoint: Path, extra: list[str], procedural_scenes: int = 200, write: bool = True):
@@ -115,22 +127,79 @@ def run(data: Path, out_checkpoint: Path, extra: list[str], procedural_scenes: i
             options = EstimateOptions(method=method, checkpoint=None if checkpoint is None else str(checkpoint))
             scored, _ = estimate_sets([data / "test"], SETS, write=False, options=options)
             rows += [{"network": name, "estimator": "network alone" if method == "cnn" else "whole (cnn+refine)",
-                      **{k: v for k, v in row.items() if k in COLUMNS}} for row in scored]
-        summary = _procedural(checkpoint, procedural_scenes)
-        rows.append({"network": name, "estimator": "network alone", "set": "procedural validation",
-                     "frames": procedural_scenes, "success": f"{summary['success_rate']:.3f}",
-                     "one_light_success": f"{summary['one_light_success']:.3f}",
-                     "two_light_right_count": f"{summary['two_light_right_count']:.3f}",
-                     "median_worst_error": round(summary["median_position_error"], 4)})
-    for row in rows:
-        row.setdefault("frames", row.pop("scenes", ""))
+                      "frames": row["scenes"], **{k: v for k, v in row.items() if k in COLUMNS}} for row in scored]
+        for set_name, summary in _procedural(checkpoint, procedural_scenes).items():
+            rows.append({"network": name, "estimator": "network alone", "set": f"procedural: {set_name}",
+                         "frames": procedural_scenes, "success": f"{summary['success_rate']:.3f}",
+                         "one_light_success": f"{summary['one_light_success']:.3f}",
+                         "two_light_right_count": f"{summary['two_light_right_count']:.3f}",
+                         "median_worst_error": round(summary["median_position_error"], 4)})
     if write:
         header = (f"The shipped network adapted by `mode=adapt` on the adapt half of {data} (Mitsuba rooms split by "
                   f"room; `python -m benchmarks.adapt make`), scored on the test half: success = every light within "
-                  f"0.05 of the scene size; procedural validation = `mode=eval`'s capture-like set (camera and indirect "
-                  f"light, seed 9000), the network alone. Adaptation: {seconds:.0f} s for the command, start-up "
+                  f"0.05 of the scene size; procedural = two of `mode=eval`'s sets (seed 9000, 160x120), the network "
+                  f"alone: true reflectance (its cost volumes see the albedo; mode=adapt's forgetting guard validates "
+                  f"on this set's first 100) and capture-like (a drawn camera, indirect light, 1-3 lights, no albedo). "
+                  f"Adaptation: {seconds:.0f} s for the command, start-up "
                   f"included ({line}). Settings changed: {' '.join(extra) or 'none'}.")
         print(write_results("adapt", torch.device("cpu"), rows, header, COLUMNS))
+    return rows
+
+
+def landscape(data: Path, sets=SETS, radius: float = 0.1, steps: int = 3, write: bool = True) -> list[dict]:
+    """Where the albedo-free re-render loss (:func:`selfsup.losses.reconstruction_loss` with
+    the frames' regions, ``mode=adapt``'s loss of one light) is least on a ``steps^3`` grid
+    of ``+-radius`` of the scene size about each one-light test frame's true light: the
+    argmin's distance from the truth (of the scene size). A loss whose gradient leads to the
+    lamp has its argmin at the truth (distance 0)."""
+    import statistics
+    from dataclasses import replace
+
+    from benchmarks.captures import read_truth
+    from benchmarks.common import write_results
+    from render import Material, ShadowedBlinnPhong
+    from selfsup.adapt import FrameOptions, collate_frames, load_frames
+    from selfsup.checkpoint import load_network
+    from selfsup.losses import LossOptions, SceneBatch, reconstruction_loss
+
+    network, _ = load_network(None)
+    renderer = ShadowedBlinnPhong(check_finite=False)
+    axis = torch.linspace(-radius, radius, steps)
+    grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    rows = []
+    for set_name in sets:
+        folder = data / "test" / set_name
+        loaded = load_frames([folder], FrameOptions(holdout=0.5, block=1))
+        distances = []
+        for frame in loaded.train + loaded.held:
+            truth = read_truth(folder / "truth" / f"{frame.id}.npz")
+            if truth.light_pos.shape[0] != 1:
+                continue
+            batch = collate_frames([frame])
+            grey = SceneBatch(batch.image, batch.gbuffer, Material(kd=torch.full((1, *batch.image.shape[2:], 3), 0.5)))
+            with torch.no_grad():
+                one = network(batch.network_image, batch.network_gbuffer, None)
+                costs = []
+                for offset in grid:  # one slot, at each grid point
+                    at = (truth.light_pos[0] + offset * float(truth.scene_scale)).view(1, 1, 3)
+                    single = replace(one, position=at, intensity=one.intensity[:, :1], presence=one.presence[:, :1],
+                                     count_logits=one.count_logits[:, :1], anchor_logits=one.anchor_logits[:, :1],
+                                     anchor_position=one.anchor_position[:, :1])
+                    costs.append(float(reconstruction_loss(single, grey, renderer, LossOptions(),
+                                                           segments=batch.segments).photometric))
+            distances.append(float(grid[int(torch.tensor(costs).argmin())].norm()))
+        rows.append({"set": set_name, "frames": len(distances),
+                     "median_argmin_distance": round(statistics.median(distances), 4),
+                     "argmin_within_0.05": f"{sum(d < 0.05 for d in distances)}/{len(distances)}",
+                     "argmin_at_truth": f"{sum(d == 0 for d in distances)}/{len(distances)}"})
+        print(rows[-1], flush=True)
+    if write:
+        header = (f"Where mode=adapt's albedo-free re-render loss (one light; regions of one albedo solved, epipolar "
+                  f"shadows, 80x60) is least on a {steps}^3 grid of +-{radius} of the scene size about the true light "
+                  f"of each one-light frame of {data}/test (Mitsuba rooms, `python -m benchmarks.adapt make`): the "
+                  f"argmin's distance from the truth, of the scene size. A loss that leads to the lamp has it at 0.")
+        print(write_results("adapt_loss_landscape", torch.device("cpu"), rows, header,
+                            ["set", "frames", "median_argmin_distance", "argmin_within_0.05", "argmin_at_truth"]))
     return rows
 
 
@@ -150,6 +219,9 @@ def main() -> None:
     r.add_argument("--procedural", type=int, default=200, help="procedural validation scenes")
     r.add_argument("--no-write", action="store_true")
     r.add_argument("overrides", nargs="*", help="mode=adapt settings, e.g. adapt.steps=300")
+    g = commands.add_parser("landscape", help="where the re-render loss is least about the true light")
+    g.add_argument("--data", type=Path, required=True)
+    g.add_argument("--steps", type=int, default=3, help="grid points a side (+-0.1 of the scene size)")
     args = parser.parse_args()
     if args.command == "make":
         try:
@@ -157,6 +229,8 @@ def main() -> None:
         except ImportError:
             parser.exit(2, "benchmarks.adapt make needs Mitsuba 3: python -m pip install mitsuba\n")
         make(args.out, args.rooms, args.views, args.seed, extra_rooms=args.extra_rooms, extra_views=args.extra_views)
+    elif args.command == "landscape":
+        landscape(args.data, steps=args.steps)
     else:
         run(args.data, args.checkpoint.resolve(), args.overrides, args.procedural, write=not args.no_write)
 

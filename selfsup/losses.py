@@ -26,6 +26,10 @@ closed form, with the scene's albedo), and the scores learn the softmax of the n
 errors (temperature ``hypothesis_temperature`` times the best error). The slots' learned
 offsets follow the shadowed photometric error.
 
+Without an albedo (a capture's frames, ``mode=adapt``) the caller gives each pixel's region
+of one albedo: each fit then solves the regions' colours beside the intensities and the
+ambient (:func:`selfsup.linear.segment_albedo`) and everything else is as above.
+
 The count head learns the number of needed slots (weight ``presence_weight``); the
 photometric signal for "is this slot needed" is degenerate where indirect light or
 texture looks like a light, so ``count_weight > 0`` adds the generator's true count as

@@ -104,3 +104,18 @@ def test_the_scan_group_is_the_users_settings_with_the_codes_defaults(cfg):
         assert values[key] == files[key], f"scan.{key}: YAML {values[key]!r}, scan_files {files[key]!r}"
     assert values["fuse"] == {}  # the fusion's constants: FuseOptions' own defaults
 
+
+
+def test_the_adapt_group_holds_the_codes_defaults(cfg):
+    from selfsup.adapt import AdaptOptions, FrameOptions, GuardOptions, TeacherOptions
+
+    values = OmegaConf.to_container(cfg.adapt, resolve=False)
+    nested = {"frames": FrameOptions, "guards": GuardOptions, "teacher": TeacherOptions}
+    command = {"input", "out", "checkpoint", "procedural", "validation_scenes"}  # train.py builds these
+    assert set(values) == set(_defaults(AdaptOptions)) | set(nested) | command
+    for key, default in _defaults(AdaptOptions).items():
+        assert _plain(values[key]) == default, f"adapt.{key}: YAML {values[key]!r}, AdaptOptions {default!r}"
+    for node, cls in nested.items():
+        assert set(values[node]) == set(_defaults(cls)), node
+        for key, default in _defaults(cls).items():
+            assert _plain(values[node][key]) == default, f"adapt.{node}.{key}: YAML {values[node][key]!r}, {default!r}"

@@ -1,9 +1,11 @@
 """``mode=adapt``: fine-tune a network on a user's unlabelled capture frames, self-supervised.
 
-Each step re-renders a batch of the user's frames from the network's lights with the
-shadowed layer and takes the photometric error as the loss, the albedo solved per frame
-in closed form (:func:`selfsup.losses.reconstruction_loss` with the frames' regions of
-one albedo: :mod:`selfsup.adapt.frames`); no light, albedo or count of the user's is
+Each step re-renders a batch of the user's frames (half of them mirrored) from the
+network's lights with the shadowed layer and takes the photometric error as the loss, the
+albedo solved per frame in closed form (:func:`selfsup.losses.reconstruction_loss` with the
+frames' regions of one albedo: :mod:`selfsup.adapt.frames`), and the per-frame search's
+lights, where that error is least over the whole room, teach each slot's hypothesis scores
+and position (:mod:`selfsup.adapt.teacher`); no light, albedo or count of the user's is
 read. What keeps it from going wrong:
 
 - **robust to what the model lacks**: the cost is a pseudo-Huber of the exposure-
@@ -64,17 +66,17 @@ class AdaptOptions:
     ``guard_weight``: weight of the surface hinge; ``mirror``: each frame of a batch mirrored
     left to right at random (:func:`selfsup.adapt.frames.mirrored`)."""
 
-    steps: int = 300
+    steps: int = 600
     batch: int = 8
     lr: float = 1e-4
     weight_decay: float = 1e-4
     warmup: float = 0.1
     grad_clip: float = 1.0
-    val_every: int = 50
+    val_every: int = 100
     procedural_batch: int = 8
     procedural_count_weight: float = 1.0
     procedural_albedo_share: float = 0.25
-    anchor_weight: float = 0.0
+    anchor_weight: float = 0.05
     guard_weight: float = 1.0
     mirror: bool = True
     device: str = "auto"

@@ -3,9 +3,10 @@
 The network places a slot by choosing one of its position hypotheses (a classification)
 and refining it; only the last, small step follows a loss's gradient. On real-looking
 frames the photometric error's gradient at the network's answer points to a local minimum
-of textures, highlights and indirect light, not to the lamp (measured on Mitsuba frames:
-the re-render error's minimum within 0.1 of the scene size of the true light lies 0.09 from
-it in the median, benchmarks/results/adapt_*.md). The estimator's per-frame search
+of textures, highlights and indirect light, not to the lamp (measured on Mitsuba frames: on
+a grid of +-0.1 of the scene size about the true light the re-render error is least at the
+light in 25-28 of 64 frames, benchmarks/results/adapt_loss_landscape_cpu2_2026-11-29.md).
+The estimator's per-frame search
 (:func:`selfsup.adapt.frames.teach`) minimises the albedo-free error globally (grid, robust
 fit, model selection), which finds the lamp on most frames; what it finds is the target of
 each slot's hypothesis scores, its position and the count. No ground truth enters: the
@@ -32,12 +33,14 @@ class TeacherOptions:
     """Weights of the teacher's terms (mirrors ``adapt.teacher``): ``position`` (pseudo-Huber of
     the slot-to-light distance over the scene size, width ``scale``), ``anchors`` (cross
     entropy of the hypothesis scores against a Gaussian of width ``anchor_width`` of the scene
-    size about the light), ``count`` (cross entropy of the count head against the lights found).
-    All 0: the photometric loss alone."""
+    size about the light), ``count`` (cross entropy of the count head against the lights found;
+    0 by default: at 0.5 the adapted network stopped counting second lights, 25% -> 3% of the
+    two-light test rooms, benchmarks/results/adapt_teacher_count_cpu2_2026-11-29.md). All 0:
+    the photometric loss alone."""
 
     position: float = 1.0
     anchors: float = 0.1
-    count: float = 0.5
+    count: float = 0.0
     scale: float = 0.02
     anchor_width: float = 0.05
 

@@ -144,7 +144,7 @@ def test_teacher_loss_assigns_slots_and_reaches_positions_scores_and_count():
     # The teacher's two lights are the slots' own positions, in the other order: no position error.
     teacher = prediction.position.detach().flip(1)
     mask = torch.ones(1, 2, dtype=torch.bool)
-    options = TeacherOptions()
+    options = TeacherOptions(count=0.5)  # the count's term on (off by default)
     total, parts = teacher_loss(prediction, teacher, mask, size, options)
     assert parts["teacher_position"] < 1e-6
     moved = teacher + torch.tensor([0.3, 0.0, 0.0])
