@@ -267,9 +267,13 @@ def adapt_files(input: str | list[str], out: str | Path, checkpoint: str | None 
         raise ValueError(f"adapt.out must name a .pt checkpoint file, got {out}")
     if procedural is None:
         raise ValueError("adapt_files needs the procedural scenes' settings (train.py builds them from configs/adapt)")
+    inputs = input if isinstance(input, list) else [input]
+    for source in inputs:  # named before <out>.run is made
+        if not Path(source).exists():
+            raise FileNotFoundError(f"adapt.input {source} does not exist")
     work = Path(f"{out}.run")
     with locked(work / "lock"):
-        return _adapt(input if isinstance(input, list) else [input], out, checkpoint, options, frame_options, guards,
+        return _adapt(inputs, out, checkpoint, options, frame_options, guards,
                       loss, teacher, renderer, procedural, work)
 
 
