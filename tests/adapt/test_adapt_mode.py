@@ -151,3 +151,26 @@ def test_the_search_is_kept_and_read_back_not_run_again(tmp_path, monkeypatch):
     monkeypatch.setattr(selfsup.estimation.files, "estimate_items", never)
     assert teach(everything, None, cache) == 3
     assert all(torch.equal(frame.teacher, found[frame.id]) for frame in everything)
+
+
+def test_a_collapsed_checkpoint_is_refused_and_the_start_kept(tmp_path, monkeypatch, caplog):
+    import selfsup.adapt.loop as loop
+
+    real = loop._Run.validate
+    calls = []
+
+    def collapsing(self):  # the start as measured, then every slot on and a light in a wall
+        values, grid = real(self)
+        calls.append(values)
+        if len(calls) > 1:
+            values = dict(values, held_loss=0.0, mean_count=values["mean_count"] + 2.0, degenerate_share=1.0)
+        return values, grid
+
+    monkeypatch.setattr(loop._Run, "validate", collapsing)
+    out = tmp_path / "adapted.pt"
+    result = run(_cfg(f"adapt.input={EXAMPLE}", f"adapt.out={out}", "adapt.steps=2", "adapt.tensorboard=false",
+                      "adapt.teacher.position=0", "adapt.teacher.anchors=0"))
+    assert len(calls) == 3 and result["accepted_step"] == 0 and "no step beat the start" in result["line"]
+    assert "slots switched on" in caplog.text and "in or behind surfaces" in caplog.text
+    adapted, shipped = load_network(out)[0], load_network(None)[0]
+    assert all(torch.equal(a, b) for a, b in zip(adapted.state_dict().values(), shipped.state_dict().values()))
