@@ -26,8 +26,9 @@ from torch import Tensor
 
 from render import GBuffer
 from selfsup.estimation.albedo_free import observe
-from selfsup.estimation.files import failure_reason
+from selfsup.estimation.files import estimate_items, failure_reason, record_line
 from selfsup.estimation.inputs import iter_inputs, read_item
+from selfsup.estimation.jobs import read_records
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.prepare import prepare, within_pixels, working_range
 
@@ -211,28 +212,18 @@ def teach(frames: list[UserFrame], checkpoint: str | None, cache: Path, device: 
     ``frame.teacher``; a frame where it finds no light gets none (0 rows). The records are
     kept in ``cache`` (JSON Lines) and read back instead of searched again. Returns how
     many frames have lights."""
-    import json
-
-    from selfsup.estimation.files import estimate_items, record_line
-
-    known = {}
-    if cache.is_file():
-        for line in cache.read_text().splitlines():
-            try:
-                record = json.loads(line)
-                known[record["id"]] = record
-            except (ValueError, KeyError):
-                continue  # a torn last line of a killed run: that frame is searched again
+    known = {str(record["id"]): record for record in read_records(cache)}  # a killed run's torn line: redone
     missing = [frame for frame in frames if frame.id not in known]
     if missing:
         options = EstimateOptions(checkpoint=checkpoint)
         with cache.open("a") as out:
             for frame, (_, record, reason) in zip(missing, estimate_items([f.source for f in missing], options,
                                                                            device=device)):
-                record = record if record is not None else {"id": frame.id, "lights": [], "failed": reason}
-                record = {"id": frame.id, "lights": [{"position": light["position"]} for light in record["lights"]]}
-                out.write(record_line(record) + "\n")
-                known[frame.id] = record
+                if record is None:
+                    log.warning("the search failed on %s (%s): no lights to teach there", frame.id, reason)
+                lights = [{"position": light["position"]} for light in (record or {"lights": []})["lights"]]
+                known[frame.id] = {"id": frame.id, "lights": lights}
+                out.write(record_line(known[frame.id]) + "\n")
     for frame in frames:
         frame.teacher = torch.tensor([light["position"] for light in known[frame.id]["lights"]],
                                      dtype=torch.float32).reshape(-1, 3)

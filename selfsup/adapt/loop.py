@@ -176,24 +176,24 @@ class _Run:
 
     def user_terms(self, batch):
         """The user frames' loss ``()`` of a :class:`FrameBatch` (the albedo-free re-render's
-        terms and the teacher's), its parts, the re-render's terms and the prediction."""
+        terms and the teacher's), its parts, the re-render's terms, the prediction and the
+        frames' :class:`~selfsup.model.SceneFrame`."""
         prediction = self.network(batch.network_image, batch.network_gbuffer, None)
+        frame = scene_frame(batch.image, batch.gbuffer)
         scenes = SceneBatch(batch.image, batch.gbuffer, Material(kd=torch.full((*batch.image.shape[:1],
                                                                                  *batch.image.shape[2:], 3), GREY_ALBEDO,
                                                                                 device=batch.image.device)))
         terms = reconstruction_loss(prediction, scenes, self.renderer, self.loss, segments=batch.segments)
         total, parts = terms.total, {"photometric": float(terms.photometric)}
         if batch.teacher is not None:
-            taught, taught_parts = teacher_loss(prediction, batch.teacher, batch.teacher_mask,
-                                                scene_frame(batch.image, batch.gbuffer).size, self.teacher)
+            taught, taught_parts = teacher_loss(prediction, batch.teacher, batch.teacher_mask, frame.size, self.teacher)
             total, parts = total + taught, {**parts, **taught_parts}
-        return total, parts, terms, prediction
+        return total, parts, terms, prediction, frame
 
     def step_loss(self, step: int) -> tuple[Tensor, dict[str, float]]:
         batch = self.user_batch(step)
-        user, parts, terms, prediction = self.user_terms(batch)
-        size = scene_frame(batch.image, batch.gbuffer).size
-        guard = guard_penalty(prediction.position, batch.gbuffer, size, self.guards)
+        user, parts, _, prediction, frame = self.user_terms(batch)
+        guard = guard_penalty(prediction.position, batch.gbuffer, frame.size, self.guards)
         total = user + self.options.guard_weight * guard
         parts = {"user": float(user.detach()), **parts, "guard": float(guard.detach())}
         if self.pool is not None:
@@ -228,20 +228,17 @@ class _Run:
             group = by_size[size]
             for start in range(0, len(group), self.options.batch):
                 batch = collate_frames(group[start:start + self.options.batch], self.device, self.network.max_lights)
-                user, parts, terms, prediction = self.user_terms(batch)
+                user, parts, terms, prediction, frame = self.user_terms(batch)
                 losses += [float(user)] * len(batch.ids)
                 photometric += [parts["photometric"]] * len(batch.ids)
                 count = prediction.count
                 counted = torch.arange(prediction.position.shape[1], device=count.device) < count[:, None]
-                bad = degenerate_lights(prediction.position, batch.gbuffer, scene_frame(batch.image, batch.gbuffer).size,
-                                        self.guards)
+                bad = degenerate_lights(prediction.position, batch.gbuffer, frame.size, self.guards)
                 counts += count.tolist()
                 degenerate += (bad & counted).any(1).tolist()
                 if grid is None:
                     n = self.options.images
-                    grid = render_grid(batch.image[:n], terms.render[:n], terms.visibility[:n],
-                                       scene_frame(batch.image[:n], batch.gbuffer.select(torch.arange(
-                                           min(n, len(batch.ids)), device=self.device))).exposure)
+                    grid = render_grid(batch.image[:n], terms.render[:n], terms.visibility[:n], frame.exposure[:n])
         procedural = summarise(evaluate_network(self.network, self.validation, albedo=True))
         self.network.train(was)
         return {"held_loss": statistics.fmean(losses), "held_photometric": statistics.fmean(photometric),

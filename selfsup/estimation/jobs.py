@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
-__all__ = ["OutputInUseError", "locked", "completed_ids", "resume_track", "Ranks", "ranks_from_env", "part_path",
+__all__ = ["OutputInUseError", "locked", "read_records", "completed_ids", "resume_track", "Ranks", "ranks_from_env", "part_path",
            "parts_folder", "merge_parts", "barrier", "finish_ranks"]
 
 log = logging.getLogger(__name__)
@@ -81,6 +81,13 @@ def _records(path: Path) -> Iterator[tuple[int, dict]]:
         os.truncate(path, good_bytes)
 
 
+def read_records(path: Path) -> Iterator[dict]:
+    """The records of the JSON Lines file ``path`` (none where it does not exist), a torn
+    last line (a kill mid-write) cut off the file; a bad line before the last is refused
+    (ValueError), as :func:`completed_ids` says."""
+    return (record for _, record in _records(path))
+
+
 def completed_ids(path: Path) -> set[str]:
     """The ids of the records in the JSON Lines file ``path`` (none where it does not exist).
 
@@ -91,7 +98,7 @@ def completed_ids(path: Path) -> set[str]:
         ValueError: a line before the last that is not a record: the file is not an output
             of ours (or was edited), and appending to it would mix the two.
     """
-    return {str(record["id"]) for _, record in _records(path)}
+    return {str(record["id"]) for record in read_records(path)}
 
 
 def resume_track(path: Path) -> set[str]:
