@@ -97,7 +97,7 @@ class UserFrame:
     teacher: Tensor | None = None  # (n, 3): the per-frame search's lights (:func:`teach`); (0, 3): none found
 
     @property
-    def size(self) -> tuple[int, int, int, int]:
+    def size(self) -> tuple[int, int, int, int]:  # the network's (H, W) and the loss's (h, w)
         return tuple(self.network.mask.shape) + tuple(self.loss.mask.shape)
 
 

@@ -141,7 +141,7 @@ class _Run:
         self.teacher = teacher
         self.device, self.renderer = device, renderer.to(device)
         self.start_weights = [p.detach().clone() for p in network.parameters()]
-        self.groups: dict[tuple[int, int], list[UserFrame]] = defaultdict(list)
+        self.groups: dict[tuple[int, ...], list[UserFrame]] = defaultdict(list)  # by UserFrame.size
         for frame in frames.train:
             self.groups[frame.size].append(frame)
         self.procedural_loss = replace(loss, count_weight=options.procedural_count_weight)
@@ -221,7 +221,7 @@ class _Run:
         was = self.network.training
         self.network.eval()
         losses, photometric, counts, degenerate, grid = [], [], [], [], None
-        by_size: dict[tuple[int, int], list[UserFrame]] = defaultdict(list)
+        by_size: dict[tuple[int, ...], list[UserFrame]] = defaultdict(list)
         for frame in self.frames.held:
             by_size[frame.size].append(frame)
         for size in sorted(by_size):
