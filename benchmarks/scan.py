@@ -2,6 +2,7 @@
 
     python -m benchmarks.scan make --out data/scans          # posed capture folders, once
     python -m benchmarks.scan make --out data/scans30 --frames 30 --seeds 4106 4110
+    python -m benchmarks.scan make --behind --out data/scans_behind   # the first light behind the camera
     python -m benchmarks.scan make --mitsuba --out data/scans_mitsuba   # Mitsuba 3 renders (the mitsuba extra)
     python -m benchmarks.scan run --scans data/scans_mitsuba --name scan_mitsuba
     python -m benchmarks.scan run --scans data/scans --timing data/scans30   # benchmarks/results/scan_<device>_<date>.*
@@ -53,22 +54,32 @@ COLUMNS = ["scan", "lights", "frames", "per_frame_median_error", "per_frame_succ
 SETS = ("direct", "indirect_noisy")
 
 
-def make(out: Path, seeds=SEEDS, frames: int = 12, swing_deg: float = 30.0, sets=SETS) -> list[Path]:
+def make(out: Path, seeds=SEEDS, frames: int = 12, swing_deg: float = 30.0, sets=SETS, behind: bool = False
+         ) -> list[Path]:
     """One posed capture folder per set and seed under ``out/<set>``: the first half of the
-    seeds one light, the rest two."""
+    seeds one light, the rest two. With ``behind`` the first light hangs behind the camera
+    and above it (:func:`selfsup.scenes.sequences.light_behind_camera`: out of view in every
+    frame, lighting what every frame sees), the sets named ``behind_<set>``."""
     from benchmarks.captures import SENSOR, capture_exposure, write_capture
     from selfsup.scenes.degrade import Degradations
-    from selfsup.scenes.sampler import SamplerConfig
-    from selfsup.scenes.sequences import render_orbit
+    from selfsup.scenes.sampler import SamplerConfig, sample_scene
+    from selfsup.scenes.sequences import light_behind_camera, render_orbit
 
     degradations = {"direct": Degradations(), "indirect_noisy": Degradations(indirect=2.0, **SENSOR)}
+    config = SamplerConfig(height=120, width=160)
     folders = []
     for set_name in sets:
         for k, seed in enumerate(seeds):
             n_lights = 1 if k < len(seeds) // 2 else 2
-            scenes, poses, truth = render_orbit(seed, frames, swing_deg, SamplerConfig(height=120, width=160),
-                                                n_lights=n_lights, degradations=degradations[set_name])
-            folder = out / set_name / f"scan_{seed}"
+            spec = sample_scene(seed, config, n_lights=n_lights)
+            if behind:
+                spec = light_behind_camera(spec, margin=config.light_margin)
+                if spec is None:
+                    print(f"seed {seed}: no room behind the camera for a light; left out", flush=True)
+                    continue
+            scenes, poses, truth = render_orbit(seed, frames, swing_deg, config, degradations=degradations[set_name],
+                                                spec=spec)
+            folder = out / (f"behind_{set_name}" if behind else set_name) / f"scan_{seed}"
             exposure = capture_exposure(scenes[len(scenes) // 2], folder.name)  # one exposure: a locked camera
             for scene in scenes:
                 write_capture(scene, folder, scene.id, exposure=exposure)
@@ -131,10 +142,22 @@ def _worst(found: np.ndarray, truth: np.ndarray) -> tuple[float, bool]:
     return float(distance.min(0).max()), True
 
 
+def room_size(folder: Path) -> float:
+    """The scan's size as ``mode=scan`` measures it: the diagonal of the 2-98% box of every
+    frame's points in the world. (The renders' own ``scene_scale`` is the box of every
+    point: where a camera looks out along the open floor, thousands of times the room.)"""
+    from selfsup.scan.files import scene_points, scene_size
+    from selfsup.scenes.capture import capture_geometry
+    from selfsup.scenes.poses import posed_frames
+
+    frames = posed_frames(folder)
+    return scene_size(np.concatenate([scene_points(*capture_geometry(f.frame), f.pose) for f in frames]))
+
+
 def score(folder: Path, frames_records: list[dict], room: dict) -> dict:
-    """One row: the frames' and the scan's world errors, counts and the spread."""
-    truth = json.loads((folder / "truth.json").read_text())
-    world, size = np.array(truth["lights"]), truth["scene_size"]
+    """One row: the frames' and the scan's world errors, counts and the spread, as shares
+    of :func:`room_size`."""
+    world, size = np.array(json.loads((folder / "truth.json").read_text())["lights"]), room_size(folder)
     poses = {key: np.array(value) for key, value in json.loads((folder / "poses.json").read_text()).items()}
     errors, counts, mapped = [], [], []
     for record in frames_records:
@@ -186,8 +209,7 @@ def tracked(folder: Path, posed: bool) -> dict:
     error (each frame's lights mapped by its pose; a wrong count: inf) and the full estimates."""
     from selfsup.tracking import track_files
 
-    truth = json.loads((folder / "truth.json").read_text())
-    world, size = np.array(truth["lights"]), truth["scene_size"]
+    world, size = np.array(json.loads((folder / "truth.json").read_text())["lights"]), room_size(folder)
     poses = {key: np.array(value) for key, value in json.loads((folder / "poses.json").read_text()).items()}
     with tempfile.TemporaryDirectory() as tmp:
         source = folder
@@ -347,6 +369,7 @@ def main(argv: list[str] | None = None) -> None:
     m.add_argument("--out", type=Path, default=Path("data/scans"))
     m.add_argument("--frames", type=int, default=12)
     m.add_argument("--seeds", type=int, nargs="*", default=list(SEEDS))
+    m.add_argument("--behind", action="store_true", help="the first light behind the camera in every frame")
     m.add_argument("--mitsuba", action="store_true", help="render the scans with Mitsuba 3 instead (8 rooms, the mitsuba extra)")
     r = sub.add_parser("run", help="frames against scans; writes the results file")
     r.add_argument("--scans", type=Path, default=Path("data/scans"))
@@ -366,7 +389,7 @@ def main(argv: list[str] | None = None) -> None:
     elif args.command == "make" and args.mitsuba:
         make_mitsuba(args.out, frames=args.frames)
     elif args.command == "make":
-        make(args.out, tuple(args.seeds), args.frames)
+        make(args.out, tuple(args.seeds), args.frames, behind=args.behind)
     elif args.command == "figure":
         print(f"wrote {figure(args.scan, args.room, args.out)}")
     else:

@@ -30,7 +30,7 @@ from selfsup.scenes.capture import capture_geometry, read_capture
 from selfsup.scenes.io import Scene
 from selfsup.scenes.poses import PosedFrame, check_convention, posed_frames
 
-__all__ = ["scan_files", "keyframes", "scene_points"]
+__all__ = ["scan_files", "keyframes", "scene_points", "scene_size"]
 
 log = logging.getLogger(__name__)
 # The first frames whose depths, seen from one another, tell a pose file's convention
@@ -68,8 +68,8 @@ def scene_points(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, stride: int
     return camera @ pose[:3, :3].T + pose[:3, 3]
 
 
-def _size(points: np.ndarray) -> float:
-    # The scene's size: the diagonal of its points' 2-98% box (stray depth left out).
+def scene_size(points: np.ndarray) -> float:
+    """The scene's size: the diagonal of its points' ``(N, 3)`` 2-98% box (stray depth left out)."""
     if len(points) < 2:
         return 1.0
     low, high = np.percentile(points, [2, 98], axis=0)
@@ -156,7 +156,7 @@ def scan_files(input: str | Path, output: str | Path, frames_output: str | Path 
         bar.close()
     if not kept:
         raise ValueError(f"scan.input {input}: no frame could be estimated ({len(failed)} failed)")
-    size = _size(np.concatenate(points))
+    size = scene_size(np.concatenate(points))
     lights = fuse(per_frame, size, fuse_options)
     result = _scan_record(lights, frames, kept, sum(1 for f in per_frame if f), size, time.perf_counter() - started)
     output = Path(output)

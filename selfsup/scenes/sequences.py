@@ -33,7 +33,7 @@ from selfsup.scenes.raycast import Primitives
 from selfsup.scenes.sampler import SamplerConfig, SceneSpec, sample_scene, signed_distance
 
 __all__ = ["SEQUENCE_KINDS", "sequence_specs", "render_sequence", "write_sequence", "CAMERA_SWING_DEG",
-           "render_orbit", "orbit_pose", "orbited"]
+           "render_orbit", "orbit_pose", "orbited", "light_behind_camera"]
 
 SEQUENCE_KINDS = ("static", "moving_light", "moving_camera", "switch", "two_lights")
 CAMERA_SWING_DEG = 8.0  # the moving camera's orbit, either side of the first frame's view
@@ -164,18 +164,45 @@ def render_sequence(kind: str, seed: int, frames: int = 24, config: SamplerConfi
     return scenes
 
 
+# Where :func:`light_behind_camera` hangs a light: this share of the room's depth behind
+# the camera and of its height above it (the rooms are open towards the camera and have no
+# ceiling, so nothing stands between such a light and the surfaces the camera sees).
+BEHIND_DEPTH = 0.25
+BEHIND_HEIGHT = 0.3
+
+
+def light_behind_camera(spec: SceneSpec, light: int = 0, margin: float = 0.3) -> SceneSpec | None:
+    """``spec`` with light ``light`` moved behind its camera and above it (along the floor,
+    :data:`BEHIND_DEPTH` of the room's depth back, :data:`BEHIND_HEIGHT` of its height up),
+    its power scaled to light the camera's surroundings as before (by the squared distance
+    to the camera); None when that place is within ``margin`` (metres) of a surface. Out
+    of view in every frame of :func:`render_orbit`'s turns, its light on every surface."""
+    up = _up(spec)
+    back = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    back = back - (back @ up) * up  # the camera's forward along the floor
+    width, depth, height = spec.meta["room_size_m"]
+    position = -BEHIND_DEPTH * depth * back / back.norm() + BEHIND_HEIGHT * height * up
+    if not bool(signed_distance(_double(spec.prims), position[None]) > margin):
+        return None
+    lights, power = spec.light_position.clone(), spec.light_relative_intensity.clone()
+    old = lights[light].double().norm()
+    lights[light] = position.float()
+    power[light] = (power[light].double() * (position.norm() / old) ** 2).float()
+    return dataclasses.replace(spec, light_position=lights, light_relative_intensity=power)
+
+
 def render_orbit(seed: int, frames: int = 12, swing_deg: float = 30.0, config: SamplerConfig | None = None,
-                 n_lights: int = 1, degradations: Degradations | None = None, samples: int = 2
-                 ) -> tuple[list[Scene], list[Tensor], Tensor]:
+                 n_lights: int = 1, degradations: Degradations | None = None, samples: int = 2,
+                 spec: SceneSpec | None = None) -> tuple[list[Scene], list[Tensor], Tensor]:
     """A posed scan of one still room: its camera turned from ``-swing_deg`` to ``swing_deg``
     about the vertical through the room's middle (as ``moving_camera``, wider), ``frames``
     frames. Returns the frames (ids ``orbit_<seed>_<frame>``, each with its camera-frame
     truth), their camera-to-world poses ``(4, 4)`` and the lights in the world ``(L, 3)``
-    (the unturned camera's frame)."""
+    (the unturned camera's frame). ``spec``: the room (drawn from ``seed`` when None)."""
     if not (isinstance(frames, int) and frames >= 1):
         raise ValueError(f"a scan needs at least 1 frame, got {frames!r}")
     config = config or SamplerConfig(height=120, width=160)
-    spec = sample_scene(seed, config, n_lights=n_lights)
+    spec = spec if spec is not None else sample_scene(seed, config, n_lights=n_lights)
     angles = torch.linspace(-swing_deg, swing_deg, frames).tolist() if frames > 1 else [0.0]
     degradations = degradations or Degradations()
     scenes = []

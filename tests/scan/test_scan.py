@@ -241,3 +241,23 @@ def test_poses_in_another_convention_are_named_by_how_the_depths_disagree(orbit,
     (folder / "poses.json").write_text(json.dumps({s.id: written(p.numpy()).tolist() for s, p in zip(scenes, poses)}))
     with pytest.raises(PoseError, match=f"the poses look like {named}.*agree on 9[0-9]% of their points that way"):
         scan_files(folder, tmp_path / "room.json", progress=False)
+
+
+def test_a_light_hung_behind_the_camera_stays_out_of_view_in_every_frame_of_an_orbit():
+    from selfsup.scenes.sampler import sample_scene, signed_distance
+    from selfsup.scenes.sequences import light_behind_camera, orbited
+
+    spec = sample_scene(4100, SMALL, n_lights=2)
+    behind = light_behind_camera(spec, margin=SMALL.light_margin)
+    moved, kept = behind.light_position[0].double(), behind.light_position[1]
+    assert torch.equal(kept, spec.light_position[1])  # the other light where it was
+    up = spec.prims.planes[0, 3:6].double()
+    assert moved[2] < 0 and float(moved @ up) > 0  # behind the camera and above it
+    assert float(signed_distance(behind.prims, behind.light_position[:1])) > SMALL.light_margin
+    # As bright where the camera stands: the power scaled by the squared distance to it.
+    before = spec.light_relative_intensity[0].double() / spec.light_position[0].double().norm() ** 2
+    after = behind.light_relative_intensity[0].double() / moved.norm() ** 2
+    torch.testing.assert_close(after, before, rtol=1e-5, atol=0)
+    for angle in (-30.0, 0.0, 30.0):  # behind every turned camera of render_orbit's scans
+        assert float(orbited(behind, angle).light_position[0, 2]) < 0
+    assert light_behind_camera(spec, margin=100.0) is None  # no such place clear of the surfaces
