@@ -4,6 +4,7 @@
     python -m benchmarks.scan make --out data/scans30 --frames 30 --seeds 4106 4110
     python -m benchmarks.scan make --behind --out data/scans_behind   # the first light behind the camera
     python -m benchmarks.scan make --mitsuba --out data/scans_mitsuba   # Mitsuba 3 renders (the mitsuba extra)
+    python -m benchmarks.scan make --mitsuba --behind --out data/scans_mitsuba_behind
     python -m benchmarks.scan run --scans data/scans_mitsuba --name scan_mitsuba
     python -m benchmarks.scan run --scans data/scans --timing data/scans30   # benchmarks/results/scan_<device>_<date>.*
     python -m benchmarks.scan figure --scan data/scans/indirect_noisy/scan_4110 --room room.json --out docs/scan_top.png
@@ -16,12 +17,14 @@ writes each as a capture folder (the recipe's 8-bit sRGB at one exposure, millim
 depth) with ``poses.json`` and the world's true lights (``truth.json``), in two sets:
 ``direct`` (the exact render) and ``indirect_noisy`` (indirect light and a sensor's noise);
 with ``--mitsuba`` the same rooms' scans (8 of them) rendered by Mitsuba 3, ``mitsuba_direct``
-and ``mitsuba_gi`` (path traced, 256 samples a pixel a light).
+and ``mitsuba_gi`` (path traced, 256 samples a pixel a light); with ``--behind`` each room's
+first light hangs behind the camera and above it, out of view in every frame
+(:func:`selfsup.scenes.sequences.light_behind_camera`; sets ``behind_*``, ``mitsuba_behind_*``).
 
 ``run`` estimates every frame on its own (``mode=estimate``'s defaults) and the whole scan
 (``mode=scan``'s defaults), and scores both in the world against the truth: a frame's
 worst light error (its estimate mapped by its pose; a missing or extra light: the
-worst), the scan's, both as shares of the scene size, and whether the count is right;
+worst), the scan's, both as shares of the scan's size (:func:`room_size`), and whether the count is right;
 and, without the truth, the spread: the median distance of the frames' lights mapped to the
 world from the scan's nearest light. ``mode=track`` through each scan (``track.refresh=0``) with
 its poses and without: the median over frames of the worst tracked light's world error and
@@ -91,24 +94,32 @@ def make(out: Path, seeds=SEEDS, frames: int = 12, swing_deg: float = 30.0, sets
     return folders
 
 
-def make_mitsuba(out: Path, seeds=SEEDS[:4] + SEEDS[6:10], frames: int = 12, swing_deg: float = 30.0
-                 ) -> list[Path]:
+def make_mitsuba(out: Path, seeds=SEEDS[:4] + SEEDS[6:10], frames: int = 12, swing_deg: float = 30.0,
+                 behind: bool = False) -> list[Path]:
     """Posed scans rendered by Mitsuba 3 (the ``mitsuba`` extra), ``out/mitsuba_direct`` and
     ``out/mitsuba_gi`` (path traced): the rooms of :func:`make` (the same seeds' specs, the
     camera turned as :func:`selfsup.scenes.sequences.render_orbit` turns it), each frame
-    rendered by :func:`benchmarks.mitsuba_scenes.render_variants` at the first frame's exposure."""
+    rendered by :func:`benchmarks.mitsuba_scenes.render_variants` at the first frame's exposure.
+    ``behind``: the first light behind the camera, as :func:`make`'s, in ``out/mitsuba_behind_*``."""
     import mitsuba as mi
 
     from benchmarks.captures import capture_exposure, write_capture
     from benchmarks.mitsuba_scenes import render_variants
     from selfsup.scenes.sampler import SamplerConfig, sample_scene
-    from selfsup.scenes.sequences import orbit_pose, orbited
+    from selfsup.scenes.sequences import light_behind_camera, orbit_pose, orbited
 
     mi.set_variant("scalar_rgb")
     folders = []
+    prefix = "mitsuba_behind" if behind else "mitsuba"
     for k, seed in enumerate(seeds):
         n_lights = 1 if k < len(seeds) // 2 else 2
-        spec = sample_scene(seed, SamplerConfig(height=120, width=160), n_lights=n_lights)
+        config = SamplerConfig(height=120, width=160)
+        spec = sample_scene(seed, config, n_lights=n_lights)
+        if behind:
+            spec = light_behind_camera(spec, margin=config.light_margin)
+            if spec is None:
+                print(f"seed {seed}: no room behind the camera for a light; left out", flush=True)
+                continue
         angles = torch.linspace(-swing_deg, swing_deg, frames).tolist()
         exposure, capture = None, {}
         for f, angle in enumerate(angles):
@@ -117,11 +128,11 @@ def make_mitsuba(out: Path, seeds=SEEDS[:4] + SEEDS[6:10], frames: int = 12, swi
             if exposure is None:  # the first frame's, kept: a camera with its exposure locked
                 exposure = float(rendered["direct"].light_intensity[0, 0] / spec.light_relative_intensity[0, 0])
             for variant, scene in rendered.items():
-                folder = out / f"mitsuba_{variant}" / f"scan_{seed}"
+                folder = out / f"{prefix}_{variant}" / f"scan_{seed}"
                 capture.setdefault(variant, capture_exposure(scene, folder.name))
                 write_capture(scene, folder, f"orbit_{seed}_{f:03d}", exposure=capture[variant])
         for variant in ("direct", "gi"):
-            folder = out / f"mitsuba_{variant}" / f"scan_{seed}"
+            folder = out / f"{prefix}_{variant}" / f"scan_{seed}"
             (folder / "poses.json").write_text(json.dumps({f"orbit_{seed}_{f:03d}": orbit_pose(spec, a).tolist()
                                                            for f, a in enumerate(angles)}))
             (folder / "truth.json").write_text(json.dumps({"lights": spec.light_position.double().tolist(),
@@ -255,7 +266,9 @@ def run(scans: Path, write: bool = True, timing: Path | None = None, name: str =
         rows += timed_scans(timing)
     if write:
         command = f"python -m benchmarks.scan run --scans {scans} --name {name}" + (f" --timing {timing}" if timing else "")
-        header = (f"`{command}` (made by `python -m benchmarks.scan make`). "
+        names = [p.name for p in scans.iterdir() if p.is_dir()]
+        flags = "".join(f" --{flag}" for flag in ("mitsuba", "behind") if any(flag in n for n in names))
+        header = (f"`{command}` (made by `python -m benchmarks.scan make{flags} --out {scans}`). "
                   + " ".join(__doc__.split("\n\n", 2)[2].split()))
         write_results(name, torch.device("cpu"), rows, header, COLUMNS)
     return rows
@@ -387,7 +400,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.command == "animate":
         animate(args.scan, args.out)
     elif args.command == "make" and args.mitsuba:
-        make_mitsuba(args.out, frames=args.frames)
+        make_mitsuba(args.out, frames=args.frames, behind=args.behind)
     elif args.command == "make":
         make(args.out, tuple(args.seeds), args.frames, behind=args.behind)
     elif args.command == "figure":
