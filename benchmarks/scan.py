@@ -57,6 +57,21 @@ COLUMNS = ["scan", "lights", "frames", "per_frame_median_error", "per_frame_succ
 SETS = ("direct", "indirect_noisy")
 
 
+def _room(seed: int, index: int, count: int, behind: bool):
+    """Room ``index`` of ``count`` seeds (the first half one light, the rest two) at 160x120,
+    its first light behind the camera with ``behind``; None (said) where there is no room for it."""
+    from selfsup.scenes.sampler import SamplerConfig, sample_scene
+    from selfsup.scenes.sequences import light_behind_camera
+
+    config = SamplerConfig(height=120, width=160)
+    spec = sample_scene(seed, config, n_lights=1 if index < count // 2 else 2)
+    if behind:
+        spec = light_behind_camera(spec, margin=config.light_margin)
+        if spec is None:
+            print(f"seed {seed}: no room behind the camera for a light; left out", flush=True)
+    return spec
+
+
 def make(out: Path, seeds=SEEDS, frames: int = 12, swing_deg: float = 30.0, sets=SETS, behind: bool = False
          ) -> list[Path]:
     """One posed capture folder per set and seed under ``out/<set>``: the first half of the
@@ -65,22 +80,17 @@ def make(out: Path, seeds=SEEDS, frames: int = 12, swing_deg: float = 30.0, sets
     frame, lighting what every frame sees), the sets named ``behind_<set>``."""
     from benchmarks.captures import SENSOR, capture_exposure, write_capture
     from selfsup.scenes.degrade import Degradations
-    from selfsup.scenes.sampler import SamplerConfig, sample_scene
-    from selfsup.scenes.sequences import light_behind_camera, render_orbit
+    from selfsup.scenes.sequences import render_orbit
 
     degradations = {"direct": Degradations(), "indirect_noisy": Degradations(indirect=2.0, **SENSOR)}
-    config = SamplerConfig(height=120, width=160)
     folders = []
     for set_name in sets:
         for k, seed in enumerate(seeds):
-            n_lights = 1 if k < len(seeds) // 2 else 2
-            spec = sample_scene(seed, config, n_lights=n_lights)
-            if behind:
-                spec = light_behind_camera(spec, margin=config.light_margin)
-                if spec is None:
-                    print(f"seed {seed}: no room behind the camera for a light; left out", flush=True)
-                    continue
-            scenes, poses, truth = render_orbit(seed, frames, swing_deg, config, degradations=degradations[set_name],
+            spec = _room(seed, k, len(seeds), behind)
+            if spec is None:
+                continue
+            n_lights = spec.light_position.shape[0]
+            scenes, poses, truth = render_orbit(seed, frames, swing_deg, degradations=degradations[set_name],
                                                 spec=spec)
             folder = out / (f"behind_{set_name}" if behind else set_name) / f"scan_{seed}"
             exposure = capture_exposure(scenes[len(scenes) // 2], folder.name)  # one exposure: a locked camera
@@ -105,21 +115,16 @@ def make_mitsuba(out: Path, seeds=SEEDS[:4] + SEEDS[6:10], frames: int = 12, swi
 
     from benchmarks.captures import capture_exposure, write_capture
     from benchmarks.mitsuba_scenes import render_variants
-    from selfsup.scenes.sampler import SamplerConfig, sample_scene
-    from selfsup.scenes.sequences import light_behind_camera, orbit_pose, orbited
+    from selfsup.scenes.sequences import orbit_pose, orbited
 
     mi.set_variant("scalar_rgb")
     folders = []
     prefix = "mitsuba_behind" if behind else "mitsuba"
     for k, seed in enumerate(seeds):
-        n_lights = 1 if k < len(seeds) // 2 else 2
-        config = SamplerConfig(height=120, width=160)
-        spec = sample_scene(seed, config, n_lights=n_lights)
-        if behind:
-            spec = light_behind_camera(spec, margin=config.light_margin)
-            if spec is None:
-                print(f"seed {seed}: no room behind the camera for a light; left out", flush=True)
-                continue
+        spec = _room(seed, k, len(seeds), behind)
+        if spec is None:
+            continue
+        n_lights = spec.light_position.shape[0]
         angles = torch.linspace(-swing_deg, swing_deg, frames).tolist()
         exposure, capture = None, {}
         for f, angle in enumerate(angles):

@@ -178,10 +178,10 @@ def light_behind_camera(spec: SceneSpec, light: int = 0, margin: float = 0.3) ->
     to the camera); None when that place is within ``margin`` (metres) of a surface. Out
     of view in every frame of :func:`render_orbit`'s turns, its light on every surface."""
     up = _up(spec)
-    back = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-    back = back - (back @ up) * up  # the camera's forward along the floor
-    width, depth, height = spec.meta["room_size_m"]
-    position = -BEHIND_DEPTH * depth * back / back.norm() + BEHIND_HEIGHT * height * up
+    forward = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    forward = forward - (forward @ up) * up  # the camera's view along the floor
+    _, depth, height = spec.meta["room_size_m"]
+    position = -BEHIND_DEPTH * depth * forward / forward.norm() + BEHIND_HEIGHT * height * up
     if not bool(signed_distance(_double(spec.prims), position[None]) > margin):
         return None
     lights, power = spec.light_position.clone(), spec.light_relative_intensity.clone()
