@@ -49,7 +49,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import RESULTS, device_slug, write_results
+from benchmarks.common import write_results
 from render import Material, light_transport
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.prepare import within_pixels

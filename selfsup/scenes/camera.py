@@ -75,11 +75,9 @@ def with_area_lights(spec: SceneSpec, kind: str, size: float = 0.6, points: int 
         if kind == "panel":
             top = float(spec.meta["room_size_m"][2]) - 0.05
             centre = light + (top - float((light - floor_point) @ up)) * up
-            normal = up
         else:
             wall_point, facing = planes[1, :3], planes[1, 3:6] / planes[1, 3:6].norm()  # the back wall faces the camera
             centre = light - (float((light - wall_point) @ facing) - wall_gap) * facing
-            normal = facing
         centres.append(centre)
     centres = torch.stack(centres)  # (L, 3)
     offsets = _square(up if kind == "panel" else planes[1, 3:6], size, points)  # (N, 3)
