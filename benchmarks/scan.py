@@ -170,10 +170,10 @@ def room_size(folder: Path) -> float:
     return scene_size(np.concatenate([scene_points(*capture_geometry(f.frame), f.pose) for f in frames]))
 
 
-def score(folder: Path, frames_records: list[dict], room: dict) -> dict:
+def score(folder: Path, frames_records: list[dict], room: dict, size: float) -> dict:
     """One row: the frames' and the scan's world errors, counts and the spread, as shares
-    of :func:`room_size`."""
-    world, size = np.array(json.loads((folder / "truth.json").read_text())["lights"]), room_size(folder)
+    of ``size`` (:func:`room_size`)."""
+    world = np.array(json.loads((folder / "truth.json").read_text())["lights"])
     poses = {key: np.array(value) for key, value in json.loads((folder / "poses.json").read_text()).items()}
     errors, counts, mapped = [], [], []
     for record in frames_records:
@@ -218,14 +218,15 @@ def timed_scans(scans: Path) -> list[dict]:
     return rows
 
 
-def tracked(folder: Path, posed: bool) -> dict:
+def tracked(folder: Path, posed: bool, size: float) -> dict:
     """``mode=track`` (refresh 0: full estimates on evidence only) through a posed scan, with
     its poses (the lights carried through the camera's moves) or without (a copy of the
     folder without ``poses.json``): the median over frames of the worst tracked light's world
-    error (each frame's lights mapped by its pose; a wrong count: inf) and the full estimates."""
+    error as a share of ``size`` (each frame's lights mapped by its pose; a wrong count: inf) and
+    the full estimates."""
     from selfsup.tracking import track_files
 
-    world, size = np.array(json.loads((folder / "truth.json").read_text())["lights"]), room_size(folder)
+    world = np.array(json.loads((folder / "truth.json").read_text())["lights"])
     poses = {key: np.array(value) for key, value in json.loads((folder / "poses.json").read_text()).items()}
     with tempfile.TemporaryDirectory() as tmp:
         source = folder
@@ -261,8 +262,9 @@ def run(scans: Path, write: bool = True, timing: Path | None = None, name: str =
                 scan_files(folder, Path(tmp) / "room.json", progress=False)
                 room = json.loads((Path(tmp) / "room.json").read_text())
                 room["seconds"] = round(time.perf_counter() - started, 1)
-            with_poses, without = tracked(folder, True), tracked(folder, False)
-            scored.append({**score(folder, records, room), "scan": f"{set_folder.name}/{folder.name}",
+            size = room_size(folder)  # every frame's depth read once for the three scores
+            with_poses, without = tracked(folder, True, size), tracked(folder, False, size)
+            scored.append({**score(folder, records, room, size), "scan": f"{set_folder.name}/{folder.name}",
                            "tracked_posed_error": with_poses["error"], "tracked_posed_full": with_poses["full"],
                            "tracked_unposed_error": without["error"], "tracked_unposed_full": without["full"]})
             print(scored[-1], flush=True)
