@@ -182,9 +182,7 @@ def realities(out: Path, count: int = 12, seed: int = 9000, sets=tuple(REALITY_S
     beside 256x192 depth), ``panel`` and ``window`` (area lights: a 0.6 m ceiling panel,
     a 1.2 m window in front of the back wall; truth at their centres). ``truth/`` as
     :func:`write_capture` writes it, the intensities those of the light's whole area."""
-    import imageio.v3 as iio
-
-    from selfsup.scenes.camera import CameraModel, camera_capture, with_area_lights
+    from selfsup.scenes.camera import CameraModel, camera_capture, with_area_lights, write_capture_frame
     from selfsup.scenes.exact import render_specs
     from selfsup.scenes.sampler import SamplerConfig, sample_scene
 
@@ -202,18 +200,13 @@ def realities(out: Path, count: int = 12, seed: int = 9000, sets=tuple(REALITY_S
             specs.append(spec)
             centres.append(centre)
         folder = out / set_name
-        for sub in ("color", "depth", "intrinsics", "truth"):
-            (folder / sub).mkdir(parents=True, exist_ok=True)
+        (folder / "truth").mkdir(parents=True, exist_ok=True)
         for k, (rendered, centre) in enumerate(zip(render_specs(specs, samples=1), centres)):
             scene, frame_id = rendered.scene, f"{set_name}_{k:03d}"
             valid = scene.depth > 0
             plain_exposure = 0.2 / max(float(scene.image[valid].mean()), 1e-12)
             shot = camera_capture(scene.image, scene.depth, scene.K, model, seed + k, exposure=plain_exposure)
-            (folder / "color" / f"{frame_id}{shot.suffix}").write_bytes(shot.encoded)
-            iio.imwrite(folder / "depth" / f"{frame_id}.png", shot.depth_mm)
-            K = shot.K
-            (folder / "intrinsics" / f"{frame_id}.json").write_text(json.dumps(
-                {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}))
+            write_capture_frame(folder, frame_id, shot)
             per_light = scene.light_intensity.reshape(centre.shape[0], -1, 3).sum(1)  # an area's points summed
             meta = {**scene.meta, "id": frame_id, "set": set_name, "exposure": shot.exposure,
                     "white_balance_gains": shot.gains.tolist(), "colour_shift_px": list(shot.shift_px)}

@@ -59,7 +59,7 @@ from selfsup.scenes.io import scene_gbuffer
 ROOT = Path(__file__).resolve().parents[1]
 COLUMNS = ["set", "frames", "no_light", "share_ge_0.1", "chroma_ge_0.2", "height_ge_0.3m", "median_share",
            "median_min_chroma", "median_height_m", "median_distance_m", "world_spread_m", "glued_spread_m",
-           "seconds_per_frame"]
+           "median_angle_deg", "lambert_angle_deg", "seconds_per_frame"]
 SHARE_TARGET, CHROMA_TARGET, HEIGHT_TARGET = 0.1, 0.2, 0.3
 
 
@@ -153,6 +153,56 @@ def judge_set(folder: Path, records: list[dict]) -> list[dict]:
     return rows
 
 
+def brightest_at(lights: list[dict], centre: np.ndarray) -> dict:
+    """The light that gives ``centre`` the most light: mean intensity over squared distance."""
+    return max(lights, key=lambda light: float(np.mean(light["intensity"]))
+               / max(float(np.sum((np.asarray(light["position"]) - centre) ** 2)), 1e-12))
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1.0, 1.0))))
+
+
+def lambert_direction(frame, centre: np.ndarray) -> np.ndarray:
+    """The baseline of a set with truth: least squares of the linear grey image to ``n . b`` on
+    the object's normals (those of a sphere about ``centre``, from the depth), over the pixels
+    between a tenth and 0.95 of the 99th percentile (no shadow, no clipping): ``b``."""
+    scene = read_capture(frame)
+    valid = (scene.depth > 0).numpy()
+    z = scene.depth.numpy()[valid]
+    v, u = np.nonzero(valid)
+    K = scene.K.double().numpy()
+    points = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], 1)
+    normals = (points - centre) / np.linalg.norm(points - centre, axis=1, keepdims=True)
+    grey = scene.image.numpy().mean(-1)[valid]
+    top = np.percentile(grey, 99)
+    use = (grey > 0.1 * top) & (grey < 0.95 * top)
+    return np.linalg.lstsq(normals[use], grey[use], rcond=None)[0]
+
+
+def truth_angles(folder: Path, rows: list[dict]) -> None:
+    """Where ``folder/truth.json`` gives each frame's light direction from an object's centre
+    (``{"centre": [x, y, z], "frames": {id: {"direction": [...]}}}``, as the ball set's):
+    each row's ``angle`` (degrees; 90 where no light is presented) between it and the
+    direction from the centre to the light that lights the centre most, and the Lambertian
+    baseline's (:func:`lambert_direction`) ``lambert_angle``."""
+    path = folder / "truth.json"
+    if not path.exists():
+        return
+    truth = json.loads(path.read_text())
+    centre = np.asarray(truth["centre"], dtype=float)
+    frames = {f.id: f for f in capture_frames(folder)}
+    for row in rows:
+        known = truth["frames"].get(row["id"])
+        if known is None:
+            continue
+        direction = np.asarray(known["direction"], dtype=float)
+        lights = row["record"]["lights"]
+        row["angle"] = round(angle_deg(np.asarray(brightest_at(lights, centre)["position"]) - centre, direction), 3) \
+            if lights else 90.0
+        row["lambert_angle"] = round(angle_deg(lambert_direction(frames[row["id"]], centre), direction), 3)
+
+
 def _spread(points: np.ndarray) -> float:
     # The median distance of points (N, 3) from their (per-axis) median.
     return float(np.median(np.linalg.norm(points - np.median(points, 0), axis=1)))
@@ -178,6 +228,10 @@ def summarise(name: str, rows: list[dict], wall: float) -> dict:
                "median_share": median("share"), "median_min_chroma": round(statistics.median(r["min_chroma"] for r in rows), 3),
                "median_height_m": median("height"), "median_distance_m": median("distance"),
                "seconds_per_frame": round(wall / max(n, 1), 3)}
+    scored = [r for r in rows if "angle" in r]
+    if scored:
+        summary["median_angle_deg"] = round(statistics.median(r["angle"] for r in scored), 2)
+        summary["lambert_angle_deg"] = round(statistics.median(r["lambert_angle"] for r in scored), 2)
     if len(posed) >= 2:
         summary["world_spread_m"] = round(_spread(np.array([r["world"] for r in posed])), 3)
         camera = np.median(np.array([r["position"] for r in posed]), 0)  # a light glued to the camera
@@ -247,6 +301,7 @@ def main(argv: list[str] | None = None) -> None:
     for folder in capture_sets(args.input):
         records, wall = run_command(folder, settings)
         rows = judge_set(folder, records)
+        truth_angles(folder, rows)
         name = folder.name if folder != args.input else args.input.name
         summaries.append(summarise(name, rows, wall))
         print(json.dumps(summaries[-1]), flush=True)
@@ -254,7 +309,8 @@ def main(argv: list[str] | None = None) -> None:
         frames += [{"set": name, **{k: v for k, v in r.items() if k not in ("scene", "record")}} for r in rows]
     if len(summaries) > 1:
         total = summarise("all", all_rows, sum(s["seconds_per_frame"] * s["frames"] for s in summaries))
-        total.pop("world_spread_m", None), total.pop("glued_spread_m", None)  # across rooms: meaningless
+        for key in ("world_spread_m", "glued_spread_m", "median_angle_deg", "lambert_angle_deg"):  # across sets: meaningless
+            total.pop(key, None)
         summaries.append(total)
     device = torch.device("cpu")
     header = (f"Plausibility on real frames (no truth), `python -m benchmarks.real_frames --input {args.input}"

@@ -40,6 +40,7 @@ class Candidate:
     coat: bool = False  # whether the specular pixels' diffuse light went through a clear coat (render.Material.coat)
     evidence: float | None = None  # the ambient-only model's criterion less this one's (albedo-free fits)
     vignetting: float | None = None  # the corner light loss of the lens the fit took out (albedo-free fits)
+    highlight_pixels: int | None = None  # pixels left out of the placement as a highlight (albedo-free fits)
 
 
 def block_px(options: EstimateOptions, width: int, albedo_free: bool = False) -> int:

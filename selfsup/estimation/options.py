@@ -25,6 +25,7 @@ COAT = ("auto", "never", "always")
 ALBEDO_FREE_RESIDUALS = ("segments", "pairs")
 LIGHT_COLOUR = ("neutral", "shared", "free")
 VIGNETTING = ("auto", "none")
+HIGHLIGHTS = ("leave_out", "keep")
 REFINE_METHODS = ("lm", "adam", "gd")
 
 
@@ -108,9 +109,10 @@ class Tuning:
             full-resolution refinement.
     Inputs:
         normal_smoothing, normal_noise_threshold: ``auto`` refits normals noisier than
-            this many degrees (``always`` | ``never``) as planes of the depth over a
-            window of ``plane_window`` x the focal length, each pixel free to take a
-            window ``plane_shifts`` of the half-size beside its own.
+            this many degrees (the 75th percentile; ``always`` | ``never``) as planes of
+            the depth over the largest window up to ``plane_window`` x the focal length on
+            which the depth is a plane (:func:`selfsup.estimation.normals.planes_that_hold`),
+            each pixel free to take a window ``plane_shifts`` of the half-size beside its own.
         mask_saturated: leave out clipped pixels.
         max_pixels: a larger image is estimated on k x k blocks (the least k leaving at
             most this many; None: every pixel).
@@ -120,7 +122,13 @@ class Tuning:
             ``albedo_free_scale``, ``albedo_free_block_width``: that fit's Cauchy
             scale and block; ``albedo_free_residuals``: ``segments`` (each pixel's log
             shading against its albedo segment's mean; segments cut at the image's
-            edges, Felzenszwalb scale ``albedo_segment_scale``) | ``pairs`` (neighbours).
+            edges, Felzenszwalb scale ``albedo_segment_scale``, then joined where only
+            shading cuts them: the log shading's step across the cut at most
+            ``albedo_edge_step`` beyond what the steps beside it predict (None: not joined),
+            the chromaticity's at most ``albedo_edge_chroma``) | ``pairs`` (neighbours).
+            ``highlights``: ``leave_out`` (the chosen lights' mirror-lobe pixels clearly
+            brighter than the diffuse model are left out of their placement, and counted
+            in the record) | ``keep``.
             ``albedo_free_lobe_deg``: one more light is taken only if it wins without
             the pixels of the mirror lobes of the lights before it (normal within this many
             degrees of their half vector) that are brighter than their model: where a
@@ -166,7 +174,7 @@ class Tuning:
     weak_light_penalty: float = 2.0
     search_shadows: str = "none"
     normal_smoothing: str = "auto"
-    normal_noise_threshold: float = 0.5
+    normal_noise_threshold: float = 1.5
     plane_window: float = 0.06
     plane_shifts: tuple[float, ...] = (1.0, 0.5, 0.25)
     mask_saturated: bool = True
@@ -181,7 +189,10 @@ class Tuning:
     albedo_free_block_width: float = 0.05
     albedo_free_residuals: str = "segments"
     albedo_segment_scale: float = 50.0
+    albedo_edge_step: float | None = 0.05
+    albedo_edge_chroma: float = 0.03
     albedo_free_lobe_deg: float = 20.0
+    highlights: str = "leave_out"
     unlit_evidence: bool = True
     albedo_class_rounds: int = 1
     albedo_class_level: float = 0.1
@@ -240,6 +251,9 @@ def _check_tuning(t: Tuning) -> None:
          "a finite length > 0 (of the scene size)")
     need(t.albedo_free_scale > 0, "albedo_free_scale", "> 0")
     need(t.albedo_segment_scale > 0, "albedo_segment_scale", "> 0")
+    need(t.albedo_edge_step is None or 0 <= t.albedo_edge_step < math.inf, "albedo_edge_step",
+         "null (segments not joined) or a log step >= 0")
+    need(0 <= t.albedo_edge_chroma < math.inf, "albedo_edge_chroma", "a chromaticity step >= 0")
     need(t.albedo_class_rounds >= 0, "albedo_class_rounds", ">= 0")
     need(t.albedo_class_level >= 0, "albedo_class_level", ">= 0")
     need(t.albedo_class_chroma >= 0, "albedo_class_chroma", ">= 0")
@@ -253,7 +267,7 @@ def _check_tuning(t: Tuning) -> None:
          "null or an integer >= 1")
     need(t.criterion_stride >= 1, "criterion_stride", ">= 1 pixel")
     for name, choices in (("reflectance", REFLECTANCE), ("albedo_free_residuals", ALBEDO_FREE_RESIDUALS),
-                          ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT), ("light_colour", LIGHT_COLOUR), ("vignetting", VIGNETTING),
+                          ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT), ("light_colour", LIGHT_COLOUR), ("vignetting", VIGNETTING), ("highlights", HIGHLIGHTS),
                           ("indirect", INDIRECT), ("search_shadows", SHADOW_METHODS),
                           ("criterion_shadows", SHADOW_METHODS)):
         _check_choice(f"tuning.{name}", getattr(t, name), choices)

@@ -17,23 +17,31 @@ import torch
 from torch import Tensor
 
 from render import Material
-from selfsup.estimation.normals import normal_noise, plane_fit, smooth_normals
+from selfsup.estimation.normals import SMOOTHING_RADIUS, normal_noise, planes_that_hold, smooth_normals
 from selfsup.estimation.options import EstimateOptions, Tuning
 from selfsup.estimation.problem import FitProblem
 from selfsup.scenes.io import Scene, SceneFileError, scene_gbuffer
 
-__all__ = ["prepare", "problems_of", "problem_of", "saturated_pixels", "plane_window_px", "pixel_stride",
-           "within_pixels", "working_range", "in_file_units", "WORKING_RANGE"]
+__all__ = ["prepare", "problems_of", "problem_of", "saturated_pixels", "full_scales", "CLIP_LEVEL", "plane_window_px", "pixel_stride",
+           "within_pixels", "cropped_to_depth", "working_range", "in_file_units", "WORKING_RANGE"]
 
 log = logging.getLogger(__name__)
 
 
-def saturated_pixels(image: Tensor, mask: Tensor, min_share: float = 0.002) -> Tensor:
+# A capture's clipped pixels lie at the top of its encoding: a channel's peak below this share
+# of the full scale is a dim frame's brightest level, however many pixels share it (a surface
+# under flat light, quantised to 8 bits, holds one code over thousands of pixels).
+CLIP_LEVEL = 0.95
+
+
+def saturated_pixels(image: Tensor, mask: Tensor, min_share: float = 0.002, full_scale: Tensor | None = None) -> Tensor:
     """Pixels ``(B, H, W)`` with a clipped channel.
 
     A channel is clipped when at least ``min_share`` of the valid pixels (and at
     least 3) hold exactly its largest value, as a sensor's or a tone mapper's
-    clipping leaves them; an unclipped image has its maximum at one pixel.
+    clipping leaves them; an unclipped image has its maximum at one pixel. Where
+    ``full_scale (B,)`` is given (the linear value of a capture's top code; 0: none
+    known, as for a scene file), only a peak at :data:`CLIP_LEVEL` of it or above is a clip.
 
     Args:
         image: ``(B, 3, H, W)``; mask: ``(B, H, W)`` valid pixels.
@@ -44,11 +52,19 @@ def saturated_pixels(image: Tensor, mask: Tensor, min_share: float = 0.002) -> T
     count = at_peak.flatten(2).sum(-1)  # (B, 3)
     # A channel black everywhere is dark, not clipped.
     clipped = (count >= 3) & (count >= min_share * mask.flatten(1).sum(-1, keepdim=True)) & (peak[..., 0, 0] > 0)
+    if full_scale is not None:
+        clipped &= peak[..., 0, 0] >= CLIP_LEVEL * full_scale.to(image)[:, None]
     return (at_peak & clipped[..., None, None]).any(1)
 
 
+def full_scales(scenes: list[Scene]) -> Tensor:
+    """``(B,)`` each scene's full scale (``meta["full_scale"]``: a capture's top code in its
+    linear image's units; 0 where the file says none)."""
+    return torch.tensor([float(scene.meta.get("full_scale") or 0.0) for scene in scenes])
+
+
 def problem_of(scene: Scene, shadows: str = "epipolar", dtype=torch.float32, normal_smoothing: str = "never",
-               normal_noise_threshold: float = 0.5, mask_saturated: bool = False, *,
+               normal_noise_threshold: float = Tuning.normal_noise_threshold, mask_saturated: bool = False, *,
                plane_window: float = Tuning.plane_window,
                plane_shifts: tuple[float, ...] = Tuning.plane_shifts) -> FitProblem:
     """A batch-of-one :class:`FitProblem` from a scene file's contents (see :func:`problems_of`)."""
@@ -88,7 +104,7 @@ def plane_window_px(focal_px: float, plane_window: float, image_px: int) -> tupl
 
 
 def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.float32, normal_smoothing: str = "never",
-                normal_noise_threshold: float = 0.5, mask_saturated: bool = False, device=None, *,
+                normal_noise_threshold: float = Tuning.normal_noise_threshold, mask_saturated: bool = False, device=None, *,
                 plane_window: float = Tuning.plane_window,
                 plane_shifts: tuple[float, ...] = Tuning.plane_shifts) -> FitProblem:
     """One :class:`FitProblem` of ``B`` same-sized scenes, on ``device`` (None: the
@@ -120,7 +136,7 @@ def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.floa
     if any(dark):
         raise SceneFileError(scenes[dark.index(True)].id, "the image is zero on every valid pixel: no light to estimate")
     if mask_saturated:
-        clipped = saturated_pixels(image, gbuffer.mask)
+        clipped = saturated_pixels(image, gbuffer.mask, full_scale=full_scales(scenes).to(image.device))
         if bool(clipped.any()):
             for scene, count in zip(scenes, clipped.flatten(1).sum(1).tolist()):
                 if count:
@@ -145,9 +161,13 @@ def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.floa
             for radius, step in sorted(set(windows)):
                 rows = at[torch.tensor([w == (radius, step) for w in windows], device=at.device)]
                 points, mask = gbuffer.points[rows], gbuffer.mask[rows]
-                planes = plane_fit(points, mask, radius=radius, step=step, shifts=plane_shifts)
+                planes = planes_that_hold(points, mask, radius=radius, shifts=plane_shifts)
                 mask = mask & planes.has_normal
-                smoothed = smooth_normals(points, planes.normals, mask)
+                # Smoothed only where a plane held over a window as wide as the smoothing's:
+                # elsewhere the surface curves or creases within it, and its mean normal leans.
+                smoothed = torch.where((planes.radius >= SMOOTHING_RADIUS)[..., None],
+                                       smooth_normals(points, planes.normals, mask, radius=SMOOTHING_RADIUS),
+                                       planes.normals)
                 gbuffer = replace(gbuffer, normals=gbuffer.normals.index_put((rows,), smoothed),
                                   mask=gbuffer.mask.index_put((rows,), mask))
                 if normal_tilt is None:
@@ -155,8 +175,10 @@ def problems_of(scenes: list[Scene], shadows: str = "epipolar", dtype=torch.floa
                 # The smoothing's window is within the plane's: it averages errors that are nearly
                 # one already, so the plane's tilt variance is kept as it is.
                 normal_tilt = normal_tilt.index_put((rows,), planes.tilt_variance.to(image.dtype))
+    cropped = [bool(scene.meta.get("cropped_from")) for scene in scenes]
     return FitProblem(gbuffer, material, image, _stacked_field(scenes, "ambient", device), scenes[0].falloff, shadows,
-                      normal_tilt=normal_tilt)
+                      normal_tilt=normal_tilt,
+                      cropped=torch.tensor(cropped, device=image.device) if any(cropped) else None)
 
 
 def prepare(scenes: list[Scene], options: EstimateOptions, device=None) -> FitProblem:
@@ -181,13 +203,40 @@ def pixel_stride(height: int, width: int, max_pixels: int | None) -> int:
 def within_pixels(scene: Scene, options: EstimateOptions) -> Scene:
     """``scene`` binned (:meth:`Scene.binned`, blocks of :func:`pixel_stride` pixels a side)
     to at most ``options.tuning.max_pixels`` if it is larger: the estimator chooses its
-    working resolution, so a 640x480 frame costs what a 160x120 one does."""
+    working resolution, so a 640x480 frame costs what a 160x120 one does. Then, where the
+    pixels with a depth fill at most :data:`CROP_SHARE` of the frame (an object photographed
+    in the dark), cropped to their box and :data:`CROP_MARGIN` pixels about it: the empty
+    rest would cost as much as they do and say nothing."""
     H, W = scene.image.shape[:2]
     stride = pixel_stride(H, W, options.tuning.max_pixels)
     if stride > 1:
         log.info("%s: %dx%d estimated on %dx%d blocks (estimate.tuning.max_pixels=%d)", scene.id, W, H, stride, stride,
                  options.tuning.max_pixels)
-    return scene.binned(stride)
+    return cropped_to_depth(scene.binned(stride))
+
+
+# within_pixels crops a frame whose pixels with a depth lie in a box of at most this share of
+# it, to that box and this many pixels about it.
+CROP_SHARE = 0.5
+CROP_MARGIN = 2
+
+
+def cropped_to_depth(scene: Scene) -> Scene:
+    """``scene`` cropped to the box of its pixels with a depth and :data:`CROP_MARGIN` about
+    it, where that box is at most :data:`CROP_SHARE` of the frame; else as it is."""
+    valid = scene.depth_valid
+    if not bool(valid.any()):
+        return scene  # problems_of names a frame without depth
+    H, W = valid.shape
+    rows, cols = valid.any(1).nonzero()[:, 0], valid.any(0).nonzero()[:, 0]
+    top, bottom = max(int(rows[0]) - CROP_MARGIN, 0), min(int(rows[-1]) + CROP_MARGIN + 1, H)
+    left, right = max(int(cols[0]) - CROP_MARGIN, 0), min(int(cols[-1]) + CROP_MARGIN + 1, W)
+    if (bottom - top) * (right - left) > CROP_SHARE * H * W:
+        return scene
+    log.info("%s: the pixels with a depth fill %dx%d of %dx%d: estimated on that box", scene.id, right - left,
+             bottom - top, W, H)
+    crop = scene.cropped(top, left, bottom - top, right - left)
+    return replace(crop, meta={**crop.meta, "cropped_from": [W, H, left, top]})
 
 
 # The image values the estimator works at. It fits in float32, where squares and its few
@@ -214,7 +263,8 @@ def working_range(scene: Scene) -> tuple[Scene, float]:
     log.info("%s: image values around %.3g, estimated at %g times them (intensities and ambient reported in the "
              "file's units)", scene.id, median, factor)
     ambient = None if scene.ambient is None else scene.ambient * factor
-    return replace(scene, image=scene.image * factor, ambient=ambient), factor
+    meta = scene.meta if scene.meta.get("full_scale") is None else {**scene.meta, "full_scale": scene.meta["full_scale"] * factor}
+    return replace(scene, image=scene.image * factor, ambient=ambient, meta=meta), factor
 
 
 def in_file_units(record: dict, factor: float) -> dict:

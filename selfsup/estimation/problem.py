@@ -46,6 +46,9 @@ class FitProblem:
             exact. Only :func:`position_covariance` reads it.
         shadow_options: the shadow method's options (:mod:`render.shadows`), None
             for its defaults.
+        cropped: ``(B,)`` bool, the images that are a crop of their frame
+            (:func:`selfsup.estimation.prepare.cropped_to_depth`: an object in the dark),
+            whose lens's vignetting the albedo-free fit does not look for; None: none is.
     """
 
     gbuffer: GBuffer
@@ -57,6 +60,7 @@ class FitProblem:
     indirect: bool = False
     normal_tilt: Tensor | None = None
     shadow_options: object | None = None
+    cropped: Tensor | None = None
     _median: Tensor | None = field(default=None, init=False, repr=False, compare=False)
     _noise: Tensor | None = field(default=None, init=False, repr=False, compare=False)
     # Median and noise level of each subsample (by stride) already found: the solvers
@@ -105,6 +109,7 @@ class FitProblem:
                      coat=None if m.coat is None else m.coat[index], coat_f0=m.coat_f0),
             self.image[index], None if self.ambient is None else self.ambient[index], self.falloff, self.shadows,
             self.indirect, None if self.normal_tilt is None else self.normal_tilt[index], self.shadow_options,
+            None if self.cropped is None else self.cropped[index],
         )
         # Each image's median is its own: the selection's are these rows (a sort of every
         # image's values each time was 7% of a batched estimate's GPU time).
@@ -160,6 +165,9 @@ class FitProblem:
                 [p.image.new_zeros(p.image.shape[0], *p.image.shape[2:]) if p.normal_tilt is None else p.normal_tilt
                  for p in problems]),
             first.shadow_options,
+            None if all(p.cropped is None for p in problems) else torch.cat(
+                [torch.zeros(p.batch, dtype=torch.bool, device=p.image.device) if p.cropped is None else p.cropped
+                 for p in problems]),
         )
 
 

@@ -9,6 +9,7 @@ its lights are fitted to the shading's log-differences between neighbours
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import replace
 
@@ -28,6 +29,9 @@ __all__ = ["reflectance_unknown", "albedo_free_images", "estimate_albedo_free", 
            "intensities_of", "ambient_only_loss"]
 
 MIN_RESIDUALS = 100  # the fewest residuals an albedo-free fit or count decision rests on
+# A highlight's pixel (left out of the chosen lights' placement): brighter than the diffuse
+# model by this many times the fit's Cauchy scale, inside the lights' mirror lobes.
+HIGHLIGHT_EXCESS = 2.0
 
 
 def reflectance_unknown(problem: FitProblem, rel_tol: float = 1e-6) -> Tensor:
@@ -75,11 +79,24 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions,
 
     ``slots (B, K, 3)``: a network's lights in its order (:func:`selfsup.estimation.network.network_slots`);
     the search of ``n`` lights also starts from its first ``n``."""
+    if problem.cropped is not None and bool(problem.cropped.any()) and options.tuning.vignetting == "auto":
+        # A crop of an object in the dark shows none of its frame's corners: its lens's
+        # vignetting is not looked for (the falloff's strength was a free knob there).
+        results: list = [None] * problem.batch
+        plain = options.tuned(vignetting="none")
+        cropped = problem.cropped
+        for chosen, crop in ((plain, True), (options, False)):
+            rows = (cropped == crop).nonzero()[:, 0]
+            if rows.numel():
+                sub = dataclasses.replace(problem.select(rows), cropped=None)
+                for i, result in zip(rows.tolist(), estimate_albedo_free(sub, chosen, None if slots is None else slots[rows])):
+                    results[i] = result
+        return results
     labels = geometry = None  # every image's albedo segments (and smooth surfaces), found once
     if options.tuning.albedo_free_residuals == "segments":
         g = problem.gbuffer
         geometry = surface_segments(g.points, g.normals, g.mask)
-        labels = albedo_free.albedo_segments(problem, options.tuning.albedo_segment_scale, geometry)
+        labels = albedo_free.tuned_segments(problem, options.tuning, geometry)
     auto = options.tuning.vignetting == "auto"
     results, whole = _fit_albedo_free(problem, options, labels, geometry, auto, slots)
     again = [i for i, (best, _) in enumerate(results) if best.vignetting]
@@ -192,6 +209,13 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
                     zip(ambient_only_loss(every, chosen).tolist(), losses, counted)]
         for i, loss, pairs in zip(group, losses, counted):
             whole[i] = bic(loss, pairs, 4 * n_lights + int(bool(corner_loss[i] > 0)), block)
+        highlight = torch.zeros_like(sub.gbuffer.mask)
+        if segments is not None and options.tuning.highlights == "leave_out" and options.tuning.albedo_free_lobe_deg > 0:
+            # The diffuse-only fit cannot explain a glossy surface's highlight: its pixels (in the
+            # lights' mirror lobes, clearly brighter than the model) are left out of the placement.
+            highlight = albedo_free.highlight_pixels(every, chosen, options.tuning.albedo_free_lobe_deg,
+                                                     HIGHLIGHT_EXCESS)
+            segments = torch.where(highlight, -1, segments)
         if segments is not None and options.tuning.albedo_class_rounds > 0:
             # The chosen model's lights placed on its segments merged into classes of one albedo.
             chosen, observed = albedo_free.refine_on_classes(
@@ -204,7 +228,8 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
         cov = albedo_free_covariance(observed, chosen, sub, options).cpu()
         for j, i in enumerate(group):
             candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free",
-                                  evidence=evidence[j], vignetting=round(float(corner_loss[i]), 3))
+                                  evidence=evidence[j], vignetting=round(float(corner_loss[i]), 3),
+                                  highlight_pixels=int(highlight[j].sum()))
             # The records keep the tried models' counts and criteria only.
             others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
             results[i] = (candidate, others)

@@ -24,8 +24,10 @@ captures benchmark's recipe (sRGB, 8 bits, millimetres) at the exposure it is gi
 from __future__ import annotations
 
 import io
+import json
 import math
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -36,7 +38,8 @@ from selfsup.scenes.capture import linear_to_srgb
 from selfsup.scenes.io import Scene
 from selfsup.scenes.sampler import SceneSpec
 
-__all__ = ["with_area_lights", "lens_falloff", "CameraModel", "CameraCapture", "camera_capture", "AREA_KINDS"]
+__all__ = ["with_area_lights", "lens_falloff", "CameraModel", "CameraCapture", "camera_capture", "write_capture_frame",
+           "AREA_KINDS"]
 
 AREA_KINDS = ("panel", "window")
 
@@ -203,6 +206,19 @@ def camera_capture(image: Tensor, depth: Tensor, K: Tensor, model: CameraModel, 
     color, encoded, suffix = _encoded(linear, model)
     depth_mm, K = _sensed_depth(z, K, valid, model, rng)
     return CameraCapture(color, encoded, suffix, depth_mm, K, float(exposure), gains, shift)
+
+
+def write_capture_frame(folder: Path, frame_id: str, shot: CameraCapture) -> None:
+    """``shot`` as frame ``frame_id`` of the capture folder ``folder`` (``docs/scene-format.md``,
+    "Capture folders"): ``color/<id>.png|.jpg`` as the camera encoded it, ``depth/<id>.png``
+    (16-bit millimetres) and ``intrinsics/<id>.json`` of the depth grid."""
+    for sub in ("color", "depth", "intrinsics"):
+        (folder / sub).mkdir(parents=True, exist_ok=True)
+    (folder / "color" / f"{frame_id}{shot.suffix}").write_bytes(shot.encoded)
+    Image.fromarray(shot.depth_mm).save(folder / "depth" / f"{frame_id}.png")
+    K = shot.K
+    (folder / "intrinsics" / f"{frame_id}.json").write_text(json.dumps(
+        {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])}))
 
 
 def _processed_colour(linear: np.ndarray, K: np.ndarray, valid: np.ndarray, model: CameraModel,

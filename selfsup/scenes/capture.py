@@ -306,7 +306,7 @@ def read_capture(frame: CaptureFrame) -> Scene:
         image = table[codes]
     meta = {"id": frame.id, "generator": "capture", "falloff": "inverse_square",
             "albedo": f"unknown: kd {ASSUMED_ALBEDO} assumed everywhere", "color": str(frame.color),
-            "depth": str(frame.depth), "color_size": [w, h]}
+            "depth": str(frame.depth), "color_size": [w, h], "full_scale": float(table[-1])}
 
     def tensor(array: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))

@@ -95,6 +95,24 @@ class Scene:
         return replace(self, image=pick(self.image), depth=pick(self.depth), kd=pick(self.kd), ks=pick(self.ks),
                        shininess=pick(self.shininess), normals=pick(self.normals), K=K)
 
+    def cropped(self, top: int, left: int, height: int, width: int) -> "Scene":
+        """The ``height x width`` pixels from row ``top`` and column ``left``, ``K``'s centre
+        moved to match: each kept pixel keeps its depth and its 3D point; the lights and the
+        truth are unchanged."""
+        H, W = self.image.shape[:2]
+        if not (0 <= top and 0 <= left and height >= 1 and width >= 1 and top + height <= H and left + width <= W):
+            raise ValueError(f"a crop of {width}x{height} at ({left}, {top}) does not lie inside the {W}x{H} image")
+
+        def pick(value: Tensor | None) -> Tensor | None:  # the per-pixel fields (H, W, ...)
+            per_pixel = value is not None and value.dim() >= 2 and tuple(value.shape[:2]) == (H, W)
+            return value[top : top + height, left : left + width].contiguous() if per_pixel else value
+
+        K = self.K.clone()
+        K[0, 2] -= left
+        K[1, 2] -= top
+        return replace(self, image=pick(self.image), depth=pick(self.depth), kd=pick(self.kd), ks=pick(self.ks),
+                       shininess=pick(self.shininess), normals=pick(self.normals), K=K)
+
     def binned(self, factor: int) -> "Scene":
         """The scene on a grid ``factor`` times coarser, each pixel one ``factor x factor``
         block (rows and columns past the last whole block dropped): the image, kd and ks

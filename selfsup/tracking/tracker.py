@@ -29,7 +29,7 @@ from render import Material
 from selfsup.estimation import albedo_free
 from selfsup.estimation.criterion import block_px, light_shares
 from selfsup.estimation.options import EstimateOptions
-from selfsup.estimation.prepare import prepare, saturated_pixels, within_pixels, working_range
+from selfsup.estimation.prepare import full_scales, prepare, saturated_pixels, within_pixels, working_range
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
 from selfsup.estimation.records import records
@@ -254,7 +254,7 @@ class Tracker:
         image = scene.image.to(self.device, base.image.dtype).permute(2, 0, 1)[None]
         mask = base.gbuffer.mask
         if self.options.tuning.mask_saturated:
-            mask = mask & ~saturated_pixels(image, mask)
+            mask = mask & ~saturated_pixels(image, mask, full_scale=full_scales([scene]).to(image.device))
         if not bool(((image > 0) & mask[:, None]).any()):
             raise SceneFileError(scene.id, "the image is zero on every valid pixel: no light to estimate")
         kd = scene.kd.to(self.device, base.material.kd.dtype)[None]
@@ -320,7 +320,7 @@ class Tracker:
             kept.surfaces = surface_segments(g.points, g.normals, g.mask)
         stride = self.tuning.warm_stride
         tuning = self.options.tuning
-        labels = albedo_free.albedo_segments(problem, tuning.albedo_segment_scale, kept.surfaces)
+        labels = albedo_free.tuned_segments(problem, tuning, kept.surfaces)
         if tuning.albedo_class_rounds > 0:  # merged into albedo classes under the tracked lights, as a full estimate's
             like = problem.image
             labels = albedo_free.albedo_classes(problem, labels, lights.to(like)[None], self._log_weights().to(like)[None],

@@ -174,3 +174,69 @@ def test_closed_form_eigenpairs_match_eigh(dtype, tol):
     # Every eigenvalue equal: no smallest direction, so no finite vector (plane_fit then has no normal).
     _, round_vector = smallest_eigenvector(torch.tensor([[2.0, 2.0, 2.0, 0.0, 0.0, 0.0]], dtype=dtype))
     assert not torch.isfinite(round_vector).all()
+
+
+def _ball(distance: float = 21.0, radius: float = 0.5, focal: float = 1000.0, size: int = 64):
+    # A sphere seen by a narrow-angle camera, depth rounded to millimetres (the DiLiGenT ball's
+    # geometry at the estimator's working size), and its true normals.
+    Kb = torch.tensor([[focal, 0, (size - 1) / 2], [0, focal, (size - 1) / 2], [0, 0, 1]], dtype=torch.float64)
+    v, u = torch.meshgrid(torch.arange(size, dtype=torch.float64), torch.arange(size, dtype=torch.float64), indexing="ij")
+    rays = torch.stack([(u - Kb[0, 2]) / focal, (v - Kb[1, 2]) / focal, torch.ones_like(u)], -1)
+    rays = rays / rays.norm(dim=-1, keepdim=True)
+    centre = torch.tensor([0.0, 0.0, distance], dtype=torch.float64)
+    b = (rays * centre).sum(-1)
+    disc = b**2 - (distance**2 - radius**2)
+    t = b - disc.clamp_min(0).sqrt()
+    depth = torch.where(disc > 0, torch.round(t * rays[..., 2] * 1000) / 1000, torch.zeros_like(t))
+    g = GBuffer.from_depth(depth[None], Kb)
+    truth = g.points[0] - centre
+    return g, truth / truth.norm(dim=-1, keepdim=True)
+
+
+def test_on_a_curved_surface_the_planes_that_hold_are_the_small_ones():
+    from selfsup.estimation.normals import planes_that_hold
+
+    g, truth = _ball()
+    wide = plane_fit(g.points, g.mask, radius=8, step=2, shifts=(1.0, 0.5, 0.25))
+    held = planes_that_hold(g.points, g.mask, radius=8, shifts=(1.0, 0.5, 0.25))
+    inside = g.mask[0] & held.has_normal[0]
+    assert float(_angle(wide.normals[0], truth, inside).median()) > 5  # a wide window and its shifts round the ball off
+    assert float(_angle(held.normals[0], truth, inside).median()) < 1
+    assert float((held.radius[0][inside] <= 2).double().mean()) > 0.9
+
+
+def test_on_a_noisy_plane_the_widest_window_holds_and_beside_a_crease_a_window_on_its_side():
+    from selfsup.estimation.normals import planes_that_hold, window_radii
+
+    assert window_radii(8) == [8, 4, 2, 1] and window_radii(10) == [10, 5, 2, 1] and window_radii(1) == [1]
+    g = _tilted_plane(noise=0.01)
+    held = planes_that_hold(g.points, g.mask, radius=8, shifts=(1.0, 0.5, 0.25))
+    assert float((held.radius[0][g.mask[0]] == 8).double().mean()) > 0.9
+    wide, _ = plane_normals(g.points, g.mask, radius=8, step=2)
+    assert float(_angle(held.normals[0], TILT, g.mask[0]).median()) < 1.2 * float(_angle(wide[0], TILT, g.mask[0]).median())
+    # A floor meeting a wall: a fronto-parallel wall at z = 3 above a floor rising to meet it.
+    H, W = 48, 64
+    v = torch.arange(H, dtype=torch.float64)[:, None].expand(H, W)
+    floor = 0.625 * K[1, 1] / (v - K[1, 2]).clamp_min(1e-3)  # the floor plane y = 0.625 m: z = 3 at row 36
+    depth = torch.where(v < 36, torch.full_like(v, 3.0), floor)
+    depth = depth + 0.004 * torch.randn(H, W, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    g = GBuffer.from_depth(depth[None], K)
+    held = planes_that_hold(g.points, g.mask, radius=8, shifts=(1.0, 0.5, 0.25))
+    below = torch.zeros(H, W, dtype=torch.bool)
+    below[36:38, 8:56] = True  # the floor's two rows next to the crease
+    own = plane_fit(g.points, g.mask, radius=8, step=2)
+    up = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)  # the floor's normal
+    assert float(_angle(own.normals[0], up, below).median()) > 30  # its own window is most of it wall
+    assert float(_angle(held.normals[0], up, below).median()) < 2
+
+
+def test_normal_noise_tells_depth_in_steps_from_clean_depth():
+    # A sensor's depth in steps (a Kinect's disparity) leaves most neighbours on one step: the
+    # median angle says clean, the 75th percentile does not.
+    from selfsup.estimation.normals import NOISE_QUANTILE
+
+    g = _tilted_plane()
+    stepped = GBuffer.from_depth((torch.round(g.points[..., 2] / 0.015) * 0.015), K)  # 1.5 cm steps at 2 m
+    median = float(normal_noise(stepped.points, stepped.normals, stepped.mask, quantile=0.5)[0])
+    assert NOISE_QUANTILE == 0.75 and median < 0.5
+    assert float(normal_noise(stepped.points, stepped.normals, stepped.mask)[0]) > 1.5

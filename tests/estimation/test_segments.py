@@ -50,3 +50,34 @@ def test_shapes_are_checked():
     points, normals, mask = _two_walls_and_a_box()
     with pytest.raises(ValueError, match="must be"):
         surface_segments(points, normals, mask[0])
+
+
+def _joined(log_grey, chroma=None, labels=None, surfaces=None, max_step=0.05, max_chroma=0.03):
+    import numpy as np
+
+    from selfsup.estimation.albedo_free.regions import join_shading_cuts
+
+    H, W = log_grey.shape
+    chroma = np.zeros((H, W, 2)) if chroma is None else chroma
+    labels = (np.arange(W)[None] // 4).repeat(H, 0) if labels is None else labels  # bands 4 px wide: cut every 4 px
+    surfaces = np.zeros((H, W), dtype=np.int64) if surfaces is None else surfaces
+    return join_shading_cuts(labels, log_grey, chroma, np.zeros((H, W)), surfaces, max_step, max_chroma)
+
+
+def test_cuts_across_smooth_shading_are_joined_and_albedo_edges_are_kept():
+    import numpy as np
+
+    H, W = 12, 32
+    x = np.arange(W)[None].repeat(H, 0).astype(float)
+    ramp = np.log(0.2 + 0.8 * np.cos(np.radians(80) * x / W) ** 2)  # a falloff steepening along the rows
+    assert (_joined(ramp) == 0).all()  # one region: every cut is shading
+    step = ramp + np.where(x >= 16, np.log(0.6), 0.0)  # an albedo 0.6 times as bright from column 16
+    joined = _joined(step)
+    assert len(np.unique(joined[:, :16])) == 1 and len(np.unique(joined[:, 16:])) == 1 and joined[0, 0] != joined[0, -1]
+    chroma = np.zeros((H, W, 2))
+    chroma[:, 16:, 0] = 0.2  # the same brightness, another hue (red more than green)
+    coloured = _joined(ramp, chroma)
+    assert coloured[0, 0] != coloured[0, -1] and len(np.unique(coloured)) == 2
+    surfaces = (x >= 16).astype(np.int64)  # two smooth surfaces never join, whatever their shading
+    assert len(np.unique(_joined(ramp, surfaces=surfaces))) == 2
+    assert (_joined(ramp, labels=np.where(x < 2, -1, x // 4).astype(np.int64))[:, :2] == -1).all()

@@ -48,10 +48,10 @@ from selfsup.estimation.albedo_free.classes import CLASS_ITERATIONS, albedo_clas
 from selfsup.estimation.albedo_free.covariance import block_scores_of, position_covariance
 from selfsup.estimation.albedo_free.fit import highlight_pixels, light_shares, mirror_lobes, refine_positions, shading_loss
 from selfsup.estimation.albedo_free.observation import (MIN_SEGMENT_PIXELS, AlbedoFreeFit, LogShading, albedo_segments,
-                                                        observe, pair_differences)
+                                                        observe, pair_differences, tuned_segments)
 from selfsup.estimation.albedo_free.light_search import AMBIENT_STEPS, RATIO_STEPS, anchor_pairs, search, search_each, split_starts
 
-__all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "albedo_segments", "shading_loss", "search",
+__all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "albedo_segments", "tuned_segments", "shading_loss", "search",
            "search_each", "split_starts", "anchor_pairs", "refine_positions", "light_shares", "mirror_lobes",
            "highlight_pixels", "position_covariance", "block_scores_of", "group_medians", "albedo_classes",
            "refine_on_classes", "AMBIENT_STEPS", "RATIO_STEPS", "CLASS_ITERATIONS", "MIN_SEGMENT_PIXELS"]

@@ -181,13 +181,13 @@ def mirror_lobes(gbuffer: GBuffer, position: Tensor, max_angle_deg: float) -> Te
     return (cosine > math.cos(math.radians(max_angle_deg))).any(1) & gbuffer.mask
 
 
-def highlight_pixels(obs: LogShading, fit: AlbedoFreeFit, max_angle_deg: float) -> Tensor:
+def highlight_pixels(obs: LogShading, fit: AlbedoFreeFit, max_angle_deg: float, min_excess: float = 0.0) -> Tensor:
     """``(B, H, W)`` bool: the pixels of ``fit``'s lights' :func:`mirror_lobes` that are
-    brighter than its model (a positive residual against their segment's offset): where
-    a glossy surface may show a highlight the diffuse-only fit does not explain.
-    Segment residuals only."""
+    brighter than its model (a residual against their segment's offset above ``min_excess``
+    times the fit's Cauchy scale): where a glossy surface may show a highlight the
+    diffuse-only fit does not explain. Segment residuals only."""
     if obs.segments is None:
         raise ValueError("highlight pixels are found on segment residuals; pairs have no pixel of their own")
     _, residual = _evaluate(obs, fit.position, fit.log_weight)
     lobes = mirror_lobes(obs.gbuffer, fit.position, max_angle_deg)
-    return lobes & (residual.view_as(lobes) > 0)
+    return lobes & (residual.view_as(lobes) > min_excess * obs.scale.view(-1, 1, 1))

@@ -15,10 +15,11 @@ from torch import Tensor
 
 from render import GBuffer, Material
 from selfsup.estimation.normals import surface_segments
-from selfsup.estimation.options import ALBEDO_FREE_RESIDUALS
+from selfsup.estimation.options import ALBEDO_FREE_RESIDUALS, Tuning
 from selfsup.estimation.problem import FitProblem
 
-__all__ = ["LogShading", "AlbedoFreeFit", "pair_differences", "albedo_segments", "observe", "MIN_SEGMENT_PIXELS"]
+__all__ = ["LogShading", "AlbedoFreeFit", "pair_differences", "albedo_segments", "tuned_segments", "observe",
+           "MIN_SEGMENT_PIXELS"]
 
 # The robust segment offsets (:meth:`LogShading.offsets`): reweighted means from the plain
 # mean, the Cauchy scale times these factors (wide first, so that a start pulled towards a
@@ -147,16 +148,23 @@ SEGMENT_MIN_SIZE = 15
 MIN_SEGMENT_PIXELS = 8
 
 
-def albedo_segments(problem: FitProblem, scale: float = 50.0, geometry: Tensor | None = None) -> Tensor:
+def albedo_segments(problem: FitProblem, scale: float = 50.0, geometry: Tensor | None = None,
+                    edge_step: float | None = Tuning.albedo_edge_step,
+                    edge_chroma: float = Tuning.albedo_edge_chroma) -> Tensor:
     """Regions of one albedo ``(B, H, W)`` long (-1: none): the smooth surfaces of the
     geometry (:func:`selfsup.estimation.normals.surface_segments`) cut by the image's edges
     (Felzenszwalb's segmentation of the sRGB-encoded image at ``scale``), so that both an
-    object's outline and a texture's edges bound them. Found once per image: a subsample's
-    are every stride-th label (:func:`search`). ``geometry``: the surfaces ``(B, H, W)``
-    when already found (a still camera's frames share them)."""
+    object's outline and a texture's edges bound them; then the segments of one surface
+    joined again where only shading cuts them (:func:`.regions.join_shading_cuts`: the
+    chromaticity within ``edge_chroma`` across the cut, and the log shading's step no more
+    than ``edge_step`` beyond what the steps beside the cut predict; ``edge_step`` None:
+    not joined). Found once per image: a subsample's are every stride-th label
+    (:func:`search`). ``geometry``: the surfaces ``(B, H, W)`` when already found (a
+    still camera's frames share them)."""
     import numpy as np
     from skimage.segmentation import felzenszwalb
 
+    from selfsup.estimation.albedo_free.regions import join_shading_cuts
     from selfsup.scenes.capture import linear_to_srgb
 
     g = problem.gbuffer
@@ -173,8 +181,34 @@ def albedo_segments(problem: FitProblem, scale: float = 50.0, geometry: Tensor |
         colour = felzenszwalb(encoded, scale=scale, sigma=SEGMENT_SIGMA, min_size=SEGMENT_MIN_SIZE).ravel()
         key = np.where(keep[b], geometry[b] * (int(colour.max()) + 1) + colour, -1)
         _, label = np.unique(key, return_inverse=True)
-        out[b] = np.where(keep[b], label.reshape(-1) - int((~keep[b]).any()), -1)  # the invalid key (-1) sorts first
+        label = np.where(keep[b], label.reshape(-1) - int((~keep[b]).any()), -1)  # the invalid key (-1) sorts first
+        if edge_step is not None and keep[b].any():
+            rgb = np.maximum(image[b], 1e-12 * max(level, 1e-30))  # (3, H, W)
+            grey = rgb.mean(0)
+            chroma = np.stack([np.log(rgb[0] / rgb[1]), np.log(rgb[2] / rgb[1])], -1)
+            noise = code_noise(grey / max(level, 1e-30))
+            label = join_shading_cuts(label.reshape(H, W), np.log(grey), chroma, noise, geometry[b].reshape(H, W),
+                                      edge_step, edge_chroma).reshape(-1)
+        out[b] = label
     return torch.from_numpy(out).to(g.mask.device).view(B, H, W)
+
+
+def code_noise(relative: "np.ndarray") -> "np.ndarray":
+    """The standard deviation of the log of a linear value ``relative`` (of the image's white)
+    that 8-bit sRGB codes leave: a third of a code, ``d ln I / d code = 2.4 / (code + 14)``
+    on the curve (a tenth of a code's step near black is a tenth of the value)."""
+    import numpy as np
+
+    from selfsup.scenes.capture import linear_to_srgb
+
+    code = 255 * linear_to_srgb(np.clip(relative, 0.0, 1.0))
+    return 0.3 * 2.4 / (code + 14.0)
+
+
+def tuned_segments(problem: FitProblem, tuning: Tuning, geometry: Tensor | None = None) -> Tensor:
+    """:func:`albedo_segments` ``(B, H, W)`` with the segmentation's constants of ``tuning``."""
+    return albedo_segments(problem, tuning.albedo_segment_scale, geometry, tuning.albedo_edge_step,
+                           tuning.albedo_edge_chroma)
 
 
 def _usable(labels: Tensor, valid: Tensor) -> tuple[Tensor, int]:
