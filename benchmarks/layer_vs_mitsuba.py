@@ -1,6 +1,7 @@
 """The renderer layer against an independent renderer: our images of Mitsuba's scenes, given their true lights.
 
     python -m benchmarks.layer_vs_mitsuba --scenes data/mitsuba/direct data/mitsuba_closed/direct [--rooms 48]
+    python -m benchmarks.layer_vs_mitsuba --bounce --scenes data/mitsuba/gi data/mitsuba_closed/gi
 
 For every scene file of Mitsuba 3's direct light (``benchmarks/mitsuba_scenes.py``: its
 geometry, albedo and true lights), ``render.render`` with each shadow setting renders the
@@ -11,6 +12,13 @@ each setting's lit/shadowed agreement with exact shadow rays on N procedural roo
 beside (:func:`benchmarks.shadow_accuracy.setting_agreement`), so one table holds error,
 agreement and cost. Results to
 ``benchmarks/results/layer_vs_mitsuba_<device>_<date>.*``.
+
+``--bounce`` takes Mitsuba's path-traced files instead (``gi``: interreflections, no ambient
+given) and compares, with the true lights and albedo and the layer's default shadows, the
+direct light alone, the direct light and the best constant ambient per channel (least
+squares on the diffuse pixels), and the layer's ``indirect="bounce"`` with its strength and
+an ambient per channel solved beside it (the bounce's own cost in ms):
+``benchmarks/results/layer_bounce_vs_mitsuba_<device>_<date>.*``.
 """
 
 from __future__ import annotations
@@ -59,6 +67,73 @@ def errors(files: list[Path], method: str, options, device: torch.device) -> tup
         times.append(time.perf_counter() - started)
         rel.append(diffuse_relative_l1(image[0], scene, gbuffer.mask[0]))
     return rel, 1000 * statistics.median(times)
+
+
+def _solved(observed: torch.Tensor, columns: list[torch.Tensor], pixels: torch.Tensor) -> torch.Tensor:
+    # observed - fixed ~ sum_k c_k columns[k] (each (3, H, W)), least squares over ``pixels`` (H, W)
+    # per channel for per-channel columns: the model's image. columns[0] is the fixed part.
+    fixed, free = columns[0], columns[1:]
+    out = fixed.clone()
+    for c in range(3):
+        A = torch.stack([f[c][pixels] for f in free], 1).double()
+        b = (observed[c][pixels] - fixed[c][pixels]).double()
+        coef = torch.linalg.lstsq(A, b[:, None]).solution[:, 0].clamp_min(0).to(observed.dtype)
+        out[c] = fixed[c] + sum(k * f[c] for k, f in zip(coef, free))
+    return out
+
+
+def bounce_errors(files: list[Path], device: torch.device) -> dict[str, tuple[list[float], float]]:
+    """Per model, the relative L1 on diffuse valid pixels of each path-traced file and the
+    median ms of its render: ``direct``, ``direct + ambient``, ``direct + bounce + ambient``."""
+    out = {"direct": ([], []), "direct + best ambient": ([], []), "direct + bounce (strength and ambient solved)": ([], [])}
+    for path in files:
+        scene = read_scene(path).to(device)
+        gbuffer, material, lights = render_inputs(scene)
+        point_lights = PointLights(lights.position, lights.intensity)
+        started = time.perf_counter()
+        with torch.no_grad():
+            terms = render(gbuffer, material, point_lights, None, falloff=scene.falloff, indirect="bounce")
+        bounce_ms = 1000 * (time.perf_counter() - started)
+        started = time.perf_counter()
+        with torch.no_grad():
+            direct = render(gbuffer, material, point_lights, None, falloff=scene.falloff).image[0]
+        direct_ms = 1000 * (time.perf_counter() - started)
+        diffuse = gbuffer.mask[0] if scene.ks is None else gbuffer.mask[0] & (scene.ks.amax(-1) == 0)
+        observed = scene.image.permute(2, 0, 1)
+        kd = material.kd[0].permute(2, 0, 1) * gbuffer.mask[0]
+        ambient = [direct] + [kd * (torch.arange(3, device=kd.device) == c)[:, None, None] for c in range(3)]
+        bounce = [direct, terms.indirect[0]] + ambient[1:]
+        for name, image, ms in (("direct", direct, direct_ms),
+                                ("direct + best ambient", _solved(observed, ambient, diffuse), direct_ms),
+                                ("direct + bounce (strength and ambient solved)", _solved(observed, bounce, diffuse),
+                                 bounce_ms)):
+            out[name][0].append(diffuse_relative_l1(image, scene, gbuffer.mask[0]))
+            out[name][1].append(ms)
+    return {name: (rel, statistics.median(ms)) for name, (rel, ms) in out.items()}
+
+
+def run_bounce(folders: list[Path], device: str = "cpu", write: bool = True) -> tuple[list[dict], Path | None]:
+    files = [p for folder in folders for p in sorted(folder.glob("*.npz"))]
+    if not files:
+        raise ValueError(f"no scene files (*.npz) in {', '.join(str(f) for f in folders)}: make them with "
+                         "python -m benchmarks.mitsuba_scenes --out data/mitsuba")
+    where = torch.device(device)
+    rows = [{"setting": name, "scenes": len(rel), "median_relative_l1": round(statistics.median(rel), 4),
+             "mean_relative_l1": round(statistics.mean(rel), 4), "ms_per_image": round(ms, 2)}
+            for name, (rel, ms) in bounce_errors(files, where).items()]
+    for row in rows:
+        print(row, flush=True)
+    path = None
+    if write:
+        header = (f"Path-traced scene files of Mitsuba 3 ({', '.join(str(f) for f in folders)}; "
+                  "benchmarks/mitsuba_scenes.py gi: interreflections, no ambient given), rendered by render.render "
+                  "with the file's geometry, kd and true lights, the layer's default shadows: the direct light alone, "
+                  "with the best constant ambient per channel, and with indirect='bounce' (its strength and an ambient "
+                  "per channel solved by least squares on the diffuse pixels); relative L1 = sum |ours - Mitsuba| / "
+                  "sum Mitsuba over the diffuse valid pixels (ks = 0); ms: median time of one forward render (no "
+                  "gradient), the bounce's with it.")
+        path = write_results("layer_bounce_vs_mitsuba", where, rows, header, COLUMNS)
+    return rows, path
 
 
 def agreement(runs: dict[str, tuple[str, object]], rooms: int, seed: int = 9100) -> dict[str, dict]:
@@ -110,5 +185,9 @@ if __name__ == "__main__":
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--rooms", type=int, default=48, help="procedural rooms of the agreement columns (0: none)")
     parser.add_argument("--no-write", action="store_true")
+    parser.add_argument("--bounce", action="store_true", help="path-traced files: direct, ambient and bounce models")
     args = parser.parse_args()
-    print(run(args.scenes, args.device, not args.no_write, args.rooms)[1])
+    if args.bounce:
+        print(run_bounce(args.scenes, args.device, not args.no_write)[1])
+    else:
+        print(run(args.scenes, args.device, not args.no_write, args.rooms)[1])

@@ -3,6 +3,7 @@
 Image model (``docs/scene-format.md``), per pixel point ``X`` and light ``i``::
 
     I = kd * L_a + sum_i S_i * I_i * f(d_i) * (kd * max(0, n.l_i) + ks * max(0, n.h_i)^alpha)
+        [+ strength * kd * gain * sum_i I_i G_i   with indirect="bounce": render.indirect]
 
 where a material with a clear coat (``Material.coat``) has its diffuse term
 multiplied by the rough coat's transmission in and out (:mod:`render.coat`).
@@ -17,6 +18,7 @@ from torch import Tensor
 
 from render.coat import CoatProfile, coat_profile, coat_transmission, profile_transmission
 from render.geometry import dot3, fit_intrinsics, norm3
+from render.indirect import INDIRECT_MODES, bounce_image
 from render.shading import (Falloff, blinn_phong_lobe, falloff_factor, light_geometry, light_offset,
                             shading_and_position_gradients)
 from render.shadows import ShadowMethod, shadow_visibility
@@ -37,6 +39,8 @@ class RenderOutput:
         specular: ``(B, 3, H, W)`` or None when the specular term was skipped.
         visibility: ``(B, L, H, W)`` per-light shadow term ``S_i`` in [0, 1]: cast
             shadows times the attached shadow ``n . l > 0``; None when shadows are off.
+        indirect: ``(B, 3, H, W)`` the lights' light bounced off the visible surfaces
+            (``indirect="bounce"``, :mod:`render.indirect`), or None without it.
     """
 
     image: Tensor
@@ -44,6 +48,7 @@ class RenderOutput:
     diffuse: Tensor
     specular: Tensor | None
     visibility: Tensor | None
+    indirect: Tensor | None = None
 
 
 def _wants_specular(material: Material, specular: bool | str) -> bool:
@@ -282,6 +287,8 @@ def render(
     diffuse: bool = True,
     specular: bool | str = "auto",
     check_finite: bool = True,
+    indirect: str = "none",
+    indirect_strength: Tensor | float = 1.0,
 ) -> RenderOutput:
     """Render the G-buffer under point lights with Blinn-Phong shading and cast shadows.
 
@@ -301,6 +308,12 @@ def render(
             zero everywhere; the check costs one device sync per call).
         check_finite: raise ValueError on NaN/inf in valid inputs (one device sync);
             set False inside hot loops whose inputs are known to be finite.
+        indirect: ``"none"`` (default) or ``"bounce"``: each light's diffuse light (shadowed)
+            reflected once off the visible surfaces onto the others, and the later bounces
+            as a geometric series of the mean albedo (:func:`render.indirect.bounce_image`;
+            needs ``gbuffer.intrinsics``). Cost at 160x120: about 3 ms a light on a 2-core CPU.
+        indirect_strength: the bounce's factor, a number or ``(B,)`` (1: the model's own
+            estimate of the light the room returns; 0: none).
 
     Returns:
         :class:`RenderOutput`. Everything is linear in the light intensities and the
@@ -332,6 +345,11 @@ def render(
             raise ValueError("ambient holds non-finite values")
     falloff = Falloff(falloff)
     shadows = ShadowMethod(shadows)
+    if indirect not in INDIRECT_MODES:
+        raise ValueError(f"indirect must be one of {INDIRECT_MODES}, got {indirect!r}")
+    if indirect == "bounce" and gbuffer.intrinsics is None:
+        raise ValueError("indirect='bounce' needs the G-buffer's intrinsics (a pixel's area): build it with "
+                         "GBuffer.from_depth(depth, K)")
 
     mask = gbuffer.mask[..., None].to(gbuffer.points.dtype)  # (B, H, W, 1)
     kd = material.kd
@@ -340,8 +358,9 @@ def render(
     visibility = None
     diffuse_term = torch.zeros_like(ambient_term)
     specular_term = torch.zeros_like(ambient_term) if with_specular else None
+    indirect_term = None
 
-    if lights.num_lights > 0 and (diffuse or with_specular):
+    if lights.num_lights > 0 and (diffuse or with_specular or indirect == "bounce"):
         transport = _transport(gbuffer, material, lights.position, falloff, shadows, shadow_options, with_specular)
         visibility = transport.visibility
 
@@ -353,10 +372,16 @@ def render(
             diffuse_term = kd * sum_over_lights(transport.diffuse) * mask
         if with_specular:
             specular_term = material.ks * sum_over_lights(transport.specular) * mask
+        if indirect == "bounce":
+            kd_full = kd.expand(B, H, W, 3)
+            indirect_term = bounce_image(gbuffer, kd_full, transport.diffuse, lights.intensity,
+                                         indirect_strength).permute(0, 2, 3, 1)
 
     image = ambient_term + diffuse_term
     if specular_term is not None:
         image = image + specular_term
+    if indirect_term is not None:
+        image = image + indirect_term
 
     # The one place where channel-last geometry becomes channel-first images.
     def to_chw(t: Tensor | None) -> Tensor | None:
@@ -368,6 +393,7 @@ def render(
         diffuse=to_chw(diffuse_term),
         specular=to_chw(specular_term),
         visibility=visibility,
+        indirect=to_chw(indirect_term),
     )
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from torch import Tensor, nn
 
 from render.functional import LightTransport, RenderOutput, light_transport, render
+from render.indirect import INDIRECT_MODES
 from render.shading import Falloff
 from render.shadows import ShadowMethod, default_options
 from render.types import GBuffer, Material, PointLights
@@ -22,6 +23,10 @@ class ShadowedBlinnPhong(nn.Module):
         diffuse: compute the diffuse term.
         specular: True, False or ``"auto"`` (skip when ks is None or all zero).
         check_finite: raise on NaN/inf inputs (costs one device sync per call).
+        indirect: ``"none"`` (default) or ``"bounce"``: the lights' light reflected off the
+            visible surfaces (:mod:`render.indirect`; the G-buffer needs intrinsics).
+        indirect_strength: the bounce's factor (a number; ``forward`` takes a per-image
+            ``(B,)`` tensor instead, e.g. a network's or a fit's).
 
     Shapes: see :func:`render.functional.render`; ``forward`` returns the image
     ``(B, 3, H, W)``, :meth:`render_terms` the :class:`RenderOutput` with the
@@ -48,6 +53,8 @@ class ShadowedBlinnPhong(nn.Module):
         diffuse: bool = True,
         specular: bool | str = "auto",
         check_finite: bool = True,
+        indirect: str = "none",
+        indirect_strength: float = 1.0,
     ) -> None:
         super().__init__()
         self.falloff = Falloff(falloff)
@@ -62,14 +69,24 @@ class ShadowedBlinnPhong(nn.Module):
         self.diffuse = diffuse
         self.specular = specular
         self.check_finite = check_finite
+        if indirect not in INDIRECT_MODES:
+            raise ValueError(f"indirect must be one of {INDIRECT_MODES}, got {indirect!r}")
+        if not (isinstance(indirect_strength, (int, float)) and 0 <= indirect_strength < float("inf")):
+            raise ValueError(f"indirect_strength must be a finite number >= 0, got {indirect_strength!r}")
+        self.indirect = indirect
+        self.indirect_strength = float(indirect_strength)
 
     def render_terms(
-        self, gbuffer: GBuffer, material: Material, lights: PointLights, ambient: Tensor | None = None
+        self, gbuffer: GBuffer, material: Material, lights: PointLights, ambient: Tensor | None = None,
+        indirect_strength: Tensor | float | None = None,
     ) -> RenderOutput:
+        """The image and its terms (:class:`render.functional.RenderOutput`); ``indirect_strength``
+        (a number or ``(B,)``) overrides the layer's for this call."""
         return render(
             gbuffer, material, lights, ambient,
             falloff=self.falloff, shadows=self.shadows, shadow_options=self.shadow_options,
-            diffuse=self.diffuse, specular=self.specular, check_finite=self.check_finite,
+            diffuse=self.diffuse, specular=self.specular, check_finite=self.check_finite, indirect=self.indirect,
+            indirect_strength=self.indirect_strength if indirect_strength is None else indirect_strength,
         )
 
     def transport(self, gbuffer: GBuffer, material: Material, light_position: Tensor) -> LightTransport:
@@ -81,9 +98,11 @@ class ShadowedBlinnPhong(nn.Module):
         )
 
     def forward(
-        self, gbuffer: GBuffer, material: Material, lights: PointLights, ambient: Tensor | None = None
+        self, gbuffer: GBuffer, material: Material, lights: PointLights, ambient: Tensor | None = None,
+        indirect_strength: Tensor | float | None = None,
     ) -> Tensor:
-        return self.render_terms(gbuffer, material, lights, ambient).image
+        return self.render_terms(gbuffer, material, lights, ambient, indirect_strength).image
 
     def extra_repr(self) -> str:
-        return f"falloff={self.falloff.value}, shadows={self.shadows.value}, specular={self.specular!r}"
+        extra = f", indirect={self.indirect}, indirect_strength={self.indirect_strength}" if self.indirect != "none" else ""
+        return f"falloff={self.falloff.value}, shadows={self.shadows.value}, specular={self.specular!r}{extra}"
