@@ -275,6 +275,32 @@ def light_transport_jacobian(
                              None if spec is None else shadowed(spec, d_specular))
 
 
+def _checked_ambient(gbuffer: GBuffer, material: Material, lights: PointLights, ambient: Tensor | None,
+                     check_finite: bool, indirect: str) -> Tensor:
+    # render's inputs checked (shapes, NaN/inf where asked, the indirect mode); the ambient (B, 3).
+    B, H, W = gbuffer.mask.shape
+    if material.kd.shape[0] not in (1, B) or material.kd.shape[1:3] != (H, W):
+        raise ValueError(
+            f"material kd must have shape ({B} or 1, {H}, {W}, 3) to match the G-buffer, "
+            f"got {tuple(material.kd.shape)}"
+        )
+    if lights.position.shape[0] != B:
+        raise ValueError(f"lights must have batch size {B}, got {lights.position.shape[0]}")
+    la = check_ambient(ambient, B, gbuffer.points)
+    if check_finite and not torch.compiler.is_compiling():
+        gbuffer.check_finite()
+        material.check_finite()
+        lights.check_finite()
+        if not bool(torch.isfinite(la).all()):
+            raise ValueError("ambient holds non-finite values")
+    if indirect not in INDIRECT_MODES:
+        raise ValueError(f"indirect must be one of {INDIRECT_MODES}, got {indirect!r}")
+    if indirect == "bounce" and gbuffer.intrinsics is None:
+        raise ValueError("indirect='bounce' needs the G-buffer's intrinsics (a pixel's area): build it with "
+                         "GBuffer.from_depth(depth, K)")
+    return la
+
+
 def render(
     gbuffer: GBuffer,
     material: Material,
@@ -308,12 +334,9 @@ def render(
             zero everywhere; the check costs one device sync per call).
         check_finite: raise ValueError on NaN/inf in valid inputs (one device sync);
             set False inside hot loops whose inputs are known to be finite.
-        indirect: ``"none"`` (default) or ``"bounce"``: each light's diffuse light (shadowed)
-            reflected once off the visible surfaces onto the others, and the later bounces
-            as a geometric series of the mean albedo (:func:`render.indirect.bounce_image`;
-            needs ``gbuffer.intrinsics``). Cost at 160x120: about 3 ms a light on a 2-core CPU.
-        indirect_strength: the bounce's factor, a number or ``(B,)`` (1: the model's own
-            estimate of the light the room returns; 0: none).
+        indirect: ``"none"`` (default) or ``"bounce"``: the lights' light reflected off the
+            visible surfaces (:func:`render.indirect.bounce_image`; needs ``gbuffer.intrinsics``).
+        indirect_strength: the bounce's factor, a number or ``(B,)`` (1: as modelled; 0: none).
 
     Returns:
         :class:`RenderOutput`. Everything is linear in the light intensities and the
@@ -329,27 +352,9 @@ def render(
         torch.Size([1, 3, 8, 8])
     """
     B, H, W = gbuffer.mask.shape
-    if material.kd.shape[0] not in (1, B) or material.kd.shape[1:3] != (H, W):
-        raise ValueError(
-            f"material kd must have shape ({B} or 1, {H}, {W}, 3) to match the G-buffer, "
-            f"got {tuple(material.kd.shape)}"
-        )
-    if lights.position.shape[0] != B:
-        raise ValueError(f"lights must have batch size {B}, got {lights.position.shape[0]}")
-    la = check_ambient(ambient, B, gbuffer.points)
-    if check_finite and not torch.compiler.is_compiling():
-        gbuffer.check_finite()
-        material.check_finite()
-        lights.check_finite()
-        if not bool(torch.isfinite(la).all()):
-            raise ValueError("ambient holds non-finite values")
+    la = _checked_ambient(gbuffer, material, lights, ambient, check_finite, indirect)
     falloff = Falloff(falloff)
     shadows = ShadowMethod(shadows)
-    if indirect not in INDIRECT_MODES:
-        raise ValueError(f"indirect must be one of {INDIRECT_MODES}, got {indirect!r}")
-    if indirect == "bounce" and gbuffer.intrinsics is None:
-        raise ValueError("indirect='bounce' needs the G-buffer's intrinsics (a pixel's area): build it with "
-                         "GBuffer.from_depth(depth, K)")
 
     mask = gbuffer.mask[..., None].to(gbuffer.points.dtype)  # (B, H, W, 1)
     kd = material.kd

@@ -41,6 +41,7 @@ class Candidate:
     evidence: float | None = None  # the ambient-only model's criterion less this one's (albedo-free fits)
     vignetting: float | None = None  # the corner light loss of the lens the fit took out (albedo-free fits)
     highlight_pixels: int | None = None  # pixels left out of the placement as a highlight (albedo-free fits)
+    bounce_share: float | None = None  # the modelled light's share bounced off the surfaces (albedo-free fits with it)
 
 
 def block_px(options: EstimateOptions, width: int, albedo_free: bool = False) -> int:

@@ -26,6 +26,7 @@ ALBEDO_FREE_RESIDUALS = ("segments", "pairs")
 LIGHT_COLOUR = ("neutral", "shared", "free")
 VIGNETTING = ("auto", "none")
 HIGHLIGHTS = ("leave_out", "keep")
+ALBEDO_FREE_BOUNCE = ("auto", "never")
 REFINE_METHODS = ("lm", "adam", "gd")
 
 
@@ -193,6 +194,7 @@ class Tuning:
     albedo_edge_chroma: float = 0.03
     albedo_free_lobe_deg: float = 20.0
     highlights: str = "leave_out"
+    albedo_free_bounce: str = "never"
     unlit_evidence: bool = True
     albedo_class_rounds: int = 1
     albedo_class_level: float = 0.1
@@ -267,7 +269,7 @@ def _check_tuning(t: Tuning) -> None:
          "null or an integer >= 1")
     need(t.criterion_stride >= 1, "criterion_stride", ">= 1 pixel")
     for name, choices in (("reflectance", REFLECTANCE), ("albedo_free_residuals", ALBEDO_FREE_RESIDUALS),
-                          ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT), ("light_colour", LIGHT_COLOUR), ("vignetting", VIGNETTING), ("highlights", HIGHLIGHTS),
+                          ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT), ("light_colour", LIGHT_COLOUR), ("vignetting", VIGNETTING), ("highlights", HIGHLIGHTS), ("albedo_free_bounce", ALBEDO_FREE_BOUNCE),
                           ("indirect", INDIRECT), ("search_shadows", SHADOW_METHODS),
                           ("criterion_shadows", SHADOW_METHODS)):
         _check_choice(f"tuning.{name}", getattr(t, name), choices)

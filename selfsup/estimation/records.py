@@ -107,6 +107,7 @@ def _record(scene_id: str, best: Candidate, tried: list[Candidate], cov: Tensor,
         "direct_share": round(float(share.sum()), 4) if found else 0.0,
         "evidence": None if best.evidence is None else round(best.evidence, 3),
         "unsupported_lights": unsupported, "vignetting": best.vignetting, "highlight_pixels": best.highlight_pixels,
+        "bounce_share": best.bounce_share,
         "specular": best.specular, "coat": best.coat, "reflectance": best.reflectance,
         "candidates": [{"n_lights": c.n_lights, "specular": c.specular, "coat": c.coat, "criterion": round(c.criterion, 3)}
                        for c in tried],

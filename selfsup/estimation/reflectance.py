@@ -29,6 +29,11 @@ __all__ = ["reflectance_unknown", "albedo_free_images", "estimate_albedo_free", 
            "intensities_of", "ambient_only_loss"]
 
 MIN_RESIDUALS = 100  # the fewest residuals an albedo-free fit or count decision rests on
+# The bounce of the albedo-free fit (estimate.tuning.albedo_free_bounce): its strength's start
+# (log; the bounce maps of albedo relative to its median, bounce_maps) and the LM steps that
+# refine it beside the lights.
+BOUNCE_START = math.log(0.5)
+BOUNCE_ITERATIONS = 8
 # A highlight's pixel (left out of the chosen lights' placement): brighter than the diffuse
 # model by this many times the fit's Cauchy scale, inside the lights' mirror lobes.
 HIGHLIGHT_EXCESS = 2.0
@@ -67,8 +72,10 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions,
     one light more (``unlit_evidence``, :func:`selfsup.estimation.unlit.needs_another_light`:
     then the records' criteria may favour the fewer lights); the chosen model's lights then
     placed on its segments merged into classes of one albedo (``albedo_class_rounds``,
-    :func:`selfsup.estimation.albedo_free.refine_on_classes`); intensities and ambient then
-    the fit's own ratios in the image's units (:func:`intensities_of`).
+    :func:`selfsup.estimation.albedo_free.refine_on_classes`), with the light they cast off
+    the surfaces where ``albedo_free_bounce=auto`` and the criterion says it pays (before the
+    evidence is judged); intensities and ambient then the fit's own ratios in the image's
+    units (:func:`intensities_of`).
 
     With ``vignetting=auto`` the lens's falloff is chosen with the first light
     (:func:`selfsup.estimation.vignetting.choose_vignetting`); where it is not none, the
@@ -120,12 +127,27 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
 
     def criterion(fit: albedo_free.AlbedoFreeFit, extra: list[int] | None = None) -> list[float]:
         # The BIC of each image's fit: its position and a contrast per light (the ambient's for
-        # the first), and ``extra`` parameters (a lens's vignetting).
+        # the first), the bounce's strength where it has one, and ``extra`` parameters (a
+        # lens's vignetting).
         n_params = 4 * fit.position.shape[1]
         extra = extra or [0] * fit.position.shape[0]
+        extra = [more + int(b) for more, b in zip(extra, fit.bounced().tolist())]
         # An image without residuals has no criterion (MIN_RESIDUALS names it below).
         return [bic(loss, int(pairs), n_params + more, block) if pairs >= 1 else math.inf
                 for loss, pairs, more in zip(fit.loss.tolist(), fit.pairs.tolist(), extra)]
+
+    def with_bounce(sub: FitProblem, fit: albedo_free.AlbedoFreeFit, segments: Tensor | None) -> albedo_free.AlbedoFreeFit:
+        # Each image's fit or the same lights with the bounce of the light they cast off the
+        # surfaces (its strength one more parameter), whichever the criterion prefers.
+        if options.tuning.albedo_free_bounce == "never" or sub.gbuffer.intrinsics is None:
+            return fit
+        every = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=segments, **_residuals(options))
+        start = torch.full_like(fit.loss, BOUNCE_START)
+        bounced = albedo_free.refine_positions(every, fit.position, fit.log_weight, BOUNCE_ITERATIONS, log_bounce=start)
+        plain = fit if fit.log_bounce is None else albedo_free.AlbedoFreeFit(fit.position, fit.log_weight, fit.loss,
+                                                                          fit.pairs)
+        take = torch.tensor([b < a for a, b in zip(criterion(plain), criterion(bounced))], device=fit.loss.device)
+        return plain.chosen(take, bounced)
 
     search_kwargs = dict(robust_scale=options.tuning.albedo_free_scale, **_residuals(options))
 
@@ -181,11 +203,11 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
                 best[i] = (more, j, c)
                 still.append(i)
         growing = still
-    return _chosen_candidates(problem, labels, geometry, options, best, tried, corner_loss)
+    return _chosen_candidates(problem, labels, geometry, options, best, tried, corner_loss, with_bounce)
 
 
 def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Tensor | None, options: EstimateOptions,
-                       best: list, tried: list[list[tuple[int, float]]], corner_loss: Tensor
+                       best: list, tried: list[list[tuple[int, float]]], corner_loss: Tensor, with_bounce=None
                        ) -> tuple[list[tuple[Candidate, list[Candidate]]], list[float]]:
     # Each image's chosen fit ``best[i] = (fit, row, criterion)`` as a candidate (refined on its
     # albedo classes, its intensities and covariance), the models ``tried[i]`` beside it, and the
@@ -201,14 +223,17 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
         rows = torch.tensor(group, dtype=torch.long, device=device)
         sub = problem.select(rows)
         segments = None if labels is None else labels[rows]
+        if with_bounce is not None:
+            chosen = with_bounce(sub, chosen, segments)
         # The chosen model against the model without lights on every residual: how much its lights explain.
         # (The chosen fit's own loss is its loss on every residual: the searches end on this observation.)
         every = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=segments, **_residuals(options))
         losses, counted = chosen.loss.tolist(), chosen.pairs.tolist()
-        evidence = [bic(unlit, pairs, 0, block) - bic(loss, pairs, 4 * n_lights, block) for unlit, loss, pairs in
-                    zip(ambient_only_loss(every, chosen).tolist(), losses, counted)]
-        for i, loss, pairs in zip(group, losses, counted):
-            whole[i] = bic(loss, pairs, 4 * n_lights + int(bool(corner_loss[i] > 0)), block)
+        bounced = chosen.bounced().tolist()
+        evidence = [bic(unlit, pairs, 0, block) - bic(loss, pairs, 4 * n_lights + int(b), block)
+                    for unlit, loss, pairs, b in zip(ambient_only_loss(every, chosen).tolist(), losses, counted, bounced)]
+        for i, loss, pairs, b in zip(group, losses, counted, bounced):
+            whole[i] = bic(loss, pairs, 4 * n_lights + int(bool(corner_loss[i] > 0)) + int(b), block)
         highlight = torch.zeros_like(sub.gbuffer.mask)
         if segments is not None and options.tuning.highlights == "leave_out" and options.tuning.albedo_free_lobe_deg > 0:
             # The diffuse-only fit cannot explain a glossy surface's highlight: its pixels (in the
@@ -224,12 +249,13 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
                 geometry=geometry[rows])
         else:
             observed = every
-        fit = intensities_of(sub, chosen, options)
+        fit, bounce_share = intensities_of(sub, chosen, options, observed)
         cov = albedo_free_covariance(observed, chosen, sub, options).cpu()
         for j, i in enumerate(group):
             candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free",
                                   evidence=evidence[j], vignetting=round(float(corner_loss[i]), 3),
-                                  highlight_pixels=int(highlight[j].sum()))
+                                  highlight_pixels=int(highlight[j].sum()),
+                                  bounce_share=round(float(bounce_share[j]), 4) if bounced[j] else None)
             # The records keep the tried models' counts and criteria only.
             others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
             results[i] = (candidate, others)
@@ -281,8 +307,8 @@ def _without_highlights(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, m
     outside = albedo_free.observe(problem, options.tuning.albedo_free_scale,
                                   labels=torch.where(held_out, torch.full_like(labels, -1), labels), **_residuals(options))
     # No iterations: the loss of each fit at its positions and log weights, on these pixels.
-    return (albedo_free.refine_positions(outside, fewer.position, fewer.log_weight, 0),
-            albedo_free.refine_positions(outside, more.position, more.log_weight, 0))
+    return (albedo_free.refine_positions(outside, fewer.position, fewer.log_weight, 0, log_bounce=fewer.log_bounce),
+            albedo_free.refine_positions(outside, more.position, more.log_weight, 0, log_bounce=more.log_bounce))
 
 
 def segment_gains(image: Tensor, model: Tensor, segments: Tensor, min_pixels: int = 30, lit_share: float = 0.2,
@@ -330,11 +356,14 @@ def ambient_only_loss(obs: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFi
     return albedo_free.refine_positions(obs, fit.position, log_weight, 0).loss
 
 
-def intensities_of(problem: FitProblem, fit: albedo_free.AlbedoFreeFit, options: EstimateOptions) -> Fit:
+def intensities_of(problem: FitProblem, fit: albedo_free.AlbedoFreeFit, options: EstimateOptions,
+                   observed: albedo_free.LogShading | None = None) -> tuple[Fit, Tensor]:
     """The albedo-free fit's lights and ambient as intensities in the image's units: the
     fit's own ratios (its log weights, which its covariance and shares rest on) times one
     scale per channel, the Cauchy-reweighted least-squares factor of the model shading
-    (no cast shadows, as the fit) times kd against each channel of the image.
+    (no cast shadows, as the fit; with the fit's bounce, :func:`albedo_free.bounce_maps`
+    of ``observed``, its log shading) times kd against each channel of the image; and each
+    image's share ``(B,)`` of the model's light that is the bounce (0 without it).
 
     With the albedo unknown, a light's colour is the surfaces' colour too: a channel solved
     on its own makes colour a free knob (a red wall took a red-only light, a blue ambient
@@ -345,16 +374,24 @@ def intensities_of(problem: FitProblem, fit: albedo_free.AlbedoFreeFit, options:
     ambient solved per channel at the positions, as before
     (:func:`selfsup.estimation.solvers.refine` without steps).
 
-    Returns: a :class:`Fit` (``intensity (B, L, 3)``, ``ambient (B, 3)``, ``model (B, 3, H, W)``).
+    Returns: a :class:`Fit` (``intensity (B, L, 3)``, ``ambient (B, 3)``, ``model (B, 3, H, W)``)
+    and the bounce's share ``(B,)``.
     """
     solve = replace(options.tuning.refine, specular=False, max_iters=(0,), strides=(1,))
-    if options.tuning.light_colour == "free":
-        return refine(problem, fit.position, solve)
     weight = fit.log_weight.exp()  # (B, L + 1): the ambient's, then each light's, relative
     diffuse = light_transport(problem.gbuffer, Material(kd=problem.material.kd), fit.position, falloff=problem.falloff,
                               shadows="none", specular=False).diffuse  # (B, L, H, W): the fit's transport
-    shading = weight[:, :1, None] + (weight[:, 1:, None, None] * diffuse).sum(1)  # (B, H, W)
+    direct = (weight[:, 1:, None, None] * diffuse).sum(1)  # (B, H, W)
+    bounce = torch.zeros_like(direct)
+    if fit.log_bounce is not None and observed is not None and bool(fit.bounced().any()):
+        maps = albedo_free.bounce_maps(observed, diffuse, fit.log_weight)
+        strength = torch.where(fit.bounced(), fit.log_bounce, torch.full_like(fit.log_bounce, -math.inf)).exp()
+        bounce = strength[:, None, None] * (weight[:, 1:, None, None] * maps).sum(1)
+    shading = weight[:, :1, None] + direct + bounce  # (B, H, W)
     mask = problem.gbuffer.mask[:, None].to(problem.image.dtype)  # (B, 1, H, W)
+    share = (bounce * mask[:, 0]).flatten(1).sum(1) / (shading * mask[:, 0]).flatten(1).sum(1).clamp_min(1e-30)
+    if options.tuning.light_colour == "free":
+        return refine(problem, fit.position, solve), share
     unit = problem.material.kd.permute(0, 3, 1, 2) * shading[:, None] * mask  # (B, 3, H, W) at scale 1
     image = problem.image * mask
     scale = cauchy_scale(problem, solve)
@@ -370,4 +407,4 @@ def intensities_of(problem: FitProblem, fit: albedo_free.AlbedoFreeFit, options:
     residual = (model - image) * mask
     cost = (weights * residual**2).flatten(1).sum(1)
     return Fit(fit.position, weight[:, 1:, None] * factor[:, None], weight[:, :1] * factor, cost, model,
-               torch.zeros_like(cost), residual.pow(2).flatten(1).sum(1), mask.expand_as(image).flatten(1).sum(1))
+               torch.zeros_like(cost), residual.pow(2).flatten(1).sum(1), mask.expand_as(image).flatten(1).sum(1)), share

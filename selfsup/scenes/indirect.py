@@ -14,7 +14,6 @@ the generator and the estimator use:
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 from render import GBuffer, Material, light_transport

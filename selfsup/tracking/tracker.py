@@ -398,7 +398,7 @@ class Tracker:
         log_weight = self._log_weights().to(start)[None]
         fit = albedo_free.refine_positions(obs, start, log_weight, self.tuning.warm_iterations)
         cov = albedo_free_covariance(obs, fit, problem, self.options)
-        solved = intensities_of(problem, fit, self.options)  # as the full estimates report them
+        solved, _ = intensities_of(problem, fit, self.options)  # as the full estimates report them
         share = albedo_free.light_shares(problem, fit)
         loss = float(fit.loss[0]) / max(float(fit.pairs[0]), 1.0)
         return _Measured(_host(fit.position[0]), _host(cov[0]), _host(solved.intensity[0]), _host(solved.ambient[0]),

@@ -110,5 +110,5 @@ def refine_on_classes(problem: FitProblem, labels: Tensor, fit: AlbedoFreeFit, r
         classes = albedo_classes(problem, labels, fit.position, fit.log_weight, level_tolerance, chroma_tolerance,
                                  geometry)
         observed = observe(problem, robust_scale, labels=classes)
-        fit = refine_positions(observed, fit.position, fit.log_weight, iterations)
+        fit = refine_positions(observed, fit.position, fit.log_weight, iterations, log_bounce=fit.log_bounce)
     return fit, observed

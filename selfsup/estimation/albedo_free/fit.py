@@ -11,12 +11,13 @@ from torch import Tensor
 
 from render import GBuffer, Material
 from render.functional import light_transport, light_transport_jacobian
+from render.indirect import PATCHES_ACROSS, one_bounce
 from render.shading import blinn_phong_lobe, light_geometry
 from selfsup.estimation.albedo_free.observation import AlbedoFreeFit, LogShading
 from selfsup.estimation.problem import FitProblem, gbuffer_centre_and_size
 from selfsup.estimation.solvers import RUNAWAY_SIZES
 
-__all__ = ["shading_loss", "refine_positions", "light_shares", "mirror_lobes", "highlight_pixels"]
+__all__ = ["shading_loss", "refine_positions", "bounce_maps", "light_shares", "mirror_lobes", "highlight_pixels"]
 
 
 def _transport(obs: LogShading, position: Tensor) -> Tensor:
@@ -69,35 +70,72 @@ def _residual(obs: LogShading, log_model: Tensor, robust: bool = True) -> Tensor
     return torch.where(obs.pairs, ratio - obs.offsets(ratio), torch.zeros_like(ratio))
 
 
-def _evaluate(obs: LogShading, position: Tensor, log_weight: Tensor) -> tuple[Tensor, Tensor]:
+def bounce_maps(obs: LogShading, diffuse: Tensor, log_weight: Tensor) -> Tensor:
+    """Each light's first bounce off the visible surfaces ``(B, L, H, W)``, in the units of its
+    unit transport ``diffuse (B, L, H, W)``, the surfaces' albedo that of the model without the
+    bounce (each segment's robust offset, relative to its median: the fit's bounce strength
+    takes the albedo's unknown scale and the later bounces; :func:`render.indirect.one_bounce`,
+    patches every twentieth of the width). The segments' own pixels reflect; others not."""
+    log_model, _ = _log_model(diffuse, log_weight)
+    ratio = (obs.log_shading - log_model).flatten(1)
+    if obs.segments is None:
+        offsets = torch.zeros_like(ratio)
+    else:
+        offsets = obs.offsets(ratio)
+    level = torch.where(obs.pairs, offsets, torch.full_like(offsets, float("nan"))).nanmedian(1).values
+    level = torch.nan_to_num(level, nan=0.0)
+    albedo = torch.where(obs.pairs, (offsets - level[:, None]).clamp(-5, 5).exp(), torch.zeros_like(offsets))
+    B, H, W = obs.log_shading.shape
+    step = max(1, round(W / PATCHES_ACROSS))
+    kd = albedo.view(B, H, W, 1).expand(B, H, W, 3)
+    return one_bounce(obs.gbuffer, kd, diffuse, step, step)[:, 0]
+
+
+def _effective(obs: LogShading, diffuse: Tensor, log_weight: Tensor, log_bounce: Tensor | None
+               ) -> tuple[Tensor, Tensor | None]:
+    # Each light's transport with its bounce (B, L, H, W), and the bounce maps (None without).
+    if log_bounce is None:
+        return diffuse, None
+    bounce = bounce_maps(obs, diffuse, log_weight)
+    return diffuse + log_bounce.exp()[:, None, None, None] * bounce, bounce
+
+
+def _evaluate(obs: LogShading, position: Tensor, log_weight: Tensor,
+              log_bounce: Tensor | None = None) -> tuple[Tensor, Tensor]:
     # The loss (B,) and the residual (B, P) it sums.
-    log_model, _ = _log_model(_transport(obs, position), log_weight)
+    transport, _ = _effective(obs, _transport(obs, position), log_weight, log_bounce)
+    log_model, _ = _log_model(transport, log_weight)
     residual = _residual(obs, log_model)
     return shading_loss(obs, residual), residual
 
 
 def _jacobian(obs: LogShading, position: Tensor, log_weight: Tensor, robust: bool = True,
-              residual: Tensor | None = None) -> tuple[Tensor, Tensor]:
+              residual: Tensor | None = None, log_bounce: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Residual ``(B, P)`` and its Jacobian ``(B, k, P)`` with respect to the free
     parameters: each light's position (3L), the ambient's log weight, and the log
-    weights of lights 2.. (the first light's is the gauge). With ``robust`` segment
+    weights of lights 2.. (the first light's is the gauge), and with ``log_bounce (B,)``
+    the bounce's log strength (last; the bounce maps held, so the positions' rows leave
+    the bounce's own dependence on them out). With ``robust`` segment
     offsets the Jacobian is the reweighting's (each offset a weighted mean whose weights
     are held): exact where the residuals lie well inside the Cauchy scale. ``residual``:
     the one at these parameters when known (:func:`_evaluate`'s)."""
     B, L, _ = position.shape
     jac = light_transport_jacobian(obs.gbuffer, obs.material, position, 1.0, falloff=obs.falloff, shadows="none",
                                    specular=False)
-    diffuse = jac.transport.diffuse  # (B, L, H, W)
+    diffuse, bounce = _effective(obs, jac.transport.diffuse, log_weight, log_bounce)  # (B, L, H, W)
     log_model, shading = _log_model(diffuse, log_weight)
     w = log_weight.exp()
     H, W = diffuse.shape[-2:]
     # d log S / d p_i = w_i dD_i/dp_i / S; d log S / d u_0 = w_0 / S; d log S / d u_i = w_i D_i / S,
-    # each block written into one (B, k, H, W) array and divided by S there (no copies between).
-    d_log = diffuse.new_empty(B, 4 * L, H, W)
+    # (d / d log b = b sum_i w_i G_i / S), each block written into one (B, k, H, W) array and
+    # divided by S there (no copies between).
+    d_log = diffuse.new_empty(B, 4 * L + int(bounce is not None), H, W)
     torch.mul(w[:, 1:, None, None, None], jac.diffuse.permute(0, 1, 4, 2, 3),
               out=d_log[:, : 3 * L].view(B, L, 3, H, W))
     d_log[:, 3 * L] = w[:, :1, None]
-    torch.mul(w[:, 2:, None, None], diffuse[:, 1:], out=d_log[:, 3 * L + 1 :])
+    torch.mul(w[:, 2:, None, None], diffuse[:, 1:], out=d_log[:, 3 * L + 1 : 4 * L])
+    if bounce is not None:
+        d_log[:, 4 * L] = log_bounce.exp()[:, None, None] * (w[:, 1:, None, None] * bounce).sum(1)
     d_log /= shading[:, None]
     residual = _residual(obs, log_model, robust) if residual is None else residual
     if obs.segments is None or not robust:
@@ -114,26 +152,29 @@ def _unpack(step: Tensor, L: int) -> tuple[Tensor, Tensor]:
     # A free-parameter step (B, 4L) -> position step (B, L, 3), log-weight step (B, L + 1).
     B = step.shape[0]
     d_pos = step[:, : 3 * L].reshape(B, L, 3)
-    d_u = torch.cat([step[:, 3 * L : 3 * L + 1], step.new_zeros(B, 1), step[:, 3 * L + 1 :]], 1)
+    d_u = torch.cat([step[:, 3 * L : 3 * L + 1], step.new_zeros(B, 1), step[:, 3 * L + 1 : 4 * L]], 1)
     return d_pos, d_u
 
 
 def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iterations: int = 20,
-                     tol: float = 1e-6) -> AlbedoFreeFit:
+                     tol: float = 1e-6, log_bounce: Tensor | None = None) -> AlbedoFreeFit:
     """Damped Gauss-Newton (Levenberg-Marquardt) with Cauchy IRLS weights from
-    ``position (B, L, 3)`` and ``log_weight (B, L + 1)``; each image stops on its own
-    (relative loss decrease below ``tol``, or damping run out)."""
+    ``position (B, L, 3)`` and ``log_weight (B, L + 1)`` (and the bounce's log strength
+    ``log_bounce (B,)``, refined too where finite; :func:`bounce_maps`); each image stops on
+    its own (relative loss decrease below ``tol``, or damping run out)."""
     position, log_weight = position.detach().clone(), log_weight.detach().clone()
+    if log_bounce is not None:
+        log_bounce = log_bounce.detach().clone()
     B, L, _ = position.shape
     centre, size = gbuffer_centre_and_size(obs.gbuffer)
     reach = RUNAWAY_SIZES * size  # (B,)
-    loss, residual = _evaluate(obs, position, log_weight)
+    loss, residual = _evaluate(obs, position, log_weight, log_bounce)
     damping = torch.full((B,), 1e-3, dtype=position.dtype, device=position.device)
     active = torch.ones(B, dtype=torch.bool, device=position.device)
     for _ in range(iterations):
         if not bool(active.any()):
             break
-        residual, jac = _jacobian(obs, position, log_weight, residual=residual)
+        residual, jac = _jacobian(obs, position, log_weight, residual=residual, log_bounce=log_bounce)
         weights = _cauchy_weights(obs, residual)
         weighted = jac * weights[:, None]
         jtj = (weighted @ jac.transpose(1, 2)).double()
@@ -148,7 +189,10 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
         step = torch.where(finite[:, None], step, torch.zeros_like(step))
         d_pos, d_u = _unpack(step, L)
         trial_pos, trial_u = position + d_pos, log_weight + d_u
-        trial, trial_residual = _evaluate(obs, trial_pos, trial_u)
+        trial_bounce = None
+        if log_bounce is not None:  # an image without the bounce (-inf) keeps none
+            trial_bounce = torch.where(torch.isfinite(log_bounce), (log_bounce + step[:, 4 * L]).clamp(-12, 6), log_bounce)
+        trial, trial_residual = _evaluate(obs, trial_pos, trial_u, trial_bounce)
         # A step that takes a light beyond RUNAWAY_SIZES scene sizes fits a direction, not a
         # point (the log shading of a far light flattens towards it): it is not taken.
         inside = (trial_pos - centre[:, None]).norm(dim=-1).amax(-1) <= reach
@@ -156,11 +200,13 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
         rel = (loss - trial) / loss.clamp_min(1e-30)
         position = torch.where(better[:, None, None], trial_pos, position)
         log_weight = torch.where(better[:, None], trial_u, log_weight)
+        if log_bounce is not None:
+            log_bounce = torch.where(better, trial_bounce, log_bounce)
         loss = torch.where(better, trial, loss)
         residual = torch.where(better[:, None], trial_residual, residual)
         damping = torch.where(better, damping * 0.3, damping * 10).clamp(1e-9, 1e9)
         active &= ~((better & (rel < tol)) | (damping >= 1e9))
-    return AlbedoFreeFit(position, log_weight, loss, obs.pairs.sum(1))
+    return AlbedoFreeFit(position, log_weight, loss, obs.pairs.sum(1), log_bounce)
 
 
 def light_shares(problem: FitProblem, fit: AlbedoFreeFit) -> Tensor:
@@ -188,6 +234,6 @@ def highlight_pixels(obs: LogShading, fit: AlbedoFreeFit, max_angle_deg: float, 
     diffuse-only fit does not explain. Segment residuals only."""
     if obs.segments is None:
         raise ValueError("highlight pixels are found on segment residuals; pairs have no pixel of their own")
-    _, residual = _evaluate(obs, fit.position, fit.log_weight)
+    _, residual = _evaluate(obs, fit.position, fit.log_weight, fit.log_bounce)
     lobes = mirror_lobes(obs.gbuffer, fit.position, max_angle_deg)
     return lobes & (residual.view_as(lobes) > min_excess * obs.scale.view(-1, 1, 1))

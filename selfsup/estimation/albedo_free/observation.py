@@ -7,9 +7,10 @@ albedo found by :func:`albedo_segments`); :class:`AlbedoFreeFit` is what every f
 
 from __future__ import annotations
 
-import dataclasses
+import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -97,18 +98,34 @@ class AlbedoFreeFit:
     """Result of a batch: ``position (B, L, 3)``, ``log_weight (B, L + 1)`` (the ambient's,
     then each light's, log intensity relative to the first light's, which is 0),
     ``loss (B,)`` (Cauchy loss of the residuals), ``pairs (B,)`` (residuals that count:
-    :attr:`LogShading.pairs`)."""
+    :attr:`LogShading.pairs`), ``log_bounce (B,)`` or None: the log strength of the lights'
+    light bounced off the surfaces (:func:`selfsup.estimation.albedo_free.fit.bounce_maps`;
+    ``-inf`` for an image without it, None for a batch without it)."""
 
     position: Tensor
     log_weight: Tensor
     loss: Tensor
     pairs: Tensor
+    log_bounce: Tensor | None = None
+
+    def bounce_or_none(self) -> Tensor:
+        """``log_bounce (B,)``, ``-inf`` where the fit has no bounce."""
+        if self.log_bounce is not None:
+            return self.log_bounce
+        return torch.full_like(self.loss, -math.inf)
+
+    def bounced(self) -> Tensor:
+        """``(B,)`` bool: the images whose model has the bounce."""
+        return torch.isfinite(self.bounce_or_none())
 
     @staticmethod
     def rows(picked: list[tuple["AlbedoFreeFit", int]]) -> "AlbedoFreeFit":
         """Row ``r`` of each ``(fit, r)`` (fits of one light count), stacked into one batch."""
-        return AlbedoFreeFit(*(torch.stack([getattr(fit, f.name)[r] for fit, r in picked])
-                               for f in dataclasses.fields(AlbedoFreeFit)))
+        bounce = None
+        if any(fit.log_bounce is not None for fit, _ in picked):
+            bounce = torch.stack([fit.bounce_or_none()[r] for fit, r in picked])
+        return AlbedoFreeFit(*(torch.stack([getattr(fit, name)[r] for fit, r in picked])
+                               for name in ("position", "log_weight", "loss", "pairs")), bounce)
 
     def without(self, light: int) -> "AlbedoFreeFit":
         """The fit with light ``light`` left out, its weights relative to the new first
@@ -119,13 +136,20 @@ class AlbedoFreeFit:
         keep = [i for i in range(L) if i != light]
         # Every log weight relative to the new first light's (which becomes 0).
         u = self.log_weight[:, [0] + [1 + i for i in keep]] - self.log_weight[:, 1 + keep[0] : 2 + keep[0]]
-        return AlbedoFreeFit(self.position[:, keep], u, self.loss, self.pairs)
+        return AlbedoFreeFit(self.position[:, keep], u, self.loss, self.pairs, self.log_bounce)
 
     def better(self, other: "AlbedoFreeFit") -> "AlbedoFreeFit":
         """Each image's row of whichever fit (of one light count) has the lower loss."""
-        take = other.loss < self.loss
+        return self.chosen(other.loss < self.loss, other)
+
+    def chosen(self, take: Tensor, other: "AlbedoFreeFit") -> "AlbedoFreeFit":
+        """Each image's row of ``other`` where ``take (B,)``, of this fit elsewhere."""
         pick = lambda a, b: torch.where(take.view(-1, *[1] * (a.dim() - 1)), b, a)  # noqa: E731
-        return AlbedoFreeFit(*(pick(getattr(self, f.name), getattr(other, f.name)) for f in dataclasses.fields(self)))
+        bounce = None
+        if self.log_bounce is not None or other.log_bounce is not None:
+            bounce = pick(self.bounce_or_none(), other.bounce_or_none())
+        return AlbedoFreeFit(*(pick(getattr(self, name), getattr(other, name))
+                               for name in ("position", "log_weight", "loss", "pairs")), bounce)
 
 
 def pair_differences(x: Tensor) -> Tensor:
@@ -161,7 +185,6 @@ def albedo_segments(problem: FitProblem, scale: float = 50.0, geometry: Tensor |
     not joined). Found once per image: a subsample's are every stride-th label
     (:func:`search`). ``geometry``: the surfaces ``(B, H, W)`` when already found (a
     still camera's frames share them)."""
-    import numpy as np
     from skimage.segmentation import felzenszwalb
 
     from selfsup.estimation.albedo_free.regions import join_shading_cuts
@@ -193,12 +216,10 @@ def albedo_segments(problem: FitProblem, scale: float = 50.0, geometry: Tensor |
     return torch.from_numpy(out).to(g.mask.device).view(B, H, W)
 
 
-def code_noise(relative: "np.ndarray") -> "np.ndarray":
+def code_noise(relative: np.ndarray) -> np.ndarray:
     """The standard deviation of the log of a linear value ``relative`` (of the image's white)
-    that 8-bit sRGB codes leave: a third of a code, ``d ln I / d code = 2.4 / (code + 14)``
-    on the curve (a tenth of a code's step near black is a tenth of the value)."""
-    import numpy as np
-
+    that 8-bit sRGB codes leave: a third of a code times ``d ln I / d code = 2.4 / (code + 14)``
+    on the curve (5% of the value at black, 0.3% at white)."""
     from selfsup.scenes.capture import linear_to_srgb
 
     code = 255 * linear_to_srgb(np.clip(relative, 0.0, 1.0))
