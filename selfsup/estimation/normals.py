@@ -271,8 +271,9 @@ def planes_that_hold(points: Tensor, mask: Tensor, *, radius: int = 8, max_relat
     :func:`plane_fit`'s ``step``). A window's plane holds at a pixel where its points scatter
     off it (variance) at most ``growth`` (:data:`PLANE_GROWTH`) times the depth's noise (the
     median over the window of what its second differences along rows and columns say), and
-    the pixel lies on it within :data:`ON_PLANE_SIGMAS` standard deviations of the noise: noise scatters alike at every
-    size, while a surface that curves or creases inside the window scatters far more. A
+    the pixel lies on it within :data:`ON_PLANE_SIGMAS` standard deviations of the noise:
+    noise scatters alike at every size, while a surface that curves or creases inside the
+    window scatters far more. A
     pixel whose own plane does not hold at a size may take, with ``shifts``, the plane of a
     window of that size beside it (as :func:`plane_fit`'s shifts; windows of
     :data:`MIN_SHIFTED_RADIUS` or wider) that holds and that the pixel lies on; else it tries
