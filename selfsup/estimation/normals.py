@@ -239,8 +239,8 @@ def _second_difference_noise(z: Tensor, mask: Tensor) -> Tensor:
 
 
 def _local_median(value: Tensor, mask: Tensor, radius: int, step: int) -> Tensor:
-    # The median of ``value (B, H, W)`` (NaN: none) over each pixel's window, sampled as
-    # _own_planes samples it (every ``step`` pixels of its (2 radius + 1)^2).
+    # The median of ``value (B, H, W)`` (NaN: none) over each pixel's window, sampled every
+    # ``step`` pixels of its (2 radius + 1)^2 (5x5 samples at step radius / 2).
     B, H, W = value.shape
     padded = torch.nn.functional.pad(torch.where(mask, value, torch.full_like(value, float("nan"))), (radius,) * 4,
                                      value=float("nan"))
@@ -267,8 +267,8 @@ def planes_that_hold(points: Tensor, mask: Tensor, *, radius: int = 8, max_relat
     narrow-angle camera (the DiLiGenT photographs), planes through 21x21 windows put the
     normals 5 degrees off at the median (with ``shifts`` 22), where the depth's own
     differences were 0.6 off. Here the windows of :func:`window_radii` of ``radius`` are
-    tried in turn, largest first (each sampled every ``radius / 4`` pixels, rounded, as
-    :func:`plane_fit`'s ``step``). A window's plane holds at a pixel where its points scatter
+    tried in turn, largest first (the largest sampled every ``radius / 4`` pixels, rounded, as
+    :func:`plane_fit`'s ``step``, the others every ``radius / 2``). A window's plane holds at a pixel where its points scatter
     off it (variance) at most ``growth`` (:data:`PLANE_GROWTH`) times the depth's noise (the
     median over the window of what its second differences along rows and columns say), and
     the pixel lies on it within :data:`ON_PLANE_SIGMAS` standard deviations of the noise:
@@ -289,7 +289,10 @@ def planes_that_hold(points: Tensor, mask: Tensor, *, radius: int = 8, max_relat
         raise ValueError(f"planes_that_hold needs shifts > 0 and growth >= 1, got {shifts}, {growth}")
     radii = window_radii(radius)
     depth_noise = _second_difference_noise(points[..., 2], mask)
-    fits = [_own_planes(points, mask, r, max_relative_step, max(1, round(r / 4))) for r in radii]
+    # The widest window sampled as plane_fit samples it (every radius / 4 pixels); the narrower
+    # ones, which only the pixels the wider ones leave undecided take, every radius / 2.
+    steps = [max(1, round(r / 4)) if k == 0 else max(1, r // 2) for k, r in enumerate(radii)]
+    fits = [_own_planes(points, mask, r, max_relative_step, step) for r, step in zip(radii, steps)]
     smallest, largest = fits[-1], fits[0]
     # Where the smallest window has too few points for a plane, the largest's is the fallback.
     normals = torch.where(smallest.has_normal[..., None], smallest.normals, largest.normals)
@@ -303,7 +306,7 @@ def planes_that_hold(points: Tensor, mask: Tensor, *, radius: int = 8, max_relat
         # The plane holds over the window, and the pixel itself lies on it (beside a crease a
         # window's plane can be the other side's, which most of its points lie on).
         distance = ((points - fit.centres) * fit.normals).sum(-1) ** 2
-        noise = _local_median(depth_noise, mask, radii[k], max(1, round(radii[k] / 4))).clamp_min(tiny)
+        noise = _local_median(depth_noise, mask, radii[k], max(1, radii[k] // 2)).clamp_min(tiny)
         holds = (fit.has_normal & (fit.scatter <= growth * noise) & (distance <= ON_PLANE_SIGMAS**2 * noise))
         take = undecided & holds
         normals = torch.where(take[..., None], fit.normals, normals)
