@@ -9,7 +9,6 @@ its lights are fitted to the shading's log-differences between neighbours
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import replace
 
@@ -86,19 +85,6 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions,
 
     ``slots (B, K, 3)``: a network's lights in its order (:func:`selfsup.estimation.network.network_slots`);
     the search of ``n`` lights also starts from its first ``n``."""
-    if problem.cropped is not None and bool(problem.cropped.any()) and options.tuning.vignetting == "auto":
-        # A crop of an object in the dark shows none of its frame's corners: its lens's
-        # vignetting is not looked for (the falloff's strength was a free knob there).
-        results: list = [None] * problem.batch
-        plain = options.tuned(vignetting="none")
-        cropped = problem.cropped
-        for chosen, crop in ((plain, True), (options, False)):
-            rows = (cropped == crop).nonzero()[:, 0]
-            if rows.numel():
-                sub = dataclasses.replace(problem.select(rows), cropped=None)
-                for i, result in zip(rows.tolist(), estimate_albedo_free(sub, chosen, None if slots is None else slots[rows])):
-                    results[i] = result
-        return results
     labels = geometry = None  # every image's albedo segments (and smooth surfaces), found once
     if options.tuning.albedo_free_residuals == "segments":
         g = problem.gbuffer
@@ -136,12 +122,12 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         return [bic(loss, int(pairs), n_params + more, block) if pairs >= 1 else math.inf
                 for loss, pairs, more in zip(fit.loss.tolist(), fit.pairs.tolist(), extra)]
 
-    def with_bounce(sub: FitProblem, fit: albedo_free.AlbedoFreeFit, segments: Tensor | None) -> albedo_free.AlbedoFreeFit:
+    def with_bounce(every: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFit) -> albedo_free.AlbedoFreeFit:
         # Each image's fit or the same lights with the bounce of the light they cast off the
-        # surfaces (its strength one more parameter), whichever the criterion prefers.
-        if options.tuning.albedo_free_bounce == "never" or sub.gbuffer.intrinsics is None:
+        # surfaces (its strength one more parameter), whichever the criterion prefers, on the
+        # observation ``every`` (its segments, every residual).
+        if options.tuning.albedo_free_bounce == "never" or every.gbuffer.intrinsics is None:
             return fit
-        every = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=segments, **_residuals(options))
         start = torch.full_like(fit.loss, BOUNCE_START)
         bounced = albedo_free.refine_positions(every, fit.position, fit.log_weight, BOUNCE_ITERATIONS, log_bounce=start)
         plain = fit if fit.log_bounce is None else albedo_free.AlbedoFreeFit(fit.position, fit.log_weight, fit.loss,
@@ -223,11 +209,11 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
         rows = torch.tensor(group, dtype=torch.long, device=device)
         sub = problem.select(rows)
         segments = None if labels is None else labels[rows]
-        if with_bounce is not None:
-            chosen = with_bounce(sub, chosen, segments)
         # The chosen model against the model without lights on every residual: how much its lights explain.
         # (The chosen fit's own loss is its loss on every residual: the searches end on this observation.)
         every = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=segments, **_residuals(options))
+        if with_bounce is not None:
+            chosen = with_bounce(every, chosen)
         losses, counted = chosen.loss.tolist(), chosen.pairs.tolist()
         bounced = chosen.bounced().tolist()
         evidence = [bic(unlit, pairs, 0, block) - bic(loss, pairs, 4 * n_lights + int(b), block)

@@ -19,6 +19,8 @@ none); the rest of the estimate sees the image with it divided out.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -72,11 +74,14 @@ def choose_vignetting(problem: FitProblem, labels: Tensor | None, criterion, sea
     The first light is searched through every strength at once (the images side by side);
     ``criterion(fit, extra_params)`` gives each image's value of a fit (lower is better),
     a strength other than none paying for one parameter. A problem without intrinsics
-    keeps none. ``starts``: :func:`selfsup.estimation.albedo_free.search`'s ``extra_starts``
-    (a network's first light), or none."""
+    keeps none, and so does a crop of its frame (``problem.cropped``: an object in the dark,
+    the frame's corners out of view, where the falloff's strength was a free knob chosen at
+    its limit in half the DiLiGenT ball's frames). ``starts``:
+    :func:`selfsup.estimation.albedo_free.search`'s ``extra_starts`` (a network's first light), or none."""
     B = problem.batch
     problem.median_observed(), problem.noise_level()  # the scales, found once on the image as given
-    if problem.gbuffer.intrinsics is None:
+    cropped = torch.zeros(B, dtype=torch.bool, device=problem.image.device) if problem.cropped is None else problem.cropped
+    if problem.gbuffer.intrinsics is None or bool(cropped.all()):
         shares = problem.image.new_zeros(B)
         return shares, albedo_free.search(problem, 1, labels=labels, **search_kwargs, **(starts or {}))
     # Each strength's first light on every pixel (the scales of the image as given: the loss of
@@ -94,6 +99,7 @@ def choose_vignetting(problem: FitProblem, labels: Tensor | None, criterion, sea
                              rank_stride=CHOICE_RANK_STRIDE, **search_kwargs, **extra)
     values = torch.tensor([criterion(fit, [0 if share == 0 else 1 for share in SHARES for _ in range(B)])],
                           dtype=torch.float64).view(len(SHARES), B)
+    values[1:, cropped.cpu()] = math.inf  # a crop keeps none
     choice = values.argmin(0)  # (B,)
     shares = _interpolated(values, choice).to(problem.image)
     picked = albedo_free.AlbedoFreeFit.rows([(fit, int(k) * B + i) for i, k in enumerate(choice.tolist())])

@@ -23,13 +23,12 @@ __all__ = ["studio_spec", "sphere_centre"]
 
 
 def _materials(count: int, albedo: tuple[float, float, float], ks: float, shininess: float) -> Materials:
-    # ``count`` primitives of one uniform albedo and one gloss.
-    kd = torch.tensor(albedo, dtype=torch.float64).expand(count, 3).clone()
+    # ``count`` primitives of one uniform albedo and one gloss, float32 as the sampler's.
+    kd = torch.tensor(albedo, dtype=torch.float32).expand(count, 3).clone()
     return Materials(kd_base=kd, kd_alt=kd.clone(), texture=torch.full((count,), Texture.UNIFORM, dtype=torch.long),
-                     texture_scale=torch.ones(count, dtype=torch.float64),
-                     texture_dir=torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64).expand(count, 3).clone(),
-                     ks=torch.full((count,), float(ks), dtype=torch.float64),
-                     shininess=torch.full((count,), float(shininess), dtype=torch.float64))
+                     texture_scale=torch.ones(count),
+                     texture_dir=torch.tensor([[1.0, 0.0, 0.0]]).expand(count, 3).clone(),
+                     ks=torch.full((count,), float(ks)), shininess=torch.full((count,), float(shininess)))
 
 
 def studio_spec(light_direction: tuple[float, float, float] | None, *, width: int = 160, height: int = 120,
@@ -78,13 +77,7 @@ def studio_spec(light_direction: tuple[float, float, float] | None, *, width: in
         lights = (centre + direction / direction.norm() * light_distance * radius)[None]
         intensity = torch.ones(1, 3, dtype=torch.float64) * (light_distance * radius) ** 2
         ambient_rgb = torch.full((3,), float(ambient), dtype=torch.float64)
-    materials = _materials(count, albedo, ks, shininess)
-    # float32 as the sampler's specs (the renderer's dtype)
-    return SceneSpec(prims=prims.to(torch.float32),
-                     materials=Materials(*(t.float() if t.is_floating_point() else t for t in (
-                         materials.kd_base, materials.kd_alt, materials.texture, materials.texture_scale,
-                         materials.texture_dir, materials.ks, materials.shininess))),
-                     K=K.float(), height=height, width=width, light_position=lights.float(),
+    return SceneSpec(prims=prims.to(torch.float32), materials=_materials(count, albedo, ks, shininess), K=K.float(), height=height, width=width, light_position=lights.float(),
                      light_relative_intensity=intensity.float(), ambient_relative=ambient_rgb.float(),
                      exposure=exposure, seed=seed, meta={"studio": True, "objects": count})
 

@@ -40,8 +40,8 @@ def _angle_deg(record, spec, direction):
 def test_a_glossy_object_in_the_dark_gives_its_light_within_two_degrees(tmp_path, others, direction):
     # The shared DiLiGenT ball got "no light" in every frame: the normals refitted through
     # planes 21x21 pixels wide were 19 degrees off on the ball, and the image's edges of shading
-    # cut it into bands whose free levels took the shading. These frames got 4-11 degrees
-    # (two of four: no light) before.
+    # cut it into bands whose free levels took the shading. Before, these two frames got "no
+    # light" and 3.9 degrees.
     spec = studio_spec(direction, others=others)
     record = estimate_scene(_photograph(tmp_path, spec), EstimateOptions())
     assert record["light_found"] is True and len(record["lights"]) == 1 and record["evidence"] > 20

@@ -108,7 +108,9 @@ class AlbedoFreeFit:
     pairs: Tensor
     log_bounce: Tensor | None = None
 
-    def bounce_or_none(self) -> Tensor:
+    _ALWAYS = ("position", "log_weight", "loss", "pairs")  # the fields every fit has
+
+    def log_bounces(self) -> Tensor:
         """``log_bounce (B,)``, ``-inf`` where the fit has no bounce."""
         if self.log_bounce is not None:
             return self.log_bounce
@@ -116,16 +118,16 @@ class AlbedoFreeFit:
 
     def bounced(self) -> Tensor:
         """``(B,)`` bool: the images whose model has the bounce."""
-        return torch.isfinite(self.bounce_or_none())
+        return torch.isfinite(self.log_bounces())
 
     @staticmethod
     def rows(picked: list[tuple["AlbedoFreeFit", int]]) -> "AlbedoFreeFit":
         """Row ``r`` of each ``(fit, r)`` (fits of one light count), stacked into one batch."""
         bounce = None
         if any(fit.log_bounce is not None for fit, _ in picked):
-            bounce = torch.stack([fit.bounce_or_none()[r] for fit, r in picked])
+            bounce = torch.stack([fit.log_bounces()[r] for fit, r in picked])
         return AlbedoFreeFit(*(torch.stack([getattr(fit, name)[r] for fit, r in picked])
-                               for name in ("position", "log_weight", "loss", "pairs")), bounce)
+                               for name in AlbedoFreeFit._ALWAYS), bounce)
 
     def without(self, light: int) -> "AlbedoFreeFit":
         """The fit with light ``light`` left out, its weights relative to the new first
@@ -147,9 +149,8 @@ class AlbedoFreeFit:
         pick = lambda a, b: torch.where(take.view(-1, *[1] * (a.dim() - 1)), b, a)  # noqa: E731
         bounce = None
         if self.log_bounce is not None or other.log_bounce is not None:
-            bounce = pick(self.bounce_or_none(), other.bounce_or_none())
-        return AlbedoFreeFit(*(pick(getattr(self, name), getattr(other, name))
-                               for name in ("position", "log_weight", "loss", "pairs")), bounce)
+            bounce = pick(self.log_bounces(), other.log_bounces())
+        return AlbedoFreeFit(*(pick(getattr(self, name), getattr(other, name)) for name in self._ALWAYS), bounce)
 
 
 def pair_differences(x: Tensor) -> Tensor:

@@ -21,6 +21,7 @@ the cut's pixel pairs, each pair's allowance widened by its pixels' noise) are o
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 __all__ = ["join_shading_cuts", "EDGE_NOISE_SIGMAS", "MIN_CUT_PAIRS"]
 
@@ -39,13 +40,15 @@ def _find(parent: np.ndarray, i: int) -> int:
     return i
 
 
-def _group_medians(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _medians_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     # The distinct keys, each one's median of ``values`` (the upper middle of an even count)
-    # and its count.
-    order = np.lexsort((values, keys))
-    keys, values = keys[order], values[order]
-    unique, first, counts = np.unique(keys, return_index=True, return_counts=True)
-    return unique, values[first + counts // 2], counts
+    # and its count: :func:`selfsup.estimation.albedo_free.classes.group_medians` of the keys' ranks.
+    from selfsup.estimation.albedo_free.classes import group_medians
+
+    unique, rank = np.unique(keys, return_inverse=True)
+    medians, counts = group_medians(torch.from_numpy(np.ascontiguousarray(values, dtype=np.float64)),
+                                    torch.from_numpy(rank.reshape(-1)), len(unique), upper=True)
+    return unique, medians.numpy(), counts.numpy()
 
 
 def join_shading_cuts(labels: np.ndarray, log_grey: np.ndarray, chroma: np.ndarray, noise: np.ndarray,
@@ -108,13 +111,13 @@ def join_shading_cuts(labels: np.ndarray, log_grey: np.ndarray, chroma: np.ndarr
     parent = np.arange(count)
     if keys_all:
         keys = np.concatenate(keys_all)
-        unique, excess, _ = _group_medians(keys, np.concatenate(excess_all))
-        _, colour, _ = _group_medians(keys, np.concatenate(colour_all))
-        _, _, pairs = _group_medians(keys, np.concatenate(excess_all))
+        unique, excess, _ = _medians_by_key(keys, np.concatenate(excess_all))
+        _, colour, _ = _medians_by_key(keys, np.concatenate(colour_all))
+        _, _, pairs = _medians_by_key(keys, np.concatenate(excess_all))
         # Each segment's colour: the median chromaticity of its pixels (the cut's few pixels
         # can agree where the two sides' colours do not).
         inside = labels >= 0
-        hue = np.stack([_group_medians(labels[inside], chroma[..., c][inside])[1] for c in range(2)], -1)
+        hue = np.stack([_medians_by_key(labels[inside], chroma[..., c][inside])[1] for c in range(2)], -1)
         ids = np.unique(labels[inside])
         region_hue = np.zeros((count, 2))
         region_hue[ids] = hue
