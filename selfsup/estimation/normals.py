@@ -202,9 +202,11 @@ def _nearby_planes(points: Tensor, own: _Planes, distances: list[int], allowed: 
 # this many times the depth's noise, the median over the window of its second differences'
 # (:func:`_second_difference_noise`): noise scatters alike at every size, a curved surface's sag
 # grows as the window's size squared, a crease's distance from either plane as the size.
-# Measured ad hoc (2026-12-01) against the clean files' normals, share more than 10 degrees off:
-# 12 Mitsuba sensor-noise files 4.0% (2: 4.6%, 1.5: 13%; plane_fit with shifts, as before: 6.1%),
-# 12 procedural ones 6.2% (2: 6.8%, 8: 8.6%; before: 7.4%). Two references were tried and left
+# Against the clean files' normals, share more than 10 degrees off: `python -m benchmarks.noisy_normals
+# data/mitsuba --every 4` 4.2% (12 Mitsuba sensor-noise files), `... data/procedural --every 4`
+# 6.5%. Ad hoc on the same files (the trial script not kept; its mask a little narrower): growth
+# 2: 4.6% and 6.8%, 1.5: 13% (Mitsuba), 8: 8.6% (procedural), against 4.0% and 6.2% for 3 and
+# 6.1% and 7.4% for plane_fit with shifts, as before. Two references were tried and left
 # out: the next smaller window's scatter (beside a crease both windows straddle it: 61 degrees
 # off there), and the mean scatter of the 3x3 windows (a plane through 9 points tilts to fit
 # noise as large as the pixel spacing, so that reference fell below the noise and a quarter of
