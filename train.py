@@ -76,6 +76,17 @@ def build_data(cfg: DictConfig):
     return sampler_config(**_plain(cfg.data.sampler)), Degradations(**_plain(cfg.data.degradations)), cfg.data.samples
 
 
+def _loss_options(cfg: DictConfig):
+    """``(LossOptions, TeacherOptions)`` of the experiment's ``loss`` node (its ``teacher``
+    sub-node: the weights of the pool teacher's terms in training)."""
+    from selfsup.losses import LossOptions
+    from selfsup.teacher import TeacherOptions
+
+    loss = _plain(cfg.loss)
+    teacher = TeacherOptions(**(loss.pop("teacher", None) or {}))
+    return LossOptions(**loss), teacher
+
+
 def build_trainer(cfg: DictConfig):
     """The :class:`selfsup.engine.Trainer` of the ``data``, ``model``, ``renderer``,
     ``optim``, ``trainer``, ``logger`` groups and the experiment's ``loss`` node."""
@@ -83,7 +94,6 @@ def build_trainer(cfg: DictConfig):
 
     from render import ShadowedBlinnPhong
     from selfsup.engine import DataOptions, LoggerOptions, OptimOptions, Trainer, TrainerOptions
-    from selfsup.losses import LossOptions
 
     sampler, degradations, _ = build_data(cfg)
     pool = _plain(cfg.data.pool)
@@ -97,9 +107,10 @@ def build_trainer(cfg: DictConfig):
                          "data.pool.n_lights_probs can draw")
     optim = _plain(cfg.optim)
     optim["betas"] = tuple(optim["betas"])
+    loss, teacher = _loss_options(cfg)
     return Trainer(model_config=model, sampler=sampler, degradations=degradations, samples=samples,
                    pool=DataOptions(**pool), optim=OptimOptions(**optim), trainer=TrainerOptions(**_plain(cfg.trainer)),
-                   logger=LoggerOptions(**_plain(cfg.logger)), loss=LossOptions(**_plain(cfg.loss)),
+                   logger=LoggerOptions(**_plain(cfg.logger)), loss=loss, teacher=teacher,
                    renderer=ShadowedBlinnPhong(**_plain(cfg.renderer), check_finite=False), seed=cfg.seed,
                    config=OmegaConf.to_container(cfg, resolve=True))
 
@@ -179,7 +190,6 @@ def _adapt(cfg: DictConfig) -> dict:
 
     from render import ShadowedBlinnPhong
     from selfsup.adapt import AdaptOptions, FrameOptions, GuardOptions, Procedural, TeacherOptions, adapt_files
-    from selfsup.losses import LossOptions
 
     settings = _plain(cfg.adapt)
     io = {k: settings.pop(k) for k in ("input", "out", "checkpoint")}
@@ -200,7 +210,7 @@ def _adapt(cfg: DictConfig) -> dict:
         validation_degradations=degradations, validation_samples=samples, validation_scenes=validation_scenes)
     return adapt_files(io["input"], io["out"], io["checkpoint"], options=AdaptOptions(**settings),
                        frame_options=FrameOptions(**frames), guards=guards,
-                       loss=LossOptions(**_plain(cfg.loss)), procedural=procedural, teacher=teacher,
+                       loss=_loss_options(cfg)[0], procedural=procedural, teacher=teacher,
                        renderer=ShadowedBlinnPhong(**_plain(cfg.renderer), check_finite=False))
 
 

@@ -42,6 +42,7 @@ from selfsup.checkpoint import load_checkpoint, save_network
 from selfsup.evaluate import calibrate_count_threshold, summarise
 from selfsup.losses import LossOptions, reconstruction_loss, scene_batch
 from selfsup.model import LightNet, LightPrediction, scene_frame
+from selfsup.teacher import TeacherOptions, pool_teacher, teacher_cache_path, teacher_loss
 
 __all__ = ["DataOptions", "OptimOptions", "TrainerOptions", "LoggerOptions", "Trainer", "render_grid"]
 
@@ -60,8 +61,21 @@ class DataOptions:
     refresh_epochs: int = 0  # 0: one pool for the whole run
     workers: int = 2
     albedo_share: float = 0.0  # share of training steps whose cost volumes see the scenes' albedo
+    # The per-frame search as teacher (selfsup.teacher.pool_teacher): on the first
+    # teacher_scenes of each training pool, rendered again at teacher_scale x its grid and
+    # searched with teacher_method, the answers cached under teacher_cache by recipe.
+    teacher_scenes: int = 0
+    teacher_scale: int = 2
+    teacher_method: str = "refine"
+    teacher_cache: str = "data/teacher"
 
     def __post_init__(self):
+        if not 0 <= self.teacher_scenes <= self.train_scenes or self.teacher_scale < 1:
+            raise ValueError(f"data.pool.teacher_scenes must be in [0, train_scenes={self.train_scenes}] and "
+                             f"teacher_scale >= 1, got {self.teacher_scenes} and {self.teacher_scale}")
+        if self.teacher_method not in ("refine", "cnn+refine"):
+            raise ValueError(f"data.pool.teacher_method must be 'refine' or 'cnn+refine' (the search; 'cnn' would "
+                             f"teach the network its own answers), got {self.teacher_method!r}")
         if not 0 <= self.albedo_share <= 1:
             raise ValueError(f"data.pool.albedo_share must be in [0, 1], got {self.albedo_share}")
         if self.train_scenes < 1 or self.val_scenes < 1:
@@ -173,6 +187,8 @@ class Trainer:
         sampler, degradations, samples: procedural scene options (the ``data`` group).
         pool: :class:`DataOptions`; optim: :class:`OptimOptions`; trainer:
         :class:`TrainerOptions`; logger: :class:`LoggerOptions`; loss: :class:`LossOptions`.
+        teacher: the weights of the teacher's terms on the pool scenes it searched
+            (:class:`selfsup.teacher.TeacherOptions`; read where ``pool.teacher_scenes > 0``).
         renderer: the shadowed renderer the loss re-renders with.
         seed: initialisation and data order.
         config: the composed config, stored in checkpoints for the record.
@@ -180,13 +196,15 @@ class Trainer:
 
     def __init__(self, model_config: dict, sampler, degradations, samples: int, pool: DataOptions,
                  optim: OptimOptions, trainer: TrainerOptions, logger: LoggerOptions, loss: LossOptions,
-                 renderer: ShadowedBlinnPhong, seed: int = 0, config: dict | None = None):
+                 renderer: ShadowedBlinnPhong, seed: int = 0, config: dict | None = None,
+                 teacher: TeacherOptions | None = None):
         self.model_config = dict(model_config)
         with torch.device("meta"):  # a bad model setting is named now, before any scene is rendered (no weights made)
             LightNet(**self.model_config)
         self.sampler, self.degradations, self.samples = sampler, degradations, samples
         self.pool_options, self.optim, self.options, self.logger, self.loss = pool, optim, trainer, logger, loss
         self.renderer = renderer
+        self.teacher = teacher or TeacherOptions()
         self.seed = seed
         self.config = config or {}
         self.out_dir = Path(trainer.out_dir)
@@ -207,7 +225,23 @@ class Trainer:
             started = time.perf_counter()
             self._pools[key] = materialise(dataset, workers=self.pool_options.workers, progress=self.options.progress)
             log.info("rendered %d %s scenes in %.1f s", count, which, time.perf_counter() - started)
+            if which == "train" and self.pool_options.teacher_scenes:
+                self._pools[key].update(self._taught(base, count))
         return self._pools[key]
+
+    def _taught(self, base_seed: int, count: int) -> dict[str, Tensor]:
+        """``teacher_pos (count, K, 3)`` and ``teacher_mask (count, K)`` of a training pool:
+        the search's lights on its first ``teacher_scenes`` scenes, none after them."""
+        p, K = self.pool_options, self.model_config.get("max_lights", 2)
+        cache = teacher_cache_path(p.teacher_cache, self.sampler, self.degradations, self.samples, base_seed,
+                                   p.teacher_scale, p.teacher_method)
+        position, mask, stats = pool_teacher(self.sampler, self.degradations, self.samples, base_seed, p.teacher_scenes,
+                                             K, cache, p.teacher_scale, p.teacher_method, progress=self.options.progress)
+        log.info("teacher: %d of %d pool scenes with lights (%d searched in %.0f s; cache %s)",
+                 stats["frames_with_lights"], p.teacher_scenes, stats["searched"], stats["seconds"], cache)
+        padded = torch.zeros(count, K, 3), torch.zeros(count, K, dtype=torch.bool)
+        padded[0][:len(position)], padded[1][:len(mask)] = position, mask
+        return {"teacher_pos": padded[0], "teacher_mask": padded[1]}
 
     def _steps_per_epoch(self) -> int:
         return max(1, self.pool_options.train_scenes // self.options.batch_size)
@@ -271,6 +305,10 @@ class Trainer:
 
             writer = SummaryWriter(str(self.out_dir / "tensorboard"), purge_step=step)
         val_pool = self._pool(0, "val") if ctx.main else None
+        if self.pool_options.teacher_scenes and ctx.world > 1:  # rank 0 searches; the others read its cache
+            if ctx.main:
+                self._pool(self.batch_indices(step)[0], "train")
+            dist.barrier()
         amp = self.options.amp and ctx.device.type == "cuda"
         started = time.perf_counter()
         window_start, window_scenes = started, 0
@@ -290,10 +328,16 @@ class Trainer:
                 with torch.autocast(ctx.device.type, dtype=torch.bfloat16, enabled=amp):
                     prediction = model(scenes.image, scenes.gbuffer, scenes.material.kd if albedo else None)
                 terms = reconstruction_loss(_float32(prediction), scenes, renderer, self.loss, batch)
-                if not torch.isfinite(terms.total):
-                    raise FloatingPointError(f"non-finite loss at step {step}: {terms.total.item()}")
+                total, taught = terms.total, {}
+                if "teacher_mask" in batch:
+                    size = scene_frame(scenes.image, scenes.gbuffer).size
+                    teaching, taught = teacher_loss(_float32(prediction), batch["teacher_pos"], batch["teacher_mask"],
+                                                    size, self.teacher)
+                    total = total + teaching
+                if not torch.isfinite(total):
+                    raise FloatingPointError(f"non-finite loss at step {step}: {total.item()}")
                 optimiser.zero_grad(set_to_none=True)
-                terms.total.backward()
+                total.backward()
                 if self.optim.grad_clip > 0:
                     torch.nn.utils.clip_grad_norm_(network.parameters(), self.optim.grad_clip)
                 optimiser.step()
@@ -305,8 +349,10 @@ class Trainer:
                     now = time.perf_counter()
                     _log_terms(writer, terms, schedule.get_last_lr()[0], window_scenes / max(now - window_start, 1e-9),
                                step)
+                    for name, value in taught.items():
+                        writer.add_scalar(f"loss/{name}", value, step)
                     window_start, window_scenes = now, 0
-                    bar.set_postfix(loss=f"{float(terms.total.detach()):.4f}")
+                    bar.set_postfix(loss=f"{float(total.detach()):.4f}")
                 if self.options.max_minutes > 0:
                     stop = self._agree((time.perf_counter() - started) / 60 > self.options.max_minutes, ctx)
                 at_stop_step = bool(self.options.stop_step) and step >= self.options.stop_step

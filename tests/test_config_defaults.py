@@ -16,6 +16,7 @@ from pathlib import Path
 from selfsup.engine import LoggerOptions, OptimOptions, TrainerOptions
 from selfsup.estimation import EstimateOptions, estimate_files
 from selfsup.losses import LossOptions
+from selfsup.teacher import TeacherOptions
 
 CONFIGS = Path(__file__).parents[1] / "configs"
 
@@ -42,13 +43,17 @@ def _defaults(cls) -> dict:
 
 @pytest.mark.parametrize("path, node, cls", [
     ("experiment/default.yaml", "loss", LossOptions),  # the loss node lives in the embedded experiment
+    ("experiment/default.yaml", "loss.teacher", TeacherOptions),  # the pool teacher's weights (training)
     ("optim/adamw.yaml", None, OptimOptions),
     ("logger/tensorboard.yaml", None, LoggerOptions),
     ("trainer/default.yaml", None, TrainerOptions),  # an experiment may change them: it lists what it changes
 ])
 def test_a_config_group_holds_its_dataclass_defaults(path, node, cls):
     values = OmegaConf.to_container(OmegaConf.load(CONFIGS / path), resolve=False)
-    values = values[node] if node else values
+    for key in (node or "").split(".") if node else ():
+        values = values[key]
+    if cls is LossOptions:
+        values = {k: v for k, v in values.items() if k != "teacher"}  # its own node, TeacherOptions
     defaults = _defaults(cls)
     assert set(values) <= set(defaults), f"{path}: keys the dataclass lacks: {set(values) - set(defaults)}"
     for key, value in values.items():

@@ -264,8 +264,10 @@ def test_a_capture_like_batch_trains_without_an_albedo(tmp_path):
     result = run(_smoke(tmp_path, "experiment=captures", "data.pool.height=24", "data.pool.width=32",
                         "data.pool.train_scenes=8", "data.pool.val_scenes=4", "data.pool.workers=0",
                         "trainer.max_steps=2", "trainer.batch_size=4", "trainer.val_every=2", "trainer.max_minutes=0",
-                        "trainer.progress=false"))
+                        "trainer.progress=false", "data.pool.teacher_scenes=2", "data.pool.teacher_scale=1",
+                        f"data.pool.teacher_cache={tmp_path / 'teacher'}"))
     assert result["step"] == 2 and result["validation"]["scenes"] == 4
+    assert len(list((tmp_path / "teacher").glob("teacher_*.jsonl"))) == 1  # the recipe's teacher searched
     network, state = load_network(result["last"])
     assert network.max_lights == 3 and state["model_config"]["offset_steps"] == 0.25
 

@@ -5,7 +5,7 @@ network's lights with the shadowed layer and takes the photometric error as the 
 albedo solved per frame in closed form (:func:`selfsup.losses.reconstruction_loss` with the
 frames' regions of one albedo: :mod:`selfsup.adapt.frames`), and the per-frame search's
 lights, where that error is least over the whole room, teach each slot's hypothesis scores
-and position (:mod:`selfsup.adapt.teacher`); no light, albedo or count of the user's is
+and position (:mod:`selfsup.teacher`); no light, albedo or count of the user's is
 read. What keeps it from going wrong:
 
 - **robust to what the model lacks**: the cost is a pseudo-Huber of the exposure-
@@ -42,7 +42,7 @@ from torch import Tensor
 from render import Material, ShadowedBlinnPhong
 from selfsup.adapt.frames import AdaptFrames, FrameOptions, UserFrame, collate_frames, load_frames, mirrored, teach
 from selfsup.adapt.guards import GuardOptions, degenerate_lights, guard_penalty, refusals
-from selfsup.adapt.teacher import TeacherOptions, teacher_loss
+from selfsup.teacher import TeacherOptions, teacher_loss
 from selfsup.checkpoint import load_checkpoint, load_network, save_network
 from selfsup.engine import render_grid
 from selfsup.estimation.files import progress_bar

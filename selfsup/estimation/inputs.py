@@ -28,7 +28,7 @@ from selfsup.scenes.capture import (COLOR_SUFFIXES, CaptureFrame, capture_frames
                                     frame_of_color, is_capture_folder, read_input)
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
-__all__ = ["SceneFile", "BadInput", "Input", "scene_files", "estimate_inputs", "iter_inputs", "count_inputs",
+__all__ = ["SceneFile", "SceneInMemory", "BadInput", "Input", "scene_files", "estimate_inputs", "iter_inputs", "count_inputs",
            "read_item", "item_id", "parse_shard", "sharded", "LIST_SUFFIXES"]
 
 LIST_SUFFIXES = (".txt", ".lst")
@@ -56,7 +56,25 @@ class BadInput:
         return self.name
 
 
-Input = Path | CaptureFrame | SceneFile | BadInput  # str() of each names it
+@dataclass(frozen=True, eq=False)
+class SceneInMemory:
+    """A scene already in memory (a training pool's frame given to the estimator as its
+    teacher): estimated like a scene file, its id ``scene.meta["id"]``, which names it
+    (equal ids are one frame: worker processes return copies)."""
+
+    scene: Scene
+
+    def __str__(self) -> str:
+        return self.scene.id
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, SceneInMemory) and other.scene.id == self.scene.id
+
+    def __hash__(self) -> int:
+        return hash(("SceneInMemory", self.scene.id))
+
+
+Input = Path | CaptureFrame | SceneFile | SceneInMemory | BadInput  # str() of each names it
 
 
 def scene_files(path: str | Path) -> list[Path]:
@@ -172,6 +190,8 @@ def read_item(item: Input) -> Scene:
     """The scene of one input (:class:`BadInput`: its reason as a :class:`SceneFileError`)."""
     if isinstance(item, BadInput):
         raise SceneFileError(item.name, item.reason)
+    if isinstance(item, SceneInMemory):
+        return item.scene
     if isinstance(item, SceneFile):
         scene = read_scene(item.path)
         return replace(scene, meta={**scene.meta, "id": item.prefix + scene.id})
@@ -183,8 +203,8 @@ def item_id(item: Input) -> str:
     frame's stem, a scene file's ``meta.id`` (its stem where it has none); a bad line's name."""
     if isinstance(item, CaptureFrame):
         return item.id
-    if isinstance(item, BadInput):
-        return item.name
+    if isinstance(item, (BadInput, SceneInMemory)):
+        return str(item)
     path, prefix = (item.path, item.prefix) if isinstance(item, SceneFile) else (Path(item), "")
     try:
         with np.load(path, allow_pickle=False) as data:
