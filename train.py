@@ -79,8 +79,7 @@ def build_data(cfg: DictConfig):
 def _loss_options(cfg: DictConfig):
     """``(LossOptions, TeacherOptions)`` of the experiment's ``loss`` node (its ``teacher``
     sub-node: the weights of the pool teacher's terms in training)."""
-    from selfsup.losses import LossOptions
-    from selfsup.teacher import TeacherOptions
+    from selfsup.losses import LossOptions, TeacherOptions
 
     loss = _plain(cfg.loss)
     teacher = TeacherOptions(**(loss.pop("teacher", None) or {}))
@@ -108,9 +107,16 @@ def build_trainer(cfg: DictConfig):
     optim = _plain(cfg.optim)
     optim["betas"] = tuple(optim["betas"])
     loss, teacher = _loss_options(cfg)
+    data = DataOptions(**pool)
+    search = None
+    if data.teacher_scenes:
+        from selfsup.teacher import PoolTeacher
+
+        search = PoolTeacher(sampler, degradations, samples, data.teacher_scenes, model["max_lights"],
+                             data.teacher_cache, data.teacher_scale, data.teacher_method, cfg.trainer.progress)
     return Trainer(model_config=model, sampler=sampler, degradations=degradations, samples=samples,
-                   pool=DataOptions(**pool), optim=OptimOptions(**optim), trainer=TrainerOptions(**_plain(cfg.trainer)),
-                   logger=LoggerOptions(**_plain(cfg.logger)), loss=loss, teacher=teacher,
+                   pool=data, optim=OptimOptions(**optim), trainer=TrainerOptions(**_plain(cfg.trainer)),
+                   logger=LoggerOptions(**_plain(cfg.logger)), loss=loss, teacher=teacher, teacher_search=search,
                    renderer=ShadowedBlinnPhong(**_plain(cfg.renderer), check_finite=False), seed=cfg.seed,
                    config=OmegaConf.to_container(cfg, resolve=True))
 

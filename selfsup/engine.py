@@ -40,9 +40,8 @@ from torch import Tensor
 from render import ShadowedBlinnPhong
 from selfsup.checkpoint import load_checkpoint, save_network
 from selfsup.evaluate import calibrate_count_threshold, summarise
-from selfsup.losses import LossOptions, reconstruction_loss, scene_batch
+from selfsup.losses import LossOptions, TeacherOptions, reconstruction_loss, scene_batch, teacher_loss
 from selfsup.model import LightNet, LightPrediction, scene_frame
-from selfsup.teacher import TeacherOptions, pool_teacher, teacher_cache_path, teacher_loss
 
 __all__ = ["DataOptions", "OptimOptions", "TrainerOptions", "LoggerOptions", "Trainer", "render_grid"]
 
@@ -61,9 +60,9 @@ class DataOptions:
     refresh_epochs: int = 0  # 0: one pool for the whole run
     workers: int = 2
     albedo_share: float = 0.0  # share of training steps whose cost volumes see the scenes' albedo
-    # The per-frame search as teacher (selfsup.teacher.pool_teacher): on the first
-    # teacher_scenes of each training pool, rendered again at teacher_scale x its grid and
-    # searched with teacher_method, the answers cached under teacher_cache by recipe.
+    # The per-frame search as teacher (selfsup.teacher.PoolTeacher, which train.py builds from
+    # these): on the first teacher_scenes of each training pool, rendered again at
+    # teacher_scale x its grid and searched with teacher_method, cached under teacher_cache.
     teacher_scenes: int = 0
     teacher_scale: int = 2
     teacher_method: str = "refine"
@@ -188,7 +187,10 @@ class Trainer:
         pool: :class:`DataOptions`; optim: :class:`OptimOptions`; trainer:
         :class:`TrainerOptions`; logger: :class:`LoggerOptions`; loss: :class:`LossOptions`.
         teacher: the weights of the teacher's terms on the pool scenes it searched
-            (:class:`selfsup.teacher.TeacherOptions`; read where ``pool.teacher_scenes > 0``).
+            (:class:`selfsup.losses.TeacherOptions`; read where ``pool.teacher_scenes > 0``).
+        teacher_search: ``base_seed -> (position (n, K, 3), mask (n, K))``, the teacher's
+            lights on a pool's first ``n = pool.teacher_scenes`` scenes
+            (:class:`selfsup.teacher.PoolTeacher`); needed where ``pool.teacher_scenes > 0``.
         renderer: the shadowed renderer the loss re-renders with.
         seed: initialisation and data order.
         config: the composed config, stored in checkpoints for the record.
@@ -197,7 +199,7 @@ class Trainer:
     def __init__(self, model_config: dict, sampler, degradations, samples: int, pool: DataOptions,
                  optim: OptimOptions, trainer: TrainerOptions, logger: LoggerOptions, loss: LossOptions,
                  renderer: ShadowedBlinnPhong, seed: int = 0, config: dict | None = None,
-                 teacher: TeacherOptions | None = None):
+                 teacher: TeacherOptions | None = None, teacher_search=None):
         self.model_config = dict(model_config)
         with torch.device("meta"):  # a bad model setting is named now, before any scene is rendered (no weights made)
             LightNet(**self.model_config)
@@ -205,6 +207,10 @@ class Trainer:
         self.pool_options, self.optim, self.options, self.logger, self.loss = pool, optim, trainer, logger, loss
         self.renderer = renderer
         self.teacher = teacher or TeacherOptions()
+        if pool.teacher_scenes and teacher_search is None:
+            raise ValueError("data.pool.teacher_scenes > 0 needs a teacher_search (selfsup.teacher.PoolTeacher; "
+                             "train.py builds it)")
+        self.teacher_search = teacher_search
         self.seed = seed
         self.config = config or {}
         self.out_dir = Path(trainer.out_dir)
@@ -232,14 +238,8 @@ class Trainer:
     def _taught(self, base_seed: int, count: int) -> dict[str, Tensor]:
         """``teacher_pos (count, K, 3)`` and ``teacher_mask (count, K)`` of a training pool:
         the search's lights on its first ``teacher_scenes`` scenes, none after them."""
-        p, K = self.pool_options, self.model_config.get("max_lights", 2)
-        cache = teacher_cache_path(p.teacher_cache, self.sampler, self.degradations, self.samples, base_seed,
-                                   p.teacher_scale, p.teacher_method)
-        position, mask, stats = pool_teacher(self.sampler, self.degradations, self.samples, base_seed, p.teacher_scenes,
-                                             K, cache, p.teacher_scale, p.teacher_method, progress=self.options.progress)
-        log.info("teacher: %d of %d pool scenes with lights (%d searched in %.0f s; cache %s)",
-                 stats["frames_with_lights"], p.teacher_scenes, stats["searched"], stats["seconds"], cache)
-        padded = torch.zeros(count, K, 3), torch.zeros(count, K, dtype=torch.bool)
+        position, mask = self.teacher_search(base_seed)
+        padded = torch.zeros(count, *position.shape[1:]), torch.zeros(count, *mask.shape[1:], dtype=torch.bool)
         padded[0][:len(position)], padded[1][:len(mask)] = position, mask
         return {"teacher_pos": padded[0], "teacher_mask": padded[1]}
 

@@ -15,8 +15,7 @@ from pathlib import Path
 
 from selfsup.engine import LoggerOptions, OptimOptions, TrainerOptions
 from selfsup.estimation import EstimateOptions, estimate_files
-from selfsup.losses import LossOptions
-from selfsup.teacher import TeacherOptions
+from selfsup.losses import LossOptions, TeacherOptions
 
 CONFIGS = Path(__file__).parents[1] / "configs"
 

@@ -62,7 +62,7 @@ def test_the_trainer_teaches_the_pools_first_scenes_and_the_teacher_moves_the_sc
     assert pool["teacher_mask"][:3].any(1).all() and not pool["teacher_mask"][3:].any()
     assert pool["teacher_pos"].shape == (*pool["light_pos"].shape,)
     from selfsup.model import LightNet
-    from selfsup.teacher import teacher_loss
+    from selfsup.losses import teacher_loss
 
     torch.manual_seed(0)
     network = LightNet(**trainer.model_config)
@@ -83,3 +83,12 @@ def test_the_trainer_teaches_the_pools_first_scenes_and_the_teacher_moves_the_sc
 def test_bad_teacher_settings_are_named(bad):
     with pytest.raises(ValueError, match="teacher"):
         DataOptions(train_scenes=16, **bad)
+
+
+def test_a_trainer_told_to_teach_without_a_search_says_so(tmp_path):
+    cfg = _smoke(tmp_path, "data.pool.teacher_scenes=3")
+    trainer = build_trainer(cfg)
+    with pytest.raises(ValueError, match="teacher_search"):
+        type(trainer)(trainer.model_config, trainer.sampler, trainer.degradations, trainer.samples,
+                      trainer.pool_options, trainer.optim, trainer.options, trainer.logger, trainer.loss,
+                      trainer.renderer)

@@ -7,7 +7,7 @@
 from selfsup.adapt.frames import AdaptFrames, FrameBatch, FrameOptions, UserFrame, collate_frames, load_frames, teach
 from selfsup.adapt.guards import GuardOptions, degenerate_lights, guard_penalty, refusals, surface_violation
 from selfsup.adapt.loop import AdaptOptions, Procedural, adapt_files
-from selfsup.teacher import TeacherOptions, teacher_loss
+from selfsup.losses import TeacherOptions, teacher_loss
 
 __all__ = ["AdaptOptions", "Procedural", "adapt_files", "FrameOptions", "UserFrame", "FrameBatch", "AdaptFrames",
            "load_frames", "collate_frames", "GuardOptions", "surface_violation", "degenerate_lights", "guard_penalty",

@@ -42,7 +42,7 @@ from torch import Tensor
 from render import Material, ShadowedBlinnPhong
 from selfsup.adapt.frames import AdaptFrames, FrameOptions, UserFrame, collate_frames, load_frames, mirrored, teach
 from selfsup.adapt.guards import GuardOptions, degenerate_lights, guard_penalty, refusals
-from selfsup.teacher import TeacherOptions, teacher_loss
+from selfsup.losses import TeacherOptions, teacher_loss
 from selfsup.checkpoint import load_checkpoint, load_network, save_network
 from selfsup.engine import render_grid
 from selfsup.estimation.files import progress_bar
