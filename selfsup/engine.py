@@ -111,6 +111,7 @@ class TrainerOptions:
     device: str = "auto"  # auto | cpu | cuda
     out_dir: str = "runs/default"
     resume: str = "auto"  # auto (last.pt of out_dir if any) | never | a checkpoint path
+    init: str | None = None  # a fresh run's starting weights (a LightNet checkpoint); its own optimiser and schedule
     progress: bool = True
     threads: int = 0  # >0: torch.set_num_threads on CPU
 
@@ -391,6 +392,17 @@ class Trainer:
         optimiser, schedule and random state restored), or a fresh start's (0, inf)."""
         resume = self._resume_path()
         if resume is None:
+            if self.options.init:  # fine-tuning: the weights only, the shapes the model config's
+                state = load_checkpoint(self.options.init, map_location=ctx.device)
+                if not isinstance(state, dict) or "model" not in state:
+                    raise ValueError(f"trainer.init={self.options.init} is not a LightNet checkpoint (no 'model')")
+                try:
+                    network.load_state_dict(state["model"])
+                except RuntimeError as error:
+                    raise ValueError(f"trainer.init={self.options.init}: its weights do not fit model "
+                                     f"{self.model_config} ({str(error).splitlines()[0]})") from None
+                if ctx.main:
+                    log.info("started from the weights of %s", self.options.init)
             return 0, math.inf
         state = load_checkpoint(resume, map_location=ctx.device)
         network.load_state_dict(state["model"])

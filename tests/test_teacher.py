@@ -92,3 +92,15 @@ def test_a_trainer_told_to_teach_without_a_search_says_so(tmp_path):
         type(trainer)(trainer.model_config, trainer.sampler, trainer.degradations, trainer.samples,
                       trainer.pool_options, trainer.optim, trainer.options, trainer.logger, trainer.loss,
                       trainer.renderer)
+
+
+def test_a_run_may_start_from_a_checkpoints_weights_and_a_mismatch_is_named(tmp_path):
+    from selfsup.checkpoint import load_checkpoint
+    from train import run
+
+    first = run(_smoke(tmp_path / "a"))
+    tuned = run(_smoke(tmp_path / "b", f"trainer.init={first['last']}", "trainer.max_steps=1", "optim.lr=1e-12"))
+    a, b = load_checkpoint(first["last"])["model"], load_checkpoint(tuned["last"])["model"]
+    assert tuned["step"] == 1 and all(torch.allclose(a[k], b[k], atol=1e-6) for k in a)
+    with pytest.raises(ValueError, match="do not fit"):
+        run(_smoke(tmp_path / "c", f"trainer.init={first['last']}", "model.hidden=32"))
