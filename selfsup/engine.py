@@ -396,13 +396,16 @@ class Trainer:
                 state = load_checkpoint(self.options.init, map_location=ctx.device)
                 if not isinstance(state, dict) or "model" not in state:
                     raise ValueError(f"trainer.init={self.options.init} is not a LightNet checkpoint (no 'model')")
-                try:
-                    network.load_state_dict(state["model"])
+                try:  # parameters the model adds (a new head) start fresh; none may be left over
+                    missing, unexpected = network.load_state_dict(state["model"], strict=False)
                 except RuntimeError as error:
+                    missing, unexpected = [], [str(error).splitlines()[1].strip() if "\n" in str(error) else str(error)]
+                if unexpected:
                     raise ValueError(f"trainer.init={self.options.init}: its weights do not fit model "
-                                     f"{self.model_config} ({str(error).splitlines()[0]})") from None
+                                     f"{self.model_config} ({unexpected[0]})")
                 if ctx.main:
-                    log.info("started from the weights of %s", self.options.init)
+                    log.info("started from the weights of %s%s", self.options.init,
+                             f"; new, from scratch: {', '.join(missing)}" if missing else "")
             return 0, math.inf
         state = load_checkpoint(resume, map_location=ctx.device)
         network.load_state_dict(state["model"])
