@@ -14,7 +14,7 @@ the scene size of the true one:
   (:meth:`selfsup.model.LightNet.refine_anchor`) without the learned offset: what the
   network's design reaches where its classification is perfect.
 
-    python -m benchmarks.teacher_bound --checkpoint outputs/captures_teacher/best.pt
+    python -m benchmarks.teacher_bound --checkpoint outputs/captures_teacher/last.pt [more checkpoints]
 
 Results: benchmarks/results/teacher_bound_<device>_<date>.{md,json}.
 """
@@ -78,7 +78,7 @@ def _row(name: str, position: torch.Tensor, truth: torch.Tensor, scale: torch.Te
 
 
 @torch.no_grad()
-def run(checkpoint: str, experiment: str = "captures", scenes: int = 400, write: bool = True):
+def run(checkpoints: list[str], experiment: str = "captures", scenes: int = 400, write: bool = True):
     trainer = _recipe(experiment)
     answers = _answers(trainer)
     count = min(scenes, trainer.pool_options.teacher_scenes, len(answers))
@@ -92,32 +92,39 @@ def run(checkpoint: str, experiment: str = "captures", scenes: int = 400, write:
     frame = scene_frame(scenes_.image, scenes_.gbuffer)
     truth, scale = batch["light_pos"][:, 0], batch["scene_scale"]
     teacher = torch.stack([torch.tensor(answers[i], dtype=torch.float32).reshape(-1, 3)[0] for i in rooms])
-    network, _ = load_network(checkpoint)
     rows = [_row("teacher (the search, the frame at the teacher's scale)", teacher, truth, scale, teacher)]
-    for name, model in (("network, slot 0", network), ("cost volume alone, slot 0", cost_volume_only(network))):
-        prediction = model(scenes_.image, scenes_.gbuffer)
-        hypotheses = prediction.anchor_position[:, 0]
-        nearest = (hypotheses - teacher[:, None]).norm(dim=-1).argmin(1)
-        rows.append(_row(name, prediction.position[:, 0], truth, scale, teacher,
-                         prediction.anchor_logits[:, 0].argmax(1) == nearest))
+    for checkpoint in checkpoints:
+        network, _ = load_network(checkpoint)
+        for name, model in ((f"network {checkpoint}, slot 0", network), ("its cost volume alone, slot 0", cost_volume_only(network))):
+            prediction = model(scenes_.image, scenes_.gbuffer)
+            hypotheses = prediction.anchor_position[:, 0]
+            nearest = (hypotheses - teacher[:, None]).norm(dim=-1).argmin(1)
+            rows.append(_row(name, prediction.position[:, 0], truth, scale, teacher,
+                             prediction.anchor_logits[:, 0].argmax(1) == nearest))
+    network, _ = load_network(checkpoints[0])
     pixels = network._evidence_pixels(scenes_.image, scenes_.gbuffer, None)
-    for name, light in (("oracle hypothesis nearest the teacher's light + cascade", teacher),
-                        ("oracle hypothesis nearest the true light + cascade", truth)):
+    for name, light in (("oracle hypothesis nearest the teacher's light + grey cascade", teacher),
+                        ("oracle hypothesis nearest the true light + grey cascade", truth)):
         normalised = (light - frame.centre) / frame.size[:, None]
         start = network.anchors[(network.anchors[None] - normalised[:, None]).norm(dim=-1).argmin(1)]
         refined = network.refine_anchor(start, pixels, SceneFrame(frame.centre, frame.size, frame.exposure))
         rows.append(_row(name, frame.centre + frame.size[:, None] * refined, truth, scale, teacher))
     header = (f"Recipe `experiment={experiment}`: the one-light rooms among its pool's first {count} scenes "
               f"(the frames its teacher searched, {trainer.sampler.width}x{trainer.sampler.height} as the network "
-              f"sees them; the teacher searched them at {trainer.pool_options.teacher_scale}x), checkpoint "
-              f"{checkpoint}. The network trained on these frames: its rows are in-sample.")
+              f"sees them; the teacher searched them at {trainer.pool_options.teacher_scale}x). The networks "
+              "trained on these frames: their rows are in-sample. The oracle rows use the first checkpoint's "
+              "hypothesis grid and cascade (physics only: no learned weight enters them).")
     path = write_results("teacher_bound", torch.device("cpu"), rows, header, COLUMNS) if write else None
+    if path is not None:
+        with path.open("a") as out:
+            out.write(f"\nCommand: `python -m benchmarks.teacher_bound --experiment {experiment} --scenes {scenes} "
+                      f"--checkpoint {' '.join(checkpoints)}`\n")
     return rows, path
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--checkpoint", required=True)
+    parser.add_argument("--checkpoint", nargs="+", required=True)
     parser.add_argument("--experiment", default="captures")
     parser.add_argument("--scenes", type=int, default=400)
     parser.add_argument("--no-write", action="store_true")

@@ -310,10 +310,6 @@ def teacher_loss(prediction: LightPrediction, teacher: Tensor, mask: Tensor, siz
     # Each assigned slot's hypotheses: a Gaussian about the teacher's light.
     spread = (anchors[rows, slot].detach() - teacher[:, :, None]).norm(dim=-1) / size[:, None, None]  # (b, K, M)
     target = torch.softmax(-0.5 * (spread / options.anchor_width) ** 2, -1)
-    if anchors.requires_grad:  # hypotheses with learned offsets: the one nearest the light learns to reach it
-        nearest = anchors[rows, slot].gather(2, spread.argmin(-1)[..., None, None].expand(-1, -1, 1, 3))[:, :, 0]
-        reach = (nearest - teacher).norm(dim=-1) / size[:, None]
-        position_term = position_term + (pseudo_huber(reach, options.scale) * weight).sum() / weight.sum()
     anchor_term = -((target * torch.log_softmax(logits[rows, slot], -1)).sum(-1) * weight).sum() / weight.sum()
     count_term = F.cross_entropy(prediction.count_logits[has], mask.sum(1) - 1)
     total = options.position * position_term + options.anchors * anchor_term + options.count * count_term

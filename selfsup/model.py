@@ -49,10 +49,6 @@ __all__ = ["LightNet", "LightPrediction", "SceneFrame", "scene_frame", "brightes
            "residual_after"]
 
 IN_CHANNELS = 10
-# How a slot's chosen hypothesis becomes its position: "cascade" (finer grey-albedo cost
-# volumes around it, then one learned offset a slot) or "offsets" (every hypothesis's own
-# learned offset, within one grid step, the CenterNet pattern; no cascade).
-POSITION_HEADS = ("cascade", "offsets")
 GREY_ALBEDO = 0.5  # the cost volumes' albedo where none is given (a capture's convention)
 
 
@@ -71,8 +67,7 @@ class LightPrediction:
             (:attr:`LightNet.count_threshold`, calibrated on validation scenes).
         anchor_logits: ``(B, K, M)`` scores of each slot's position hypotheses.
         anchor_position: ``(B, K, M, 3)`` metres: the hypotheses (anchors moved to the
-            vertex of their cost parabola, and by their learned offsets under
-            ``position_head="offsets"``); each slot refines its best-scored one.
+            vertex of their cost parabola); each slot refines its best-scored one.
     """
 
     position: Tensor
@@ -217,9 +212,6 @@ class LightNet(nn.Module):
         count_threshold: the presence a slot after the first needs to count (0.5: the
             count head's median; training calibrates it on its validation scenes,
             :func:`selfsup.evaluate.calibrate_count_threshold`, and the checkpoint keeps it).
-        position_head: :data:`POSITION_HEADS`: ``cascade`` (the default) or ``offsets``,
-            where each hypothesis carries its own learned offset (``anchor_position`` then
-            holds them, with their gradient; a teacher trains the one nearest its light).
 
     ``forward(image (B, 3, H, W), gbuffer, kd (B, H, W, 3) or None) -> LightPrediction``.
     """
@@ -227,11 +219,8 @@ class LightNet(nn.Module):
     def __init__(self, max_lights: int = 3, input_size: int = 64, widths: tuple[int, ...] = (32, 48, 64, 96, 128),
                  hidden: int = 256, anchors_per_axis: int = 6, anchor_extent: float = 0.75,
                  falloff: Falloff | str = Falloff.INVERSE_SQUARE, evidence_points: int = 16, cascade_levels: int = 2,
-                 offset_steps: float = 0.0625, count_threshold: float = 0.5, position_head: str = "cascade"):
+                 offset_steps: float = 0.0625, count_threshold: float = 0.5):
         super().__init__()
-        if position_head not in POSITION_HEADS:
-            raise ValueError(f"position_head must be one of {POSITION_HEADS}, got {position_head!r}")
-        self.position_head = position_head
         if not offset_steps >= 0:
             raise ValueError(f"offset_steps must be >= 0, got {offset_steps}")
         if not 0 < count_threshold <= 1:
@@ -277,10 +266,6 @@ class LightNet(nn.Module):
         # Prior logits: -20 x the relative excess error (fixed: the learned scores add to it).
         self.register_buffer("evidence_weight", torch.tensor(20.0), persistent=False)
         self.slot_out = nn.Linear(2 * hidden, 6)  # offset (3) and log intensity (3) of a slot
-        if position_head == "offsets":  # each hypothesis's own offset, in grid steps (tanh), zero at first
-            self.hypothesis_offsets = nn.Linear(2 * hidden, anchors * 3)
-            nn.init.zeros_(self.hypothesis_offsets.weight)
-            nn.init.zeros_(self.hypothesis_offsets.bias)
         self.anchor_out = nn.Linear(2 * hidden, anchors)
         # The count reads the image features and how much each volume's best lowers the error.
         self.count_out = nn.Sequential(nn.Linear(hidden + 2 * max(max_lights - 1, 1), hidden), nn.SiLU(),
@@ -345,18 +330,12 @@ class LightNet(nn.Module):
             # Each anchor moves to the vertex of the parabola through its neighbours' errors
             # (sub-grid refinement, as in stereo matching).
             shift = _parabola_vertex(costs.float(), self.anchors_per_axis).to(features.dtype)
-            hypothesis = self.anchors + self.anchor_step * shift  # (B, M, 3) normalised
+            hypotheses.append(self.anchors + self.anchor_step * shift)
             chosen = anchor_logits.argmax(1)
+            # The chosen anchor refined on finer cost volumes around it (a cascade, as in
+            # multi-view stereo networks), plus a learned offset within offset_reach.
             raw = self.slot_out(slot)
-            if self.position_head == "offsets":  # the chosen hypothesis moved by its own learned offset
-                learned = self.hypothesis_offsets(slot).view(len(image), -1, 3)
-                hypothesis = hypothesis + self.anchor_step * torch.tanh(learned)
-                normalised = hypothesis[torch.arange(len(image), device=chosen.device), chosen]
-            else:
-                # The chosen anchor refined on finer cost volumes around it (a cascade, as in
-                # multi-view stereo networks), plus a learned offset within offset_reach.
-                normalised = self.refine_anchor(self.anchors[chosen], at, frame) + self.offset_reach * torch.tanh(raw[:, :3])
-            hypotheses.append(hypothesis)
+            normalised = self.refine_anchor(self.anchors[chosen], at, frame) + self.offset_reach * torch.tanh(raw[:, :3])
             positions.append(frame.centre + frame.size[:, None] * normalised)
             offsets.append(raw[:, 3:])
             logits.append(anchor_logits)

@@ -105,26 +105,3 @@ def test_a_run_may_start_from_a_checkpoints_weights_and_a_mismatch_is_named(tmp_
     with pytest.raises(ValueError, match="do not fit"):
         run(_smoke(tmp_path / "c", f"trainer.init={first['last']}", "model.hidden=32"))
 
-
-def test_hypotheses_with_their_own_offsets_learn_to_reach_the_teachers_light(tmp_path):
-    # position_head="offsets": no cascade; the hypothesis nearest the teacher's light is
-    # pulled to it (its offset's gradient), the others are left alone; a fresh head from a
-    # cascade checkpoint starts at the hypotheses themselves.
-    from selfsup.losses import TeacherOptions, teacher_loss
-    from selfsup.model import LightNet
-
-    pool = materialise(ProceduralScenes(ONE_LIGHT, length=4, base_seed=5, samples=1, max_lights=2))
-    scenes = scene_batch(pool)
-    torch.manual_seed(0)
-    network = LightNet(max_lights=2, position_head="offsets")
-    prediction = network(scenes.image, scenes.gbuffer)
-    assert prediction.anchor_position.requires_grad and prediction.position.shape == (4, 2, 3)
-    rows = torch.arange(4)
-    chosen = prediction.anchor_logits[:, 0].argmax(1)
-    assert torch.allclose(prediction.position[:, 0], prediction.anchor_position[rows, 0, chosen])
-    size = scene_frame(scenes.image, scenes.gbuffer).size
-    total, _ = teacher_loss(prediction, pool["light_pos"], pool["light_mask"], size, TeacherOptions(anchors=0.0))
-    total.backward()
-    assert network.hypothesis_offsets.weight.grad.abs().sum() > 0
-    with pytest.raises(ValueError, match="position_head"):
-        LightNet(position_head="regress")
