@@ -22,7 +22,6 @@ Results: benchmarks/results/teacher_bound_<device>_<date>.{md,json}.
 from __future__ import annotations
 
 import argparse
-import json
 
 import torch
 
@@ -47,22 +46,15 @@ def _recipe(experiment: str):
     return build_trainer(cfg)
 
 
-def _answers(trainer) -> list[list]:
-    from selfsup.teacher import teacher_cache_path
+def _answers(trainer) -> dict[int, list]:
+    from selfsup.teacher import read_answers, teacher_cache_path
 
     p = trainer.pool_options
     cache = teacher_cache_path(p.teacher_cache, trainer.sampler, trainer.degradations, trainer.samples, p.train_seed,
                                p.teacher_scale, p.teacher_method)
     if not cache.exists():
         raise FileNotFoundError(f"no teacher cache {cache}: train the recipe first (it searches its pool once)")
-    answers = {}
-    for line in cache.read_text().splitlines():
-        try:
-            record = json.loads(line)
-            answers[int(record["index"])] = record["lights"]
-        except (ValueError, KeyError):
-            continue
-    return answers
+    return read_answers(cache)
 
 
 def _row(name: str, position: torch.Tensor, truth: torch.Tensor, scale: torch.Tensor, teacher: torch.Tensor,
@@ -78,7 +70,7 @@ def _row(name: str, position: torch.Tensor, truth: torch.Tensor, scale: torch.Te
 
 
 @torch.no_grad()
-def run(checkpoints: list[str], experiment: str = "captures", scenes: int = 400, write: bool = True):
+def run(checkpoints: list[str], experiment: str = "captures_taught", scenes: int = 400, write: bool = True):
     trainer = _recipe(experiment)
     answers = _answers(trainer)
     count = min(scenes, trainer.pool_options.teacher_scenes, len(answers))
@@ -125,7 +117,7 @@ def run(checkpoints: list[str], experiment: str = "captures", scenes: int = 400,
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", nargs="+", required=True)
-    parser.add_argument("--experiment", default="captures")
+    parser.add_argument("--experiment", default="captures_taught")
     parser.add_argument("--scenes", type=int, default=400)
     parser.add_argument("--no-write", action="store_true")
     args = parser.parse_args(argv)

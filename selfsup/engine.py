@@ -279,6 +279,23 @@ class Trainer:
         return path
 
     # -- the loop -----------------------------------------------------------------
+    def _loss(self, prediction: LightPrediction, scenes, renderer, batch: dict[str, Tensor]):
+        """``(terms, total, teacher parts)`` of one batch: the reconstruction loss, plus the
+        teacher's terms where the batch holds frames the search taught."""
+        terms = reconstruction_loss(prediction, scenes, renderer, self.loss, batch)
+        if "teacher_mask" not in batch:
+            return terms, terms.total, {}
+        size = scene_frame(scenes.image, scenes.gbuffer).size
+        teaching, taught = teacher_loss(prediction, batch["teacher_pos"], batch["teacher_mask"], size, self.teacher)
+        return terms, terms.total + teaching, taught
+
+    def _search_once(self, ctx: _Dist, step: int) -> None:
+        # Under DDP with a teacher, rank 0 searches (and caches) the pool; the others read the cache.
+        if self.pool_options.teacher_scenes and ctx.world > 1:
+            if ctx.main:
+                self._pool(self.batch_indices(step)[0], "train")
+            dist.barrier()
+
     def fit(self) -> dict:
         """Train to ``max_steps`` (or ``max_minutes``); returns the final validation summary,
         the step reached and the checkpoint paths."""
@@ -306,10 +323,7 @@ class Trainer:
 
             writer = SummaryWriter(str(self.out_dir / "tensorboard"), purge_step=step)
         val_pool = self._pool(0, "val") if ctx.main else None
-        if self.pool_options.teacher_scenes and ctx.world > 1:  # rank 0 searches; the others read its cache
-            if ctx.main:
-                self._pool(self.batch_indices(step)[0], "train")
-            dist.barrier()
+        self._search_once(ctx, step)
         amp = self.options.amp and ctx.device.type == "cuda"
         started = time.perf_counter()
         window_start, window_scenes = started, 0
@@ -328,13 +342,7 @@ class Trainer:
                     (), generator=torch.Generator().manual_seed(self.seed * 7919 + step))) < self.pool_options.albedo_share
                 with torch.autocast(ctx.device.type, dtype=torch.bfloat16, enabled=amp):
                     prediction = model(scenes.image, scenes.gbuffer, scenes.material.kd if albedo else None)
-                terms = reconstruction_loss(_float32(prediction), scenes, renderer, self.loss, batch)
-                total, taught = terms.total, {}
-                if "teacher_mask" in batch:
-                    size = scene_frame(scenes.image, scenes.gbuffer).size
-                    teaching, taught = teacher_loss(_float32(prediction), batch["teacher_pos"], batch["teacher_mask"],
-                                                    size, self.teacher)
-                    total = total + teaching
+                terms, total, taught = self._loss(_float32(prediction), scenes, renderer, batch)
                 if not torch.isfinite(total):
                     raise FloatingPointError(f"non-finite loss at step {step}: {total.item()}")
                 optimiser.zero_grad(set_to_none=True)

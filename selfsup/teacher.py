@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-__all__ = ["PoolTeacher", "pool_teacher", "teacher_cache_path"]
+__all__ = ["PoolTeacher", "pool_teacher", "teacher_cache_path", "read_answers"]
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +46,8 @@ def teacher_cache_path(folder: str | Path, sampler, degradations, samples: int, 
     return Path(folder) / f"teacher_{hashlib.sha256(recipe.encode()).hexdigest()[:16]}.jsonl"
 
 
-def _read_answers(cache: Path) -> dict[int, list]:
+def read_answers(cache: Path) -> dict[int, list]:
+    """``{pool index: [[x, y, z], ...]}`` of a teacher cache (a torn last line left out)."""
     answers = {}
     if cache.exists():
         for line in cache.read_text().splitlines():
@@ -87,7 +88,7 @@ def pool_teacher(sampler, degradations, samples: int, base_seed: int, count: int
         raise ValueError(f"teacher count must be >= 0 and scale >= 1, got {count} and {scale}")
     cache = Path(cache)
     cache.parent.mkdir(parents=True, exist_ok=True)
-    answers = _read_answers(cache)
+    answers = read_answers(cache)
     missing = [i for i in range(count) if i not in answers]
     fine = dataclasses.replace(sampler, height=sampler.height * scale, width=sampler.width * scale)
     scenes = ProceduralScenes(fine, degradations, length=max(count, 1), base_seed=base_seed, samples=samples,
