@@ -400,20 +400,18 @@ class Trainer:
         optimiser, schedule and random state restored), or a fresh start's (0, inf)."""
         resume = self._resume_path()
         if resume is None:
-            if self.options.init:  # fine-tuning: the weights only, the shapes the model config's
+            if self.options.init:  # fine-tuning: the weights only, of the model config's shapes
                 state = load_checkpoint(self.options.init, map_location=ctx.device)
                 if not isinstance(state, dict) or "model" not in state:
                     raise ValueError(f"trainer.init={self.options.init} is not a LightNet checkpoint (no 'model')")
-                try:  # parameters the model adds (a new head) start fresh; none may be left over
-                    missing, unexpected = network.load_state_dict(state["model"], strict=False)
+                try:
+                    network.load_state_dict(state["model"])
                 except RuntimeError as error:
-                    missing, unexpected = [], [str(error).splitlines()[1].strip() if "\n" in str(error) else str(error)]
-                if unexpected:
+                    reason = next((line.strip() for line in str(error).splitlines()[1:] if line.strip()), str(error))
                     raise ValueError(f"trainer.init={self.options.init}: its weights do not fit model "
-                                     f"{self.model_config} ({unexpected[0]})")
+                                     f"{self.model_config} ({reason})") from None
                 if ctx.main:
-                    log.info("started from the weights of %s%s", self.options.init,
-                             f"; new, from scratch: {', '.join(missing)}" if missing else "")
+                    log.info("started from the weights of %s", self.options.init)
             return 0, math.inf
         state = load_checkpoint(resume, map_location=ctx.device)
         network.load_state_dict(state["model"])

@@ -276,9 +276,9 @@ class TeacherOptions:
     def __post_init__(self):
         for name in ("position", "anchors", "count"):
             if getattr(self, name) < 0:
-                raise ValueError(f"adapt.teacher.{name} must be >= 0, got {getattr(self, name)}")
+                raise ValueError(f"teacher.{name} (adapt.teacher, loss.teacher) must be >= 0, got {getattr(self, name)}")
         if self.scale <= 0 or self.anchor_width <= 0:
-            raise ValueError("adapt.teacher.scale and adapt.teacher.anchor_width must be > 0")
+            raise ValueError("teacher.scale and teacher.anchor_width (adapt.teacher, loss.teacher) must be > 0")
 
 
 def _assignment(position: Tensor, teacher: Tensor, mask: Tensor) -> Tensor:

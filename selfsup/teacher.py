@@ -30,6 +30,13 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from selfsup.estimation.files import estimate_items, record_line
+from selfsup.estimation.inputs import SceneInMemory
+from selfsup.estimation.jobs import read_records
+from selfsup.estimation.options import EstimateOptions
+from selfsup.scenes.dataset import ProceduralScenes
+from selfsup.scenes.io import Scene
+
 __all__ = ["PoolTeacher", "pool_teacher", "teacher_cache_path", "read_answers"]
 
 log = logging.getLogger(__name__)
@@ -47,16 +54,10 @@ def teacher_cache_path(folder: str | Path, sampler, degradations, samples: int, 
 
 
 def read_answers(cache: Path) -> dict[int, list]:
-    """``{pool index: [[x, y, z], ...]}`` of a teacher cache (a torn last line left out)."""
-    answers = {}
-    if cache.exists():
-        for line in cache.read_text().splitlines():
-            try:
-                record = json.loads(line)
-                answers[int(record["index"])] = record["lights"]
-            except (ValueError, KeyError, TypeError):
-                continue  # a killed run's torn last line: that frame is searched again
-    return answers
+    """``{pool index: [[x, y, z], ...]}`` of a teacher cache (records ``{"id": "pool-<i>",
+    "index": i, "lights": ...}``; a killed run's torn last line is cut off and searched again,
+    :func:`selfsup.estimation.jobs.read_records`)."""
+    return {int(record["index"]): record["lights"] for record in read_records(Path(cache))}
 
 
 def pool_teacher(sampler, degradations, samples: int, base_seed: int, count: int, max_lights: int, cache: Path,
@@ -66,9 +67,9 @@ def pool_teacher(sampler, degradations, samples: int, base_seed: int, count: int
 
     Each scene (item ``i`` of ``ProceduralScenes(sampler, degradations, base_seed=base_seed)``:
     the pool's own scene, its lights and camera independent of the grid) is rendered again
-    at ``scale`` times the pool's height and width (the search is right on about three
-    quarters of one-light rooms at 128x96, on 40% at 64x48), its albedo withheld as a
-    capture's, and estimated by ``mode=estimate``'s defaults with ``method`` (``refine``:
+    at ``scale`` times the pool's height and width (the search places about half the
+    one-light rooms of the captures recipe at 128x96, ``benchmarks/teacher_bound.py``; 6 of
+    15 at 64x48, ad hoc), its albedo withheld as a capture's, and estimated by ``mode=estimate``'s defaults with ``method`` (``refine``:
     the grid search, no network, so that the teacher does not depend on the weights it
     trains; up to two lights, the estimator's ``max_lights``).
     Answers are appended to ``cache`` (JSON Lines, one frame a line, by index) as they come
@@ -78,12 +79,6 @@ def pool_teacher(sampler, degradations, samples: int, base_seed: int, count: int
     the teacher's lights, brightest first (none where it found no light or failed), and
     ``stats`` (``searched``, ``seconds``, ``frames_with_lights``).
     """
-    from selfsup.estimation.files import estimate_items
-    from selfsup.estimation.inputs import SceneInMemory
-    from selfsup.estimation.options import EstimateOptions
-    from selfsup.scenes.dataset import ProceduralScenes
-    from selfsup.scenes.io import Scene
-
     if count < 0 or scale < 1:
         raise ValueError(f"teacher count must be >= 0 and scale >= 1, got {count} and {scale}")
     cache = Path(cache)
@@ -98,16 +93,16 @@ def pool_teacher(sampler, degradations, samples: int, base_seed: int, count: int
     with cache.open("a") as out:
         for first in range(0, len(missing), chunk):
             indices = missing[first:first + chunk]
-            frames = [SceneInMemory(_as_capture(item, f"pool-{i}", Scene)) for i, item in
-                      zip(indices, scenes.__getitems__(indices))]
-            for frame, record, reason in estimate_items(frames, options, workers=workers, batch=4):
-                index = int(str(frame).split("-")[1])
+            frames = {SceneInMemory(_as_capture(item, f"pool-{i}")): i for i, item in
+                      zip(indices, scenes.__getitems__(indices))}
+            for frame, record, reason in estimate_items(list(frames), options, workers=workers, batch=4):
+                index = frames[frame]
                 if record is None:
                     log.warning("the teacher's search failed on pool scene %d (%s): no lights taught there", index,
                                 reason)
                 lights = [light["position"] for light in (record or {"lights": []})["lights"]]
                 answers[index] = lights
-                out.write(json.dumps({"index": index, "lights": lights}) + "\n")
+                out.write(record_line({"id": str(frame), "index": index, "lights": lights}) + "\n")
             out.flush()
             if progress:
                 log.info("teacher: %d of %d pool scenes searched (%.0f s)", first + len(indices), len(missing),
@@ -122,11 +117,11 @@ def pool_teacher(sampler, degradations, samples: int, base_seed: int, count: int
     return position, mask, stats
 
 
-def _as_capture(item: dict[str, Tensor], frame_id: str, scene_type):
+def _as_capture(item: dict[str, Tensor], frame_id: str) -> Scene:
     # A pool item as the estimator reads a capture frame: linear colour, depth, K; the albedo
     # one constant (unknown), no normals, ambient or lights; full scale 1 (8-bit codes' top).
     H, W = item["depth"].shape
-    return scene_type(image=item["image"], depth=item["depth"], K=item["K"], kd=torch.full((H, W, 3), 0.5),
+    return Scene(image=item["image"], depth=item["depth"], K=item["K"], kd=torch.full((H, W, 3), 0.5),
                       meta={"id": frame_id, "generator": "capture", "falloff": "inverse_square", "full_scale": 1.0})
 
 

@@ -39,6 +39,8 @@ def test_the_teachers_answers_are_read_back_and_a_torn_line_is_searched_again(tm
     cache.write_text(lines[0] + "\n" + lines[1][: len(lines[1]) // 2])  # a killed run's last line
     torn = pool_teacher(ONE_LIGHT, Degradations(), 1, 5, 2, 2, cache, scale=1, workers=1)
     assert torn[2]["searched"] == 1 and torch.allclose(torn[0], first[0])
+    mended = pool_teacher(ONE_LIGHT, Degradations(), 1, 5, 2, 2, cache, scale=1, workers=1)
+    assert mended[2]["searched"] == 0 and len(cache.read_text().splitlines()) == 2  # the torn line was cut off
 
 
 def test_the_cache_is_named_by_everything_that_changes_the_answers(tmp_path):

@@ -77,7 +77,8 @@ def studio_spec(light_direction: tuple[float, float, float] | None, *, width: in
         lights = (centre + direction / direction.norm() * light_distance * radius)[None]
         intensity = torch.ones(1, 3, dtype=torch.float64) * (light_distance * radius) ** 2
         ambient_rgb = torch.full((3,), float(ambient), dtype=torch.float64)
-    return SceneSpec(prims=prims.to(torch.float32), materials=_materials(count, albedo, ks, shininess), K=K.float(), height=height, width=width, light_position=lights.float(),
+    return SceneSpec(prims=prims.to(torch.float32), materials=_materials(count, albedo, ks, shininess), K=K.float(),
+                     height=height, width=width, light_position=lights.float(),
                      light_relative_intensity=intensity.float(), ambient_relative=ambient_rgb.float(),
                      exposure=exposure, seed=seed, meta={"studio": True, "objects": count})
 
