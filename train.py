@@ -78,10 +78,15 @@ def build_data(cfg: DictConfig):
 
 def _loss_options(cfg: DictConfig):
     """``(LossOptions, TeacherOptions)`` of the experiment's ``loss`` node (its ``teacher``
-    sub-node: the weights of the pool teacher's terms in training)."""
+    sub-node: the weights of the pool teacher's terms in training); for the iterative
+    network (``model.architecture=iterative``) its ``SequenceLossOptions`` and None."""
     from selfsup.losses import LossOptions, TeacherOptions
 
     loss = _plain(cfg.loss)
+    if cfg.model.get("architecture", "lightnet") == "iterative":
+        from selfsup.sequence_loss import SequenceLossOptions
+
+        return SequenceLossOptions(**loss), None
     teacher = TeacherOptions(**(loss.pop("teacher", None) or {}))
     return LossOptions(**loss), teacher
 
@@ -101,7 +106,9 @@ def build_trainer(cfg: DictConfig):
     sampler = dataclasses.replace(sampler, **{k: tuple(v) if isinstance(v, list) else v for k, v in resolution.items()})
     model = _plain(cfg.model)
     model["widths"] = tuple(model["widths"])
-    if model["max_lights"] < len(sampler.n_lights_probs):
+    if model.get("architecture") == "iterative" and model["max_lights"] < len(sampler.n_lights_probs):
+        pass  # slots are the lights the network places; a room may have more (the brightest are placed)
+    elif model["max_lights"] < len(sampler.n_lights_probs):
         raise ValueError(f"model.max_lights={model['max_lights']} is below the {len(sampler.n_lights_probs)} lights "
                          "data.pool.n_lights_probs can draw")
     optim = _plain(cfg.optim)
@@ -114,7 +121,10 @@ def build_trainer(cfg: DictConfig):
 
         search = PoolTeacher(sampler, degradations, samples, data.teacher_scenes, model["max_lights"],
                              data.teacher_cache, data.teacher_scale, data.teacher_method, cfg.trainer.progress)
-    return Trainer(model_config=model, sampler=sampler, degradations=degradations, samples=samples,
+    prepare_pool = None
+    if data.render_scale > 1:
+        from selfsup.estimation.prepare import prepared_pool as prepare_pool
+    return Trainer(model_config=model, sampler=sampler, degradations=degradations, samples=samples, prepare_pool=prepare_pool,
                    pool=data, optim=OptimOptions(**optim), trainer=TrainerOptions(**_plain(cfg.trainer)),
                    logger=LoggerOptions(**_plain(cfg.logger)), loss=loss, teacher=teacher, teacher_search=search,
                    renderer=ShadowedBlinnPhong(**_plain(cfg.renderer), check_finite=False), seed=cfg.seed,

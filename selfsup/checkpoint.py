@@ -15,7 +15,26 @@ import torch
 
 from selfsup.model import LightNet
 
-__all__ = ["DEFAULT_CHECKPOINT", "save_network", "load_network", "load_checkpoint"]
+__all__ = ["DEFAULT_CHECKPOINT", "save_network", "load_network", "load_checkpoint", "build_network", "ARCHITECTURES"]
+
+# model_config["architecture"]: the network a config builds (absent: the cost-volume LightNet).
+ARCHITECTURES = ("lightnet", "iterative")
+
+
+def build_network(model_config: dict):
+    """The network of a model config: :class:`selfsup.model.LightNet` (``architecture``
+    ``lightnet`` or absent) or :class:`selfsup.network.IterativeLightNet` (``iterative``)."""
+    config = dict(model_config)
+    architecture = config.pop("architecture", "lightnet")
+    if architecture not in ARCHITECTURES:
+        raise ValueError(f"model.architecture must be one of {ARCHITECTURES}, got {architecture!r}")
+    if "widths" in config:
+        config["widths"] = tuple(config["widths"])
+    if architecture == "iterative":
+        from selfsup.network import IterativeLightNet
+
+        return IterativeLightNet(**config)
+    return LightNet(**config)
 
 DEFAULT_CHECKPOINT = Path(__file__).parent / "checkpoints" / "lightnet.pt"
 # 2: the network of colour and depth alone (no albedo channel), counting its lights (issue 62).
@@ -55,7 +74,7 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
         raise ValueError(f"{path} is not a readable torch checkpoint ({type(error).__name__}: {error})") from None
 
 
-def load_network(path: str | Path | None = None, map_location="cpu") -> tuple[LightNet, dict]:
+def load_network(path: str | Path | None = None, map_location="cpu") -> tuple[torch.nn.Module, dict]:
     """``(network in eval mode, checkpoint dict)``; ``path`` None: the shipped checkpoint."""
     path = Path(path) if path is not None else DEFAULT_CHECKPOINT
     if not path.is_file():
@@ -68,9 +87,6 @@ def load_network(path: str | Path | None = None, map_location="cpu") -> tuple[Li
         raise ValueError(f"{path} holds a LightNet of checkpoint format {state.get('format', 1)}; this version reads "
                          f"format {CHECKPOINT_FORMAT} (the network of colour and depth alone that counts its lights): "
                          "train one with `python train.py` (docs/training.md)")
-    config = dict(state["model_config"])
-    if "widths" in config:
-        config["widths"] = tuple(config["widths"])
-    network = LightNet(**config)
+    network = build_network(state["model_config"])
     network.load_state_dict(state["model"])
     return network.eval(), state

@@ -1,4 +1,5 @@
-"""Self-supervised training of :class:`selfsup.model.LightNet`: loop, checkpoints, logging, DDP.
+"""Self-supervised training of the light networks (:class:`selfsup.model.LightNet`,
+:class:`selfsup.network.IterativeLightNet`): loop, checkpoints, logging, DDP.
 
 The loop is plain PyTorch. What it guarantees:
 
@@ -15,6 +16,13 @@ The loop is plain PyTorch. What it guarantees:
   rank 0 validates, logs and writes checkpoints;
 - **mixed precision** (bfloat16 autocast of the network) on CUDA when ``amp``;
   the renderer and the loss always run in float32;
+- **the iterative network** (``model.architecture=iterative``) learns from
+  :func:`selfsup.sequence_loss.sequence_loss`; its training pool carries each scene's
+  re-render minimum (:func:`selfsup.sequence_loss.rerender_minimum`, found once per pool);
+- **frames as captures**: with ``data.pool.render_scale > 1`` the pools are rendered at that
+  many times their grid and handed to ``prepare_pool`` (``train.py`` gives the estimator's
+  :func:`selfsup.estimation.prepare.prepared_pool`), which prepares them as a capture's
+  frames and pools them to the grid;
 - **logging**: TensorBoard scalars (loss terms, learning rate, scenes/s,
   validation metrics) and image grids (input, re-render, residual, shadow mask),
   and a progress bar.
@@ -38,10 +46,12 @@ import torch.distributed as dist
 from torch import Tensor
 
 from render import ShadowedBlinnPhong
-from selfsup.checkpoint import load_checkpoint, save_network
+from selfsup.checkpoint import build_network, load_checkpoint, save_network
 from selfsup.evaluate import calibrate_count_threshold, summarise
 from selfsup.losses import LossOptions, TeacherOptions, reconstruction_loss, scene_batch, teacher_loss
 from selfsup.model import LightNet, LightPrediction, scene_frame
+from selfsup.network import IterativePrediction
+from selfsup.sequence_loss import SequenceLossOptions, rerender_minimum, sequence_loss
 
 __all__ = ["DataOptions", "OptimOptions", "TrainerOptions", "LoggerOptions", "Trainer", "render_grid"]
 
@@ -67,8 +77,11 @@ class DataOptions:
     teacher_scale: int = 2
     teacher_method: str = "refine"
     teacher_cache: str = "data/teacher"
+    render_scale: int = 1  # > 1: pools rendered at this many times their grid, prepared as captures, pooled back
 
     def __post_init__(self):
+        if not (isinstance(self.render_scale, int) and self.render_scale >= 1):
+            raise ValueError(f"data.pool.render_scale must be an integer >= 1, got {self.render_scale!r}")
         if not 0 <= self.teacher_scenes <= self.train_scenes or self.teacher_scale < 1:
             raise ValueError(f"data.pool.teacher_scenes must be in [0, train_scenes={self.train_scenes}] and "
                              f"teacher_scale >= 1, got {self.teacher_scenes} and {self.teacher_scale}")
@@ -183,7 +196,7 @@ class Trainer:
     """Trains a :class:`LightNet` on procedural scenes; see the module doc.
 
     Args:
-        model_config: keyword arguments of :class:`LightNet`.
+        model_config: keyword arguments of the network (:func:`selfsup.checkpoint.build_network`).
         sampler, degradations, samples: procedural scene options (the ``data`` group).
         pool: :class:`DataOptions`; optim: :class:`OptimOptions`; trainer:
         :class:`TrainerOptions`; logger: :class:`LoggerOptions`; loss: :class:`LossOptions`.
@@ -193,6 +206,9 @@ class Trainer:
             lights on a pool's first ``n = pool.teacher_scenes`` scenes
             (:class:`selfsup.teacher.PoolTeacher`); needed where ``pool.teacher_scenes > 0``.
         renderer: the shadowed renderer the loss re-renders with.
+        prepare_pool: ``(pool, long_side) -> pool``, the frames of a pool rendered at
+            ``pool.render_scale`` prepared as captures and pooled to the grid (needed where
+            ``render_scale > 1``).
         seed: initialisation and data order.
         config: the composed config, stored in checkpoints for the record.
     """
@@ -200,10 +216,17 @@ class Trainer:
     def __init__(self, model_config: dict, sampler, degradations, samples: int, pool: DataOptions,
                  optim: OptimOptions, trainer: TrainerOptions, logger: LoggerOptions, loss: LossOptions,
                  renderer: ShadowedBlinnPhong, seed: int = 0, config: dict | None = None,
-                 teacher: TeacherOptions | None = None, teacher_search=None):
+                 teacher: TeacherOptions | None = None, teacher_search=None, prepare_pool=None):
         self.model_config = dict(model_config)
         with torch.device("meta"):  # a bad model setting is named now, before any scene is rendered (no weights made)
-            LightNet(**self.model_config)
+            self.iterative = not isinstance(build_network(self.model_config), LightNet)
+        if self.iterative != isinstance(loss, SequenceLossOptions):
+            raise ValueError("the iterative network (model.architecture=iterative) learns from the sequence loss's "
+                             "options (selfsup.sequence_loss.SequenceLossOptions) and LightNet from LossOptions: the "
+                             "experiment's loss node does not fit the model")
+        if pool.render_scale > 1 and prepare_pool is None:
+            raise ValueError("data.pool.render_scale > 1 needs prepare_pool (train.py gives the estimator's)")
+        self.prepare_pool = prepare_pool
         self.sampler, self.degradations, self.samples = sampler, degradations, samples
         self.pool_options, self.optim, self.options, self.logger, self.loss = pool, optim, trainer, logger, loss
         self.renderer = renderer
@@ -227,14 +250,31 @@ class Trainer:
                 self._pools = {k: v for k, v in self._pools.items() if k == -1}  # keep one train pool in memory
             count = self.pool_options.val_scenes if which == "val" else self.pool_options.train_scenes
             base = self.pool_options.val_seed if which == "val" else self.pool_options.train_seed + 1000 * generation
-            dataset = ProceduralScenes(self.sampler, self.degradations, length=count, base_seed=base,
-                                       samples=self.samples, max_lights=self.model_config.get("max_lights", 2))
+            scale = self.pool_options.render_scale
+            sampler = dataclasses.replace(self.sampler, height=self.sampler.height * scale, width=self.sampler.width * scale)
+            dataset = ProceduralScenes(sampler, self.degradations, length=count, base_seed=base,
+                                       samples=self.samples,
+                                       max_lights=max(self.model_config.get("max_lights", 2), len(sampler.n_lights_probs)))
             started = time.perf_counter()
             self._pools[key] = materialise(dataset, workers=self.pool_options.workers, progress=self.options.progress)
+            if scale > 1:
+                self._pools[key] = self.prepare_pool(self._pools[key], max(self.sampler.height, self.sampler.width))
             log.info("rendered %d %s scenes in %.1f s", count, which, time.perf_counter() - started)
+            if which == "train" and self.iterative:
+                self._pools[key].update(self._minima(self._pools[key]))
             if which == "train" and self.pool_options.teacher_scenes:
                 self._pools[key].update(self._taught(base, count))
         return self._pools[key]
+
+    def _minima(self, pool: dict[str, Tensor], batch: int = 64) -> dict[str, Tensor]:
+        """``target_pos (N, K, 3)`` and ``target_needed (N, K)``: each training scene's
+        re-render minimum (:func:`selfsup.sequence_loss.rerender_minimum`), found once."""
+        started = time.perf_counter()
+        parts = [rerender_minimum(scene_batch({k: v[i:i + batch] for k, v in pool.items()}),
+                                  self.model_config.get("max_lights", 2), self.loss)
+                 for i in range(0, pool["image"].shape[0], batch)]
+        log.info("re-render minima of %d scenes in %.1f s", pool["image"].shape[0], time.perf_counter() - started)
+        return {"target_pos": torch.cat([p for p, _ in parts]), "target_needed": torch.cat([n for _, n in parts])}
 
     def _taught(self, base_seed: int, count: int) -> dict[str, Tensor]:
         """``teacher_pos (count, K, 3)`` and ``teacher_mask (count, K)`` of a training pool:
@@ -282,6 +322,9 @@ class Trainer:
     def _loss(self, prediction: LightPrediction, scenes, renderer, batch: dict[str, Tensor]):
         """``(terms, total, teacher parts)`` of one batch: the reconstruction loss, plus the
         teacher's terms where the batch holds frames the search taught."""
+        if isinstance(prediction, IterativePrediction):
+            terms = sequence_loss(prediction, scenes, renderer, batch["target_pos"], batch["target_needed"], self.loss)
+            return terms, terms.total, {}
         terms = reconstruction_loss(prediction, scenes, renderer, self.loss, batch)
         if "teacher_mask" not in batch:
             return terms, terms.total, {}
@@ -307,7 +350,7 @@ class Trainer:
         if self.options.batch_size < ctx.world:
             raise ValueError(f"batch_size {self.options.batch_size} is smaller than the {ctx.world} processes")
         torch.manual_seed(self.seed)
-        network = LightNet(**self.model_config).to(ctx.device)
+        network = build_network(self.model_config).to(ctx.device)
         model = network
         if ctx.world > 1:
             model = torch.nn.parallel.DistributedDataParallel(network, device_ids=[ctx.device.index] if ctx.device.type == "cuda" else None)
@@ -394,7 +437,7 @@ class Trainer:
             (self.out_dir / "result.json").write_text(json.dumps(result, indent=2))
         return result
 
-    def _resume(self, network: LightNet, optimiser: torch.optim.Optimizer,
+    def _resume(self, network: torch.nn.Module, optimiser: torch.optim.Optimizer,
                 schedule: torch.optim.lr_scheduler.LRScheduler, ctx: _Dist) -> tuple[int, float]:
         """The step and best validation error to go on from: a checkpoint's (its weights,
         optimiser, schedule and random state restored), or a fresh start's (0, inf)."""
@@ -433,7 +476,7 @@ class Trainer:
         dist.all_reduce(value, op=dist.ReduceOp.MAX)
         return bool(value.item() > 0)
 
-    def _validate(self, network: LightNet, pool: dict[str, Tensor], renderer, writer, step: int) -> dict:
+    def _validate(self, network: torch.nn.Module, pool: dict[str, Tensor], renderer, writer, step: int) -> dict:
         # The count's threshold, calibrated on the validation scenes, goes with the checkpoint.
         network.count_threshold, rows = calibrate_count_threshold(network, pool)
         self.model_config["count_threshold"] = network.count_threshold
@@ -448,7 +491,7 @@ class Trainer:
         return summary
 
     @torch.no_grad()
-    def _grid(self, network: LightNet, pool: dict[str, Tensor], renderer) -> Tensor:
+    def _grid(self, network: torch.nn.Module, pool: dict[str, Tensor], renderer) -> Tensor:
         """``(3, n H, 4 W)``: per scene, input, re-render, |residual| and slot 0's shadow mask."""
         device = next(network.parameters()).device
         batch = {key: value[: self.logger.images].to(device) for key, value in pool.items()}
@@ -456,8 +499,22 @@ class Trainer:
         network.eval()
         prediction = network(scenes.image, scenes.gbuffer)
         network.train()
+        if isinstance(prediction, IterativePrediction):
+            return render_grid(scenes.image, *_final_render(prediction, scenes, renderer),
+                               scene_frame(scenes.image, scenes.gbuffer).exposure)
         terms = reconstruction_loss(prediction, scenes, renderer, self.loss, batch)
         return render_grid(scenes.image, terms.render, terms.visibility, scene_frame(scenes.image, scenes.gbuffer).exposure)
+
+
+def _final_render(prediction: IterativePrediction, scenes, renderer) -> tuple[Tensor, Tensor]:
+    # The last step's counted lights re-rendered with the scene's albedo: (render, visibility).
+    from selfsup.sequence_loss import _robust_fit
+
+    counted = (torch.arange(prediction.position.shape[1]) < prediction.count[:, None]).to(scenes.image.dtype)
+    transport = renderer.transport(scenes.gbuffer, scenes.material, prediction.position)
+    _, model, _ = _robust_fit(scenes, transport, counted, 0.05, prediction.grid.frame.exposure)
+    visibility = transport.visibility if transport.visibility is not None else torch.ones_like(transport.diffuse)
+    return model, visibility
 
 
 def render_grid(image: Tensor, render: Tensor, visibility: Tensor, exposure: Tensor) -> Tensor:
@@ -473,8 +530,11 @@ def render_grid(image: Tensor, render: Tensor, visibility: Tensor, exposure: Ten
 
 def _log_terms(writer, terms, lr: float, scenes_per_second: float, step: int) -> None:
     """One training step's loss terms, needed lights, learning rate and speed to TensorBoard."""
-    for name in ("total", "photometric", "hypotheses", "presence", "intensity", "supervised", "count"):
-        writer.add_scalar(f"train/{name}", float(getattr(terms, name).detach()), step)
-    writer.add_scalar("train/needed_lights", float(terms.needed.float().sum(1).mean()), step)
+    for name in ("total", "photometric", "hypotheses", "presence", "intensity", "supervised", "count", "position",
+                 "votes"):
+        if hasattr(terms, name):
+            writer.add_scalar(f"train/{name}", float(getattr(terms, name).detach()), step)
+    if hasattr(terms, "needed"):
+        writer.add_scalar("train/needed_lights", float(terms.needed.float().sum(1).mean()), step)
     writer.add_scalar("train/lr", lr, step)
     writer.add_scalar("train/scenes_per_second", scenes_per_second, step)

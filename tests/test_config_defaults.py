@@ -16,6 +16,8 @@ from pathlib import Path
 from selfsup.engine import LoggerOptions, OptimOptions, TrainerOptions
 from selfsup.estimation import EstimateOptions, estimate_files
 from selfsup.losses import LossOptions, TeacherOptions
+from selfsup.network import IterativeLightNet
+from selfsup.sequence_loss import SequenceLossOptions
 
 CONFIGS = Path(__file__).parents[1] / "configs"
 
@@ -46,6 +48,7 @@ def _defaults(cls) -> dict:
     ("optim/adamw.yaml", None, OptimOptions),
     ("logger/tensorboard.yaml", None, LoggerOptions),
     ("trainer/default.yaml", None, TrainerOptions),  # an experiment may change them: it lists what it changes
+    ("experiment/iterative.yaml", "loss", SequenceLossOptions),  # the iterative network's sequence loss
 ])
 def test_a_config_group_holds_its_dataclass_defaults(path, node, cls):
     values = OmegaConf.to_container(OmegaConf.load(CONFIGS / path), resolve=False)
@@ -59,6 +62,15 @@ def test_a_config_group_holds_its_dataclass_defaults(path, node, cls):
         if isinstance(value, str) and value.startswith("${"):
             continue  # an interpolation (the run folder): no default to compare
         assert _plain(value) == defaults[key], f"{path} {key}: YAML {value!r}, {cls.__name__} {defaults[key]!r}"
+
+
+def test_the_iterative_model_group_holds_the_networks_defaults():
+    values = OmegaConf.to_container(OmegaConf.load(CONFIGS / "model/iterative.yaml"), resolve=False)
+    assert values.pop("architecture") == "iterative"
+    defaults = {name: p.default for name, p in inspect.signature(IterativeLightNet).parameters.items()}
+    assert set(values) == set(defaults), set(values) ^ set(defaults)
+    for key, value in values.items():
+        assert _plain(value) == defaults[key], f"model/iterative.yaml {key}: YAML {value!r}, code {defaults[key]!r}"
 
 
 def test_the_estimate_group_is_the_users_dozen_settings_with_the_codes_defaults(cfg):

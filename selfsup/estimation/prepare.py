@@ -23,7 +23,7 @@ from selfsup.estimation.problem import FitProblem
 from selfsup.scenes.io import Scene, SceneFileError, scene_gbuffer
 
 __all__ = ["prepare", "problems_of", "problem_of", "saturated_pixels", "full_scales", "CLIP_LEVEL", "plane_window_px", "pixel_stride",
-           "within_pixels", "cropped_to_depth", "working_range", "in_file_units", "WORKING_RANGE"]
+           "within_pixels", "cropped_to_depth", "working_range", "in_file_units", "WORKING_RANGE", "prepared_pool"]
 
 log = logging.getLogger(__name__)
 
@@ -274,3 +274,67 @@ def in_file_units(record: dict, factor: float) -> dict:
             light["intensity"] = [value / factor for value in light["intensity"]]
         record["ambient"] = [value / factor for value in record["ambient"]]
     return record
+
+
+def prepared_pool(pool: dict[str, Tensor], long_side: int, tuning: Tuning = Tuning(), batch: int = 32) -> dict[str, Tensor]:
+    """A rendered pool of scene items (:func:`selfsup.scenes.dataset.scene_to_item`, stacked)
+    as :func:`prepare` makes a capture's frames, then on the network's working grid
+    (:func:`selfsup.network.grid.work_grid` at ``long_side``): normals refitted from the
+    depth where it is noisy, clipped pixels left out, colour, albedo, points and normals
+    averaged over the grid's cells. So training frames reach the network as a capture's do
+    (a camera's frame at its resolution, prepared, then pooled), not rendered at the grid's
+    size, where a sensor's disparity steps and a JPEG's blocks are several cells wide.
+
+    Returns the pool's items on the grid: ``image``, ``kd``, ``ks``, ``shininess``,
+    ``normals`` (zeros off the mask), ``depth`` (the cells' mean z, 0 off the mask) and ``K``
+    (scaled) replaced; the rest (lights, scales, ambient) as they were.
+    """
+    count = pool["image"].shape[0]
+    quiet = log.level
+    log.setLevel(max(quiet, logging.WARNING))  # thousands of frames' clipped-pixel counts are no news
+    try:
+        return _prepared_pool(pool, count, long_side, tuning, batch)
+    finally:
+        log.setLevel(quiet)
+
+
+def _prepared_pool(pool: dict[str, Tensor], count: int, long_side: int, tuning: Tuning, batch: int) -> dict[str, Tensor]:
+    from selfsup.network.grid import work_grid
+
+    keys = ("image", "kd", "ks", "shininess", "normals", "depth", "K")
+    parts: dict[str, list[Tensor]] = {key: [] for key in keys}
+    order: list[int] = []
+    for start in range(0, count, batch):
+        rows = list(range(start, min(count, start + batch)))
+        known = [bool(pool["normals"][i].abs().amax() > 0) for i in rows]  # exact renders give normals; sensors not
+        for group in ([i for i, k in zip(rows, known) if not k], [i for i, k in zip(rows, known) if k]):
+            if not group:
+                continue
+            scenes = [Scene(image=pool["image"][i], depth=pool["depth"][i], K=pool["K"][i], kd=pool["kd"][i],
+                            ks=pool["ks"][i], shininess=pool["shininess"][i],
+                            normals=pool["normals"][i] if known[i - start] else None,
+                            meta={"id": f"pool_{i}", "full_scale": 1.0}) for i in group]
+            problem = problems_of(scenes, "none", normal_smoothing=tuning.normal_smoothing,
+                                  normal_noise_threshold=tuning.normal_noise_threshold,
+                                  mask_saturated=tuning.mask_saturated, plane_window=tuning.plane_window,
+                                  plane_shifts=tuning.plane_shifts)
+            g, m = problem.gbuffer, problem.material
+            grid = work_grid(problem.image, g, long_side)
+            # The materials averaged over the same cells with the same weights, as a 5-channel "image".
+            materials = torch.cat([m.kd.permute(0, 3, 1, 2), m.ks.permute(0, 3, 1, 2)[:, :1],
+                                   m.shininess_map()[:, None].expand(len(group), 1, *g.mask.shape[1:])], 1)
+            pooled = work_grid(materials[:, :3], g, long_side).image, work_grid(materials[:, 2:], g, long_side).image
+            mask = grid.gbuffer.mask
+            parts["image"].append(grid.image.permute(0, 2, 3, 1))
+            parts["kd"].append(pooled[0].permute(0, 2, 3, 1))
+            parts["ks"].append(pooled[1][:, 1:2].permute(0, 2, 3, 1))
+            parts["shininess"].append(torch.where(mask, pooled[1][:, 2], torch.ones_like(pooled[1][:, 2])))
+            parts["normals"].append(grid.gbuffer.normals * mask[..., None])
+            parts["depth"].append(torch.where(mask, grid.gbuffer.points[..., 2], torch.zeros_like(pooled[1][:, 2])))
+            parts["K"].append(grid.gbuffer.intrinsics)
+            order.extend(group)
+    back = torch.argsort(torch.tensor(order))  # the groups' rows back in the pool's order
+    out = dict(pool)
+    for key in keys:
+        out[key] = torch.cat(parts[key])[back]
+    return out
