@@ -97,12 +97,12 @@ def _procedural(checkpoint: Path | None, scenes: int) -> dict[str, dict]:
     """The network alone on two of ``mode=eval``'s procedural sets (seed 9000, 160x120): ``true
     reflectance`` (its cost volumes see the albedo; what mode=adapt's forgetting guard
     validates on) and ``captures, camera and indirect light`` (no albedo, 1-3 lights)."""
-    from selfsup.checkpoint import load_network
+    from selfsup.checkpoint import LIGHTNET_CHECKPOINT, load_network
     from selfsup.evaluate import evaluate_network, summarise
     from selfsup.scenes.dataset import ProceduralScenes, materialise, sampler_config
     from selfsup.scenes.degrade import Degradations
 
-    network, _ = load_network(checkpoint)
+    network, _ = load_network(checkpoint or LIGHTNET_CHECKPOINT)
     sets = {"true reflectance": ((0.75, 0.25), Degradations(), True),
             "captures, camera and indirect light": ((0.45, 0.35, 0.2), Degradations(camera=True, indirect=2.0), False)}
     out = {}
@@ -159,10 +159,10 @@ def landscape(data: Path, sets=SETS, radius: float = 0.1, steps: int = 3, write:
     from benchmarks.common import write_results
     from render import Material, ShadowedBlinnPhong
     from selfsup.adapt import FrameOptions, collate_frames, load_frames
-    from selfsup.checkpoint import load_network
+    from selfsup.checkpoint import LIGHTNET_CHECKPOINT, load_network
     from selfsup.losses import LossOptions, SceneBatch, reconstruction_loss
 
-    network, _ = load_network(None)
+    network, _ = load_network(LIGHTNET_CHECKPOINT)
     renderer = ShadowedBlinnPhong(check_finite=False)
     axis = torch.linspace(-radius, radius, steps)
     grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)

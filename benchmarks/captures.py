@@ -49,20 +49,25 @@ COLUMNS = ["root", "set", "scenes", "success", "one_light_success", "two_light_r
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def command_seconds(folder: Path, device: str = "cpu") -> float:
+def command_seconds(folder: Path, device: str = "cpu", options=None) -> float:
     """Wall time of ``python train.py mode=estimate estimate.device=<device>`` on ``folder``,
-    Python's start-up and the network's load included, over its frames (the other
-    settings as by default: on 2 cores, 2 workers)."""
+    Python's start-up and the network's load included, over its frames (the settings that
+    ``options`` changes given on its command line, the others as by default: on 2 cores, 2
+    workers)."""
     import subprocess
     import sys
 
+    from selfsup.estimation import Tuning
     from selfsup.scenes.capture import capture_frames
 
+    changed = options.changed_settings() if options is not None else {}
+    settings = [f"+estimate.tuning.{key}={value}" if key in Tuning.names() else f"estimate.{key}={value}"
+                for key, value in changed.items()]
     with tempfile.TemporaryDirectory() as tmp:
         started = time.perf_counter()
         subprocess.run([sys.executable, "train.py", "mode=estimate", f"estimate.input={folder.resolve()}",
-                        f"estimate.output={tmp}/o.jsonl", "estimate.progress=false", f"estimate.device={device}", f"hydra.run.dir={tmp}/run"],
-                       cwd=ROOT, check=False, capture_output=True)
+                        f"estimate.output={tmp}/o.jsonl", "estimate.progress=false", f"estimate.device={device}",
+                        f"hydra.run.dir={tmp}/run", *settings], cwd=ROOT, check=True, capture_output=True)
         return round((time.perf_counter() - started) / max(len(capture_frames(folder)), 1), 3)
 
 
@@ -286,7 +291,7 @@ def run(roots: list[Path], sets=SETS, write: bool = True, options=None, name: st
                 wall = time.perf_counter() - started
                 scored = score(folder, output) if output.exists() else []
             rows.append(summary(root.name, set_name, scored, len(capture_frames(folder)), wall))
-            rows[-1]["command_seconds_per_frame"] = command_seconds(folder, device) if command_time else ""
+            rows[-1]["command_seconds_per_frame"] = command_seconds(folder, device, options) if command_time else ""
             print(rows[-1], flush=True)
     path = None
     if write:

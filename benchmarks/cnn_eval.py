@@ -19,15 +19,19 @@ Results: benchmarks/results/cnn_eval_<device>_<date>.{md,json}.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from pathlib import Path
 
 import torch
 
 from benchmarks.common import timed, write_results
+from render.shadows import ShadowMethod
 from selfsup.checkpoint import load_network
+from selfsup.estimation.prepare import prepared_pool
 from selfsup.evaluate import evaluate_network, summarise
 from selfsup.losses import scene_batch
+from selfsup.network import IterativeLightNet
 from selfsup.scenes.dataset import ProceduralScenes, collate, materialise, sampler_config, scene_to_item
 from selfsup.scenes.degrade import Degradations
 
@@ -75,6 +79,35 @@ def cost_volume_only(network):
     return plain
 
 
+def iterative_ablations(network) -> dict:
+    """Copies of an iterative network with one part off each: ``the physics alone`` (a grey
+    cost volume's best as the init, every pair weighted 1, the damping fixed at 0.1, no
+    presence change: nothing learned places a light), ``no re-render read`` (the update block
+    sees zeros for the residual, shadows and shares), ``no shadows`` (the re-render without
+    cast shadows), ``votes alone`` (T = 0)."""
+    import copy
+
+    def changed(**attributes):
+        other = copy.deepcopy(network)
+        for name, value in attributes.items():
+            setattr(other, name, value)
+        return other
+
+    physics = changed(init="volume")
+    with torch.no_grad():
+        physics.update.weights_out.weight.zero_()
+        physics.update.weights_out.bias.fill_(30.0)  # sigmoid(30) = 1: every pair counts
+        physics.update.damping_out.weight.zero_()
+        physics.update.damping_out.bias.fill_(math.log(math.expm1(0.1)))  # softplus^-1(0.1)
+        physics.update.slot_out[-1].weight.zero_()
+        physics.update.slot_out[-1].bias.zero_()
+    blind = copy.deepcopy(network)
+    blind.update.use_render = False
+    return {"the physics alone (grey volume, unweighted Gauss-Newton)": physics, "no re-render read": blind,
+            "no shadows in the re-render": changed(shadows=ShadowMethod.NONE, shadow_options=None),
+            "votes alone (T = 0)": changed(steps=0)}
+
+
 def run(checkpoint: str | None = None, sets: dict | None = None, files: dict | None = None, scenes: int = 200,
         seed: int = 9000, height: int = 120, width: int = 160, samples: int = 2,
         n_lights_probs: tuple = (0.75, 0.25), workers: int = 2, device: str = "auto", write: bool = False):
@@ -96,13 +129,18 @@ def run(checkpoint: str | None = None, sets: dict | None = None, files: dict | N
         pool = materialise(ProceduralScenes(sampler_config(height=height, width=width, n_lights_probs=probs),
                                             degradations, length=scenes, base_seed=seed, samples=samples,
                                             max_lights=max(network.max_lights, len(probs))), workers=workers)
+        iterative = isinstance(network, IterativeLightNet)
+        if iterative and degradations.camera:  # as the estimator reads a capture: normals refitted, clipped pixels out
+            pool = prepared_pool(pool, max(height, width))
         started = time.perf_counter()
         summary = summarise(evaluate_network(network, pool, albedo=albedo))
         rows.append({"set": name, **_rounded(summary),
                      "ms_per_image": round(1000 * (time.perf_counter() - started) / scenes, 2)})
-        # The ablation on every set: what the cost volume alone gives (the learned part's worth).
-        rows.append({"set": f"{name}, cost volume alone (learned scores and offset zeroed)",
-                     **_rounded(summarise(evaluate_network(cost_volume_only(network), pool, albedo=albedo)))})
+        # The ablations on every set: what each part is worth.
+        others = iterative_ablations(network) if iterative else {
+            "cost volume alone (learned scores and offset zeroed)": cost_volume_only(network)}
+        for part, other in others.items():
+            rows.append({"set": f"{name}, {part}", **_rounded(summarise(evaluate_network(other, pool, albedo=albedo)))})
     for name, directory in (files or {}).items():
         if not Path(directory).exists():
             log.warning("eval set %r skipped: no directory %s", name, directory)
@@ -131,4 +169,4 @@ def _rounded(summary: dict) -> dict:
     return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in summary.items()}
 
 
-__all__ = ["run", "inference_ms", "cost_volume_only"]
+__all__ = ["run", "inference_ms", "cost_volume_only", "iterative_ablations"]

@@ -15,7 +15,7 @@ import torch
 
 from selfsup.model import LightNet
 
-__all__ = ["DEFAULT_CHECKPOINT", "save_network", "load_network", "load_checkpoint", "build_network", "ARCHITECTURES"]
+__all__ = ["DEFAULT_CHECKPOINT", "LIGHTNET_CHECKPOINT", "save_network", "load_network", "load_checkpoint", "build_network", "ARCHITECTURES"]
 
 # model_config["architecture"]: the network a config builds (absent: the cost-volume LightNet).
 ARCHITECTURES = ("lightnet", "iterative")
@@ -36,7 +36,8 @@ def build_network(model_config: dict):
         return IterativeLightNet(**config)
     return LightNet(**config)
 
-DEFAULT_CHECKPOINT = Path(__file__).parent / "checkpoints" / "lightnet.pt"
+LIGHTNET_CHECKPOINT = Path(__file__).parent / "checkpoints" / "lightnet.pt"  # the cost-volume network; mode=adapt's start
+DEFAULT_CHECKPOINT = LIGHTNET_CHECKPOINT  # what estimation's cnn methods and mode=eval load when none is named
 # 2: the network of colour and depth alone (no albedo channel), counting its lights (issue 62).
 CHECKPOINT_FORMAT = 2
 

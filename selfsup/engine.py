@@ -47,7 +47,7 @@ from torch import Tensor
 
 from render import ShadowedBlinnPhong
 from selfsup.checkpoint import build_network, load_checkpoint, save_network
-from selfsup.evaluate import calibrate_count_threshold, summarise
+from selfsup.evaluate import calibrate_confidence, calibrate_count_threshold, summarise
 from selfsup.losses import LossOptions, TeacherOptions, reconstruction_loss, scene_batch, teacher_loss
 from selfsup.model import LightNet, LightPrediction, scene_frame
 from selfsup.network import IterativePrediction
@@ -482,6 +482,10 @@ class Trainer:
         self.model_config["count_threshold"] = network.count_threshold
         summary = summarise(rows)
         summary["count_threshold"] = network.count_threshold
+        if self.iterative:  # the confidence's logistic model, fitted on the same scenes, goes with the checkpoint
+            network.confidence_weights, placed = calibrate_confidence(network, pool)
+            self.model_config["confidence_weights"] = list(network.confidence_weights)
+            summary["slot0_placed"] = placed
         if writer is not None:
             for name, value in summary.items():
                 writer.add_scalar(f"val/{name}", value, step)

@@ -15,7 +15,8 @@ from selfsup.losses import scene_batch
 from selfsup.metrics import SUCCESS_THRESHOLD, light_errors
 from selfsup.model import LightNet, scene_frame
 
-__all__ = ["evaluate_network", "summarise", "calibrate_count_threshold", "COUNT_THRESHOLDS"]
+__all__ = ["evaluate_network", "summarise", "calibrate_count_threshold", "calibrate_confidence", "fit_logistic",
+           "COUNT_THRESHOLDS"]
 
 # The presence thresholds calibration chooses from.
 COUNT_THRESHOLDS = (0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 0.99, 1.0)
@@ -102,3 +103,46 @@ def calibrate_count_threshold(network: LightNet, pool: dict[str, Tensor], batch_
     score = [(sum(r["success"] for r in these), sum(r["count_right"] for r in these)) for these in rows]
     best = max(range(len(score)), key=lambda i: (score[i], -i))
     return COUNT_THRESHOLDS[best], rows[best]
+
+
+@torch.no_grad()
+def calibrate_confidence(network, pool: dict[str, Tensor], batch_size: int = 64, ridge: float = 1e-2
+                         ) -> tuple[tuple[float, float, float], float]:
+    """The logistic model of an iterative network's confidence
+    (:func:`selfsup.network.lightnet.confidence_features`) fitted on ``pool``'s scenes to
+    whether slot 0 lands within 0.05 of the scene size of a true light (Newton's method on the
+    ridge-penalised log likelihood); and the share of scenes where it does."""
+    from selfsup.network.lightnet import confidence_features
+
+    was_training = network.training
+    network.eval()
+    device = next(network.parameters()).device
+    features, hits = [], []
+    try:
+        for start in range(0, pool["image"].shape[0], batch_size):
+            batch = {key: value[start:start + batch_size].to(device) for key, value in pool.items()}
+            scenes = scene_batch(batch)
+            prediction = network(scenes.image, scenes.gbuffer)
+            distance = (prediction.position[:, :1] - batch["light_pos"]).norm(dim=-1)  # (B, lights)
+            distance = torch.where(batch["light_mask"], distance, torch.full_like(distance, float("inf")))
+            hits.append((distance.amin(1) < SUCCESS_THRESHOLD * batch["scene_scale"]).double().cpu())
+            features.append(confidence_features(prediction.steps).double().cpu())
+    finally:
+        network.train(was_training)
+    x, y = torch.cat(features), torch.cat(hits)
+    return tuple(float(v) for v in fit_logistic(x, y, ridge)), float(y.mean())
+
+
+def fit_logistic(x: Tensor, y: Tensor, ridge: float = 1e-2, iterations: int = 25) -> Tensor:
+    """Weights ``(F,)`` of ``P(y = 1) = sigmoid(x @ w)`` for features ``x (N, F)`` and labels
+    ``y (N,)`` in {0, 1}: Newton's method on the log likelihood with an L2 ``ridge`` (which
+    keeps separable data finite)."""
+    x, y = x.double(), y.double()
+    w = torch.zeros(x.shape[1], dtype=torch.float64)
+    eye = torch.eye(x.shape[1], dtype=torch.float64)
+    for _ in range(iterations):
+        p = torch.sigmoid(x @ w)
+        gradient = x.T @ (p - y) + ridge * w
+        hessian = (x * (p * (1 - p))[:, None]).T @ x + ridge * eye
+        w = w - torch.linalg.solve(hessian, gradient)
+    return w

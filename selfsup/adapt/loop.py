@@ -43,7 +43,7 @@ from render import Material, ShadowedBlinnPhong
 from selfsup.adapt.frames import AdaptFrames, FrameOptions, UserFrame, collate_frames, load_frames, mirrored, teach
 from selfsup.adapt.guards import GuardOptions, degenerate_lights, guard_penalty, refusals
 from selfsup.losses import TeacherOptions, teacher_loss
-from selfsup.checkpoint import load_checkpoint, load_network, save_network
+from selfsup.checkpoint import LIGHTNET_CHECKPOINT, load_checkpoint, load_network, save_network
 from selfsup.engine import render_grid
 from selfsup.estimation.files import progress_bar
 from selfsup.estimation.jobs import locked
@@ -274,6 +274,16 @@ def adapt_files(input: str | list[str], out: str | Path, checkpoint: str | None 
                       loss, teacher, renderer, procedural, work)
 
 
+def _start_network(checkpoint: str | None, device: torch.device) -> tuple[LightNet, dict]:
+    # The network adaptation starts from (the cost-volume network; the iterative one is refused).
+    network, state = load_network(checkpoint or LIGHTNET_CHECKPOINT, map_location=device)
+    if not isinstance(network, LightNet):
+        raise ValueError(f"adapt.checkpoint={checkpoint}: mode=adapt fine-tunes the cost-volume network (LightNet, "
+                         f"{LIGHTNET_CHECKPOINT.name}); adapting the iterative network is not built yet: leave "
+                         "adapt.checkpoint out, or give a LightNet checkpoint (python train.py experiment=captures)")
+    return network.to(device).train(), state
+
+
 def _adapt(inputs: list, out: Path, checkpoint: str | None, options: AdaptOptions, frame_options: FrameOptions,
            guards: GuardOptions, loss: LossOptions, teacher: TeacherOptions, renderer: ShadowedBlinnPhong,
            procedural: Procedural, work: Path) -> dict:
@@ -281,8 +291,7 @@ def _adapt(inputs: list, out: Path, checkpoint: str | None, options: AdaptOption
     device = _device(options.device)
     if options.threads and device.type == "cpu":
         torch.set_num_threads(options.threads)
-    network, state = load_network(checkpoint, map_location=device)
-    network = network.to(device).train()
+    network, state = _start_network(checkpoint, device)
     bar, printing = progress_bar(None, "read", "frame", options.progress)
     quiet = logging.getLogger("selfsup.estimation.prepare")  # "N clipped pixels left out" of each frame, twice
     level = quiet.level

@@ -25,11 +25,12 @@ def cached_network(checkpoint: str | None, device: str = "cpu"):
 
 
 @torch.no_grad()
-def network_slots(problem: FitProblem, checkpoint: str | None = None) -> tuple[Tensor, Tensor]:
+def network_slots(problem: FitProblem, checkpoint: str | None = None, with_confidence: bool = False):
     """The network's light slots: positions ``(B, K, 3)`` in the network's order and which
-    of them it counts ``(B, K)`` bool (its count's first slots). The network needs no albedo:
-    its cost volumes see the problem's only where the file gives one (not one constant,
-    :func:`reflectance_unknown`)."""
+    of them it counts ``(B, K)`` bool (its count's first slots); with ``with_confidence`` also
+    its calibrated confidence ``(B,)`` that its first slot is a light (zeros for a network
+    without one). The network needs no albedo: its cost volumes see the problem's only where
+    the file gives one (not one constant, :func:`reflectance_unknown`)."""
     network = cached_network(checkpoint, str(problem.image.device))
     image, g, kd = problem.image.float(), problem.gbuffer, problem.material.kd.float()
     known = ~reflectance_unknown(problem)
@@ -40,6 +41,11 @@ def network_slots(problem: FitProblem, checkpoint: str | None = None) -> tuple[T
         position = torch.where(known[:, None, None], given.position, position)
         count = torch.where(known, given.count, count)
     present = torch.arange(position.shape[1], device=count.device) < count[:, None]
+    if with_confidence:
+        confidence = getattr(prediction, "confidence", None)
+        if confidence is None or not (bool(known.all()) or not bool(known.any())):
+            confidence = torch.zeros(position.shape[0], device=position.device)  # a mixed batch: searched
+        return position.to(problem.image.dtype), present, confidence
     return position.to(problem.image.dtype), present
 
 

@@ -92,6 +92,9 @@ class Tuning:
     Starts and model selection:
         cnn_grid, cnn_starts: ``cnn+refine`` searches this grid beside the network's
             slots and starts from this many of its best.
+        cnn_sure: ``cnn+refine`` searches nothing where the network's calibrated confidence
+            (an iterative network's, :attr:`selfsup.network.IterativePrediction.confidence`)
+            reaches this: its lights are refined instead (above 1: search everywhere).
         min_light_share: an added light must carry this share of the rendered direct
             light, or, weaker but at least ``weak_light_min_share``, show its own cast
             shadows (``weak_light_shadow_gain``, 0: off) or pay for its parameters
@@ -168,6 +171,7 @@ class Tuning:
 
     cnn_grid: tuple[int, int, int] = (7, 6, 7)
     cnn_starts: int = 4
+    cnn_sure: float = 0.8
     block_width: float = 0.1
     min_light_share: float = 0.1
     weak_light_shadow_gain: float = 0.01
@@ -236,6 +240,7 @@ def _check_tuning(t: Tuning) -> None:
 
     need(len(t.cnn_grid) == 3 and min(t.cnn_grid) >= 2, "cnn_grid", "3 grid sizes >= 2")
     need(t.cnn_starts >= 1, "cnn_starts", ">= 1")
+    need(t.cnn_sure > 0, "cnn_sure", "> 0 (above 1: search everywhere)")
     need(t.weak_light_shadow_gain >= 0, "weak_light_shadow_gain", ">= 0")
     need(t.weak_light_penalty == 0 or t.weak_light_penalty >= 1, "weak_light_penalty", "0 (off) or >= 1")
     need(t.weak_light_min_share >= 0, "weak_light_min_share", ">= 0")

@@ -61,8 +61,8 @@ def _residuals(options: EstimateOptions) -> dict:
     return dict(residuals=options.tuning.albedo_free_residuals, segment_scale=options.tuning.albedo_segment_scale)
 
 
-def estimate_albedo_free(problem: FitProblem, options: EstimateOptions,
-                         slots: Tensor | None = None) -> list[tuple[Candidate, list[Candidate]]]:
+def estimate_albedo_free(problem: FitProblem, options: EstimateOptions, slots: Tensor | None = None,
+                         sure: Tensor | None = None) -> list[tuple[Candidate, list[Candidate]]]:
     """Lights fitted to the log shading with each albedo segment's mean taken out (or its
     neighbour differences; :mod:`selfsup.estimation.albedo_free`), 1 .. ``max_lights`` while
     :func:`bic` of their Cauchy loss falls (with segments, judged without the highlights
@@ -84,12 +84,37 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions,
     a falloff for devset capture 031's second light.
 
     ``slots (B, K, 3)``: a network's lights in its order (:func:`selfsup.estimation.network.network_slots`);
-    the search of ``n`` lights also starts from its first ``n``."""
+    the search of ``n`` lights also starts from its first ``n``. ``sure (B,)`` bool: the images
+    whose network is sure of its lights (its calibrated confidence, ``tuning.cnn_sure``): no
+    search there, its first light and its first two refined from where it put them
+    (:func:`selfsup.estimation.albedo_free.refine_from`, no lens's falloff looked for) and the
+    criterion choosing between them as between a search's."""
     labels = geometry = None  # every image's albedo segments (and smooth surfaces), found once
     if options.tuning.albedo_free_residuals == "segments":
         g = problem.gbuffer
         geometry = surface_segments(g.points, g.normals, g.mask)
         labels = albedo_free.tuned_segments(problem, options.tuning, geometry)
+    if sure is not None and bool(sure.any()):
+        # The images whose network is sure: its lights refined (no grid, no lens searched); the others searched.
+        results: list = [None] * problem.batch
+        for flag in (True, False):
+            rows = [i for i, s in enumerate(sure.tolist()) if s == flag]
+            if not rows:
+                continue
+            at = torch.tensor(rows, dtype=torch.long, device=problem.image.device)
+            part = _estimate_split(problem.select(at), options, None if labels is None else labels[at],
+                                   None if geometry is None else geometry[at], slots[at], flag)
+            for i, result in zip(rows, part):
+                results[i] = result
+        return results
+    return _estimate_split(problem, options, labels, geometry, slots, False)
+
+
+def _estimate_split(problem: FitProblem, options: EstimateOptions, labels: Tensor | None, geometry: Tensor | None,
+                    slots: Tensor | None, sure: bool) -> list[tuple[Candidate, list[Candidate]]]:
+    # estimate_albedo_free of images whose network is sure (its lights refined) or not (searched).
+    if sure:
+        return _fit_albedo_free(problem, options, labels, geometry, False, slots, sure=True)[0]
     auto = options.tuning.vignetting == "auto"
     results, whole = _fit_albedo_free(problem, options, labels, geometry, auto, slots)
     again = [i for i, (best, _) in enumerate(results) if best.vignetting]
@@ -105,7 +130,8 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions,
 
 
 def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tensor | None, geometry: Tensor | None,
-                     vignetting: bool, slots: Tensor | None = None) -> tuple[list[tuple[Candidate, list[Candidate]]], list[float]]:
+                     vignetting: bool, slots: Tensor | None = None, sure: bool = False
+                     ) -> tuple[list[tuple[Candidate, list[Candidate]]], list[float]]:
     # estimate_albedo_free's results, with the lens's falloff chosen (vignetting) or none, and
     # each image's criterion of its whole chosen model on every residual.
     B, device = problem.batch, problem.image.device
@@ -144,7 +170,10 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         chosen = slots if rows is None else slots[rows]
         return dict(extra_starts=chosen[:, None, :n_lights])
 
-    if vignetting:
+    if sure:  # the network's first light refined, no grid, no lens
+        corner_loss = problem.image.new_zeros(B)
+        found = albedo_free.refine_from(problem, slots[:, :1], labels=labels, **search_kwargs)
+    elif vignetting:
         corner_loss, found = choose_vignetting(problem, labels, criterion, search_kwargs, network_starts(None, 1))
         problem = devignetted(problem, corner_loss)  # every fit below sees the image with the lens's falloff taken out
     else:
@@ -160,27 +189,20 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
     tried = [[(1, c)] for _, _, c in best]
     growing = list(range(B))
     for n_lights in range(2, options.max_lights + 1):
-        if not growing:
+        if not growing or (sure and n_lights > slots.shape[1]):
             break
         at = torch.tensor(growing, dtype=torch.long, device=device)
         before = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in growing])
         sub = problem.select(at)
         kwargs = dict(robust_scale=options.tuning.albedo_free_scale, labels=None if labels is None else labels[at],
                       **_residuals(options))
-        more = albedo_free.search_each(sub, albedo_free.search(sub, n_lights, fixed=before, **kwargs,
-                                                               **network_starts(at, n_lights)), **kwargs)
-        shares = albedo_free.light_shares(sub, more).amin(1).tolist()
-        fewer_value, more_value = [best[i][2] for i in growing], criterion(more)
-        if kwargs["labels"] is not None and options.tuning.albedo_free_lobe_deg > 0:
-            # The count judged without the highlights, where enough residuals are left.
-            fewer_there, more_there = _without_highlights(sub, before, more, kwargs["labels"], options)
-            kept = (more_there.pairs >= MIN_RESIDUALS).tolist()
-            fewer_value = [c if ok else v for c, ok, v in zip(criterion(fewer_there), kept, fewer_value)]
-            more_value = [c if ok else v for c, ok, v in zip(criterion(more_there), kept, more_value)]
-        taken = [c < f and share >= options.tuning.min_light_share
-                 for c, f, share in zip(more_value, fewer_value, shares)]
-        if options.tuning.unlit_evidence:
-            taken = _or_black_pixels_need(sub, options, before, more, taken)
+        if sure:  # the network's first n lights refined together
+            more = albedo_free.refine_from(sub, slots[at, :n_lights], **kwargs)
+        else:
+            more = albedo_free.search_each(sub, albedo_free.search(sub, n_lights, fixed=before, **kwargs,
+                                                                   **network_starts(at, n_lights)), **kwargs)
+        taken, fewer_value, more_value = _judged(sub, before, more, [best[i][2] for i in growing], kwargs["labels"],
+                                                 options, criterion)
         still = []
         for j, (i, c) in enumerate(zip(growing, more_value)):
             tried[i][-1] = (n_lights - 1, fewer_value[j])  # the records keep the values compared
@@ -190,6 +212,25 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
                 still.append(i)
         growing = still
     return _chosen_candidates(problem, labels, geometry, options, best, tried, corner_loss, with_bounce)
+
+
+def _judged(sub: FitProblem, before: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
+            fewer_value: list[float], labels: Tensor | None, options: EstimateOptions, criterion
+            ) -> tuple[list[bool], list[float], list[float]]:
+    # Whether each image takes the fit of one light more: its criterion lower (judged without the
+    # highlights where enough residuals are left) and each light carrying min_light_share, or the
+    # black pixels asking for it; and the two criteria compared.
+    shares = albedo_free.light_shares(sub, more).amin(1).tolist()
+    more_value = criterion(more)
+    if labels is not None and options.tuning.albedo_free_lobe_deg > 0:
+        fewer_there, more_there = _without_highlights(sub, before, more, labels, options)
+        kept = (more_there.pairs >= MIN_RESIDUALS).tolist()
+        fewer_value = [c if ok else v for c, ok, v in zip(criterion(fewer_there), kept, fewer_value)]
+        more_value = [c if ok else v for c, ok, v in zip(criterion(more_there), kept, more_value)]
+    taken = [c < f and share >= options.tuning.min_light_share for c, f, share in zip(more_value, fewer_value, shares)]
+    if options.tuning.unlit_evidence:
+        taken = _or_black_pixels_need(sub, options, before, more, taken)
+    return taken, fewer_value, more_value
 
 
 def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Tensor | None, options: EstimateOptions,

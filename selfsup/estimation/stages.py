@@ -336,9 +336,12 @@ def estimate_batch(problem: FitProblem, options: EstimateOptions) -> list[Result
 
 
 def _albedo_free_with_network(problem: FitProblem, options: EstimateOptions) -> list[Result]:
-    # The albedo-free fit; with cnn+refine the network's lights join its searches' starts.
-    slots = network_slots(problem, options.checkpoint)[0] if options.method == "cnn+refine" else None
-    return estimate_albedo_free(problem, options, slots)
+    # The albedo-free fit; with cnn+refine the network's lights join its searches' starts, or
+    # where it is sure (its confidence reaches tuning.cnn_sure) are refined without a search.
+    if options.method != "cnn+refine":
+        return estimate_albedo_free(problem, options)
+    slots, _, confidence = network_slots(problem, options.checkpoint, with_confidence=True)
+    return estimate_albedo_free(problem, options, slots, confidence >= options.tuning.cnn_sure)
 
 
 def estimate_given(problem: FitProblem, options: EstimateOptions) -> list[Result]:

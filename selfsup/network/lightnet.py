@@ -18,7 +18,7 @@ of that step's update through its Gauss-Newton solve, not the steps before it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
@@ -33,7 +33,7 @@ from selfsup.network.physics import LOG_GAIN_RANGE, LightState, rerender
 from selfsup.network.update import UpdateBlock
 from selfsup.network.votes import VoteHead, meeting_point
 
-__all__ = ["IterativeLightNet", "IterativePrediction", "StepLights", "INITS"]
+__all__ = ["IterativeLightNet", "IterativePrediction", "StepLights", "INITS", "confidence_features"]
 
 INITS = ("votes", "volume")
 
@@ -64,6 +64,9 @@ class IterativePrediction:
         grid: the working grid; votes: ``(direction (B, K, h, w, 3), weight (B, K, h, w))``
             or None (``init="volume"``).
         count_threshold: a slot ``k >= 1`` counts where it and every slot before it reach it.
+        confidence: ``(B,)`` in (0, 1): the calibrated probability that slot 0 lies within 0.05
+            of the scene size of a light (:func:`confidence_features` through the network's
+            ``confidence_weights``, fitted on validation scenes; 0.5 before).
     """
 
     position: Tensor
@@ -74,7 +77,7 @@ class IterativePrediction:
     grid: WorkGrid
     votes: tuple[Tensor, Tensor] | None = None
     count_threshold: float = 0.5
-    extra: dict = field(default_factory=dict)
+    confidence: Tensor | None = None
 
     @property
     def count(self) -> Tensor:
@@ -86,6 +89,17 @@ class IterativePrediction:
         """Positions and intensities ``(n, 3)`` of image ``index``'s first ``n = count`` slots."""
         n = int(self.count[index])
         return self.position[index, :n], self.intensity[index, :n]
+
+
+def confidence_features(steps: list[StepLights]) -> Tensor:
+    """``(B, 3)``: 1, the log distance (scene units) from slot 0's init to its last step, and
+    the log length of its last step: where the votes and the re-render agree and the steps
+    have settled, slot 0 is likely right (the logistic model of :attr:`IterativePrediction.confidence`)."""
+    first, last = steps[0].state.position[:, 0], steps[-1].state.position[:, 0]
+    before = steps[-2].state.position[:, 0] if len(steps) > 1 else first
+    agreement = (last - first).norm(dim=-1).detach()
+    move = (last - before).norm(dim=-1).detach()
+    return torch.stack([torch.ones_like(move), torch.log(agreement + 1e-3), torch.log(move + 1e-4)], 1)
 
 
 class IterativeLightNet(nn.Module):
@@ -101,6 +115,8 @@ class IterativeLightNet(nn.Module):
         shadows: the re-render's cast shadows (``epipolar`` or ``none``, an ablation).
         use_render: False: the update reads no re-render (an ablation).
         count_threshold: see :class:`IterativePrediction` (calibrated on validation scenes).
+        confidence_weights: the logistic model of :attr:`IterativePrediction.confidence` on
+            :func:`confidence_features` (fitted on validation scenes; zeros: 0.5 everywhere).
         shadow_thickness: the epipolar solid behind each cell, of the scene size (None: unbounded,
             everything behind the surface; the layer's default is 0.03, three times the cost).
 
@@ -111,7 +127,8 @@ class IterativeLightNet(nn.Module):
     def __init__(self, max_lights: int = 2, long_side: int = 64, widths: tuple[int, ...] = (32, 48, 64, 96),
                  global_width: int = 128, update_width: int = 48, steps: int = 3, init: str = "votes",
                  shadows: str = "epipolar", use_render: bool = True, count_threshold: float = 0.5,
-                 shadow_thickness: float | None = None):
+                 shadow_thickness: float | None = None,
+                 confidence_weights: tuple[float, float, float] = (0.0, 0.0, 0.0)):
         super().__init__()
         if max_lights < 1 or long_side < 8 or steps < 0:
             raise ValueError(f"max_lights must be >= 1, long_side >= 8 and steps >= 0, got {max_lights}, {long_side} "
@@ -128,6 +145,9 @@ class IterativeLightNet(nn.Module):
         self.shadow_options = default_options(self.shadows, scene_thickness=shadow_thickness) \
             if self.shadows is ShadowMethod.EPIPOLAR else None
         self.count_threshold = float(count_threshold)
+        if len(confidence_weights) != 3:
+            raise ValueError(f"confidence_weights must be 3 numbers, got {confidence_weights!r}")
+        self.confidence_weights = tuple(float(w) for w in confidence_weights)
         self.encoder = Encoder(tuple(widths), global_width)
         self.votes = VoteHead(self.encoder.channels, max_lights)
         self.first = nn.Linear(global_width, 2 * max_lights)  # presence logits, log gains (slots 1..), log ambient
@@ -186,8 +206,10 @@ class IterativeLightNet(nn.Module):
                                                     logits.detach())
             history.append(StepLights(grid.metres(state.position), logits, state, weights))
         intensity, ambient = self._intensities(grid, state)
+        weights = torch.tensor(self.confidence_weights, dtype=position.dtype, device=position.device)
+        confidence = torch.sigmoid(confidence_features(history) @ weights)
         return IterativePrediction(history[-1].position, intensity, state.presence, ambient, history, grid, votes,
-                                   self.count_threshold)
+                                   self.count_threshold, confidence)
 
     @torch.no_grad()
     def _intensities(self, grid: WorkGrid, state: LightState) -> tuple[Tensor, Tensor]:

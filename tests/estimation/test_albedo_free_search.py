@@ -149,3 +149,33 @@ def test_cnn_refine_gives_the_networks_lights_to_the_albedo_free_searches(monkey
     seen.clear()
     estimate_scene(scene, EstimateOptions(method="refine", max_lights=2))
     assert seen and all(shape is None for shape in seen)
+
+
+@pytest.mark.parametrize("n_lights", [1, 2])
+def test_where_the_network_is_sure_its_lights_are_refined_and_nothing_is_searched(monkeypatch, n_lights):
+    # cnn+refine with a network sure of itself (confidence 1): no grid search; its first one
+    # and first two lights refined and judged by the criterion as a search's would be.
+    from selfsup.estimation import network as network_module
+    from selfsup.estimation import stages
+
+    scene = _unknown_albedo(_scene(3 if n_lights == 1 else 4, n_lights=n_lights, config=MEDIUM))
+    offset = torch.tensor([0.03, -0.02, 0.02]) * scene.scene_scale
+    slots = scene.light_pos[None, :2] + offset if n_lights == 2 else torch.stack(
+        [scene.light_pos[0], scene.light_pos[0] + torch.tensor([1.0, -0.5, 0.5])])[None] + offset
+
+    def sure_slots(problem, checkpoint=None, with_confidence=False):
+        return slots.to(problem.image), torch.ones(1, 2, dtype=torch.bool), torch.ones(1)
+
+    def no_search(*args, **kwargs):
+        raise AssertionError("searched where the network was sure")
+
+    monkeypatch.setattr(stages, "network_slots", sure_slots)
+    monkeypatch.setattr(albedo_free, "search", no_search)
+    monkeypatch.setattr(network_module, "network_slots", sure_slots)
+    record = estimate_scene(scene, EstimateOptions(method="cnn+refine", max_lights=2))
+    found = torch.tensor([light["position"] for light in record["lights"]])
+    assert len(found) == n_lights
+    assert float(torch.cdist(found, scene.light_pos).amin(0).max() / scene.scene_scale) < 0.01
+    # Unsure (tuning.cnn_sure above its confidence): the search runs.
+    with pytest.raises(AssertionError, match="searched"):
+        estimate_scene(scene, EstimateOptions.from_settings(method="cnn+refine", max_lights=2, cnn_sure=1.5))

@@ -116,3 +116,30 @@ def test_the_iterative_recipe_trains_on_frames_prepared_as_captures(tmp_path):
     assert result["step"] == 2 and result["validation"]["scenes"] == 4
     network, state = load_network(result["last"])
     assert isinstance(network, IterativeLightNet) and state["model_config"]["architecture"] == "iterative"
+
+
+def test_the_confidence_is_a_logistic_model_fitted_to_where_slot_0_lands():
+    from selfsup.evaluate import fit_logistic
+
+    generator = torch.Generator().manual_seed(0)
+    x = torch.cat([torch.ones(4000, 1), torch.randn(4000, 2, generator=generator)], 1)
+    truth = torch.tensor([0.5, -2.0, 1.0])
+    y = (torch.rand(4000, generator=generator) < torch.sigmoid(x @ truth)).double()
+    assert torch.allclose(fit_logistic(x, y, ridge=1e-6).float(), truth, atol=0.2)
+    # Separable labels stay finite (the ridge).
+    assert bool(torch.isfinite(fit_logistic(x, (x[:, 1] > 0).double())).all())
+
+
+def test_ablations_turn_one_part_off_each():
+    from benchmarks.cnn_eval import iterative_ablations
+
+    scenes = scene_batch(_batch(2))
+    network = IterativeLightNet(**SMALL).eval()
+    parts = iterative_ablations(network)
+    with torch.no_grad():
+        physics = parts["the physics alone (grey volume, unweighted Gauss-Newton)"](scenes.image, scenes.gbuffer)
+        assert physics.votes is None and torch.allclose(physics.steps[-1].weights, torch.ones(()))
+        assert len(parts["votes alone (T = 0)"](scenes.image, scenes.gbuffer).steps) == 1
+        for other in parts.values():
+            assert bool(torch.isfinite(other(scenes.image, scenes.gbuffer).position).all())
+    assert network.init == "votes" and network.steps == 2  # the network itself unchanged

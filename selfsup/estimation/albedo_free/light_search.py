@@ -15,7 +15,7 @@ from selfsup.estimation.albedo_free.observation import AlbedoFreeFit, LogShading
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
 from selfsup.estimation.solvers import grid_candidates, spread_best
 
-__all__ = ["search", "search_each", "split_starts", "anchor_pairs"]
+__all__ = ["search", "search_each", "split_starts", "anchor_pairs", "refine_from"]
 
 # Contrasts tried in the grid search: the ambient at exp(g) x the median unit-light shading.
 AMBIENT_STEPS = (-4.0, -2.0, -1.0, 0.0, 1.0)
@@ -238,3 +238,23 @@ def search_each(problem: FitProblem, fit: AlbedoFreeFit, robust_scale: float = 0
                        starts=starts, iterations=iterations)
         fit = fit.better(again)
     return fit
+
+
+def refine_from(problem: FitProblem, position: Tensor, robust_scale: float = 0.02, residuals: str = "segments",
+                segment_scale: float = 50.0, labels: Tensor | None = None, iterations: tuple[int, int] = (15, 15),
+                start_stride: int = 2) -> AlbedoFreeFit:
+    """The lights at ``position (B, n, 3)`` (a network's) refined as :func:`search` refines its
+    best start, with no grid: ``iterations[0]`` LM steps at ``start_stride``, then
+    ``iterations[1]`` at full resolution; the first light's contrast the grid's best ambient
+    step for it, each other light at a third of the first's intensity."""
+    if residuals == "segments" and labels is None:
+        labels = albedo_segments(problem, segment_scale)
+    at = (lambda s: None) if labels is None else (lambda s: labels[:, ::s, ::s])  # noqa: E731  a subsample's labels
+    started = observe(subsample(problem, start_stride), robust_scale, residuals=residuals, labels=at(start_stride))
+    with torch.no_grad():
+        _, first = _grid_losses(started, None, position[:, :1])  # (B, 1, 2): the ambient's and the light's
+    others = torch.full_like(position[:, 1:, 0], math.log(1 / 3))
+    log_weight = torch.cat([first[:, 0], others], 1)
+    fit = refine_positions(started, position, log_weight, iterations[0])
+    full = observe(problem, robust_scale, residuals=residuals, labels=at(1))
+    return refine_positions(full, fit.position, fit.log_weight, iterations[1])
