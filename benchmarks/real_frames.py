@@ -59,15 +59,18 @@ from selfsup.scenes.io import scene_gbuffer
 ROOT = Path(__file__).resolve().parents[1]
 COLUMNS = ["set", "frames", "no_light", "share_ge_0.1", "chroma_ge_0.2", "height_ge_0.3m", "median_share",
            "median_min_chroma", "median_height_m", "median_distance_m", "world_spread_m", "glued_spread_m",
-           "median_angle_deg", "lambert_angle_deg", "seconds_per_frame"]
+           "median_angle_deg", "lambert_angle_deg", "lambert_depth_angle_deg", "seconds_per_frame"]
 SHARE_TARGET, CHROMA_TARGET, HEIGHT_TARGET = 0.1, 0.2, 0.3
 
 
 def capture_sets(root: Path) -> list[Path]:
-    """The capture folders under ``root``: itself, or its sub-folders that are one (sorted)."""
+    """The capture folders under ``root``: itself, or its sub-folders that are one, and theirs
+    one level down (``objects/bear``, ``objects/cat``), sorted."""
     if is_capture_folder(root):
         return [root]
-    sets = sorted(p for p in root.iterdir() if p.is_dir() and is_capture_folder(p))
+    sets = []
+    for sub in sorted(p for p in root.iterdir() if p.is_dir()):
+        sets += [sub] if is_capture_folder(sub) else sorted(p for p in sub.iterdir() if p.is_dir() and is_capture_folder(p))
     if not sets:
         raise FileNotFoundError(f"{root} is not a capture folder (color/ and depth/) and holds none")
     return sets
@@ -163,21 +166,35 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1.0, 1.0))))
 
 
-def lambert_direction(frame, centre: np.ndarray) -> np.ndarray:
-    """The baseline of a set with truth: least squares of the linear grey image to ``n . b`` on
-    the object's normals (those of a sphere about ``centre``, from the depth), over the pixels
-    between a tenth and 0.95 of the 99th percentile (no shadow, no clipping): ``b``."""
+def lambert_direction(frame, centre: np.ndarray, normals: np.ndarray | None = None, from_depth: bool = False) -> np.ndarray:
+    """A baseline of a set with truth: least squares of the linear grey image to ``n . b`` over the
+    object's pixels between a tenth and 0.95 of the 99th percentile (no shadow, no clipping): ``b``.
+    The normals ``n``: ``normals (H, W, 3)`` where given (a set's true normals), else with
+    ``from_depth`` the depth's (cross product of central differences of the back-projected
+    pixels, interior pixels), else those of a sphere about ``centre`` (the ball's)."""
     scene = read_capture(frame)
-    valid = (scene.depth > 0).numpy()
-    z = scene.depth.numpy()[valid]
-    v, u = np.nonzero(valid)
+    depth = scene.depth.double().numpy()
     K = scene.K.double().numpy()
-    points = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], 1)
-    normals = (points - centre) / np.linalg.norm(points - centre, axis=1, keepdims=True)
+    v, u = np.mgrid[0:depth.shape[0], 0:depth.shape[1]].astype(np.float64)
+    points = np.stack([(u - K[0, 2]) * depth / K[0, 0], (v - K[1, 2]) * depth / K[1, 1], depth], -1)
+    valid = depth > 0
+    if normals is not None:
+        n = normals.astype(np.float64)
+        valid &= np.linalg.norm(n, axis=-1) > 0.5
+    elif from_depth:
+        n = np.zeros_like(points)
+        n[1:-1, 1:-1] = np.cross(points[2:, 1:-1] - points[:-2, 1:-1], points[1:-1, 2:] - points[1:-1, :-2])
+        inner = np.zeros_like(valid)
+        inner[1:-1, 1:-1] = valid[1:-1, 1:-1] & valid[2:, 1:-1] & valid[:-2, 1:-1] & valid[1:-1, 2:] & valid[1:-1, :-2]
+        valid = inner & (np.linalg.norm(n, axis=-1) > 0)
+        n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    else:
+        n = points - centre
+        n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
     grey = scene.image.numpy().mean(-1)[valid]
     top = np.percentile(grey, 99)
     use = (grey > 0.1 * top) & (grey < 0.95 * top)
-    return np.linalg.lstsq(normals[use], grey[use], rcond=None)[0]
+    return np.linalg.lstsq(n[valid][use], grey[use], rcond=None)[0]
 
 
 def truth_angles(folder: Path, rows: list[dict]) -> None:
@@ -185,12 +202,15 @@ def truth_angles(folder: Path, rows: list[dict]) -> None:
     (``{"centre": [x, y, z], "frames": {id: {"direction": [...]}}}``, as the ball set's):
     each row's ``angle`` (degrees; 90 where no light is presented) between it and the
     direction from the centre to the light that lights the centre most, and the Lambertian
-    baseline's (:func:`lambert_direction`) ``lambert_angle``."""
+    baselines' (:func:`lambert_direction`): ``lambert_angle`` given the set's true normals
+    (``normals_gt.npy``; a sphere's about the centre where there are none, the ball's) and
+    ``lambert_depth_angle`` given the depth's normals."""
     path = folder / "truth.json"
     if not path.exists():
         return
     truth = json.loads(path.read_text())
     centre = np.asarray(truth["centre"], dtype=float)
+    true_normals = np.load(folder / "normals_gt.npy") if (folder / "normals_gt.npy").exists() else None
     frames = {f.id: f for f in capture_frames(folder)}
     for row in rows:
         known = truth["frames"].get(row["id"])
@@ -200,7 +220,9 @@ def truth_angles(folder: Path, rows: list[dict]) -> None:
         lights = row["record"]["lights"]
         row["angle"] = round(angle_deg(np.asarray(brightest_at(lights, centre)["position"]) - centre, direction), 3) \
             if lights else 90.0
-        row["lambert_angle"] = round(angle_deg(lambert_direction(frames[row["id"]], centre), direction), 3)
+        frame = frames[row["id"]]
+        row["lambert_angle"] = round(angle_deg(lambert_direction(frame, centre, true_normals), direction), 3)
+        row["lambert_depth_angle"] = round(angle_deg(lambert_direction(frame, centre, from_depth=True), direction), 3)
 
 
 def _spread(points: np.ndarray) -> float:
@@ -232,6 +254,7 @@ def summarise(name: str, rows: list[dict], wall: float) -> dict:
     if scored:
         summary["median_angle_deg"] = round(statistics.median(r["angle"] for r in scored), 2)
         summary["lambert_angle_deg"] = round(statistics.median(r["lambert_angle"] for r in scored), 2)
+        summary["lambert_depth_angle_deg"] = round(statistics.median(r["lambert_depth_angle"] for r in scored), 2)
     if len(posed) >= 2:
         summary["world_spread_m"] = round(_spread(np.array([r["world"] for r in posed])), 3)
         camera = np.median(np.array([r["position"] for r in posed]), 0)  # a light glued to the camera
@@ -309,7 +332,7 @@ def main(argv: list[str] | None = None) -> None:
         frames += [{"set": name, **{k: v for k, v in r.items() if k not in ("scene", "record")}} for r in rows]
     if len(summaries) > 1:
         total = summarise("all", all_rows, sum(s["seconds_per_frame"] * s["frames"] for s in summaries))
-        for key in ("world_spread_m", "glued_spread_m", "median_angle_deg", "lambert_angle_deg"):  # across sets: meaningless
+        for key in ("world_spread_m", "glued_spread_m", "median_angle_deg", "lambert_angle_deg", "lambert_depth_angle_deg"):  # across sets: meaningless
             total.pop(key, None)
         summaries.append(total)
     device = torch.device("cpu")

@@ -85,29 +85,44 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions, slots: T
 
     ``slots (B, K, 3)``: a network's lights in its order (:func:`selfsup.estimation.network.network_slots`);
     the search of ``n`` lights also starts from its first ``n``. ``sure (B,)`` bool: the images
-    whose network is sure of its lights (its calibrated confidence, ``tuning.cnn_sure``): no
-    search there, its first light and its first two refined from where it put them
-    (:func:`selfsup.estimation.albedo_free.refine_from`, no lens's falloff looked for) and the
-    criterion choosing between them as between a search's."""
+    whose network is sure of its lights (its calibrated confidence, ``tuning.cnn_sure``): its
+    first light refined from where it put it (:func:`selfsup.estimation.albedo_free.refine_from`:
+    no grid, no lens's falloff looked for), then one light more searched as elsewhere (its
+    first lights one of the starts) but not each light again, the criterion choosing."""
     labels = geometry = None  # every image's albedo segments (and smooth surfaces), found once
     if options.tuning.albedo_free_residuals == "segments":
         g = problem.gbuffer
         geometry = surface_segments(g.points, g.normals, g.mask)
         labels = albedo_free.tuned_segments(problem, options.tuning, geometry)
-    if sure is not None and bool(sure.any()):
-        # The images whose network is sure: its lights refined (no grid, no lens searched); the others searched.
-        results: list = [None] * problem.batch
-        for flag in (True, False):
-            rows = [i for i, s in enumerate(sure.tolist()) if s == flag]
-            if not rows:
-                continue
-            at = torch.tensor(rows, dtype=torch.long, device=problem.image.device)
-            part = _estimate_split(problem.select(at), options, None if labels is None else labels[at],
-                                   None if geometry is None else geometry[at], slots[at], flag)
-            for i, result in zip(rows, part):
-                results[i] = result
-        return results
-    return _estimate_split(problem, options, labels, geometry, slots, False)
+    results: list = [None] * problem.batch
+    sure = torch.zeros(problem.batch, dtype=torch.bool) if sure is None else sure.cpu()
+    for flag in (True, False):  # the images whose network is sure: its lights refined; the others searched
+        rows = [i for i, s in enumerate(sure.tolist()) if s == flag]
+        if rows:
+            _estimate_rows(problem, options, labels, geometry, slots, rows, flag, results)
+    if slots is not None:
+        # Where the network's lights led to a model the evidence does not support (no better than
+        # the ambient alone), it was wrong: those images are searched as without a network, and
+        # keep whichever answer has the more evidence (on the DiLiGenT ball 4 of 12 frames said
+        # "no light" from a sure network's lights, one more with them as a search's start).
+        doubtful = [i for i in range(problem.batch) if not (results[i][0].evidence or 0.0) > 0]
+        if doubtful:
+            before = {i: results[i] for i in doubtful}
+            _estimate_rows(problem, options, labels, geometry, None, doubtful, False, results)
+            for i, old in before.items():
+                if (old[0].evidence or -math.inf) >= (results[i][0].evidence or -math.inf):
+                    results[i] = old
+    return results
+
+
+def _estimate_rows(problem: FitProblem, options: EstimateOptions, labels: Tensor | None, geometry: Tensor | None,
+                   slots: Tensor | None, rows: list[int], sure: bool, results: list) -> None:
+    # _estimate_split of the images ``rows``, written into ``results``.
+    at = torch.tensor(rows, dtype=torch.long, device=problem.image.device)
+    part = _estimate_split(problem.select(at), options, None if labels is None else labels[at],
+                           None if geometry is None else geometry[at], None if slots is None else slots[at], sure)
+    for i, result in zip(rows, part):
+        results[i] = result
 
 
 def _estimate_split(problem: FitProblem, options: EstimateOptions, labels: Tensor | None, geometry: Tensor | None,
@@ -196,8 +211,8 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         sub = problem.select(at)
         kwargs = dict(robust_scale=options.tuning.albedo_free_scale, labels=None if labels is None else labels[at],
                       **_residuals(options))
-        if sure:  # the network's first n lights refined together
-            more = albedo_free.refine_from(sub, slots[at, :n_lights], **kwargs)
+        if sure:  # one light more searched beside the network's first, its first n lights one of the starts
+            more = albedo_free.search(sub, n_lights, fixed=before, **kwargs, **network_starts(at, n_lights))
         else:
             more = albedo_free.search_each(sub, albedo_free.search(sub, n_lights, fixed=before, **kwargs,
                                                                    **network_starts(at, n_lights)), **kwargs)

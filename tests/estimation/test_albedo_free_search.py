@@ -152,9 +152,10 @@ def test_cnn_refine_gives_the_networks_lights_to_the_albedo_free_searches(monkey
 
 
 @pytest.mark.parametrize("n_lights", [1, 2])
-def test_where_the_network_is_sure_its_lights_are_refined_and_nothing_is_searched(monkeypatch, n_lights):
-    # cnn+refine with a network sure of itself (confidence 1): no grid search; its first one
-    # and first two lights refined and judged by the criterion as a search's would be.
+def test_where_the_network_is_sure_its_first_light_is_refined_not_searched(monkeypatch, n_lights):
+    # cnn+refine with a network sure of itself (confidence 1): its first light refined where it
+    # put it (no search of it); one light more searched beside it (its second a start), the
+    # criterion choosing the count as after a search.
     from selfsup.estimation import network as network_module
     from selfsup.estimation import stages
 
@@ -166,8 +167,12 @@ def test_where_the_network_is_sure_its_lights_are_refined_and_nothing_is_searche
     def sure_slots(problem, checkpoint=None, with_confidence=False):
         return slots.to(problem.image), torch.ones(1, 2, dtype=torch.bool), torch.ones(1)
 
-    def no_search(*args, **kwargs):
-        raise AssertionError("searched where the network was sure")
+    search = albedo_free.search
+
+    def no_search(problem, n_lights=1, *args, fixed=None, **kwargs):
+        if fixed is None:
+            raise AssertionError("searched where the network was sure")
+        return search(problem, n_lights, *args, fixed=fixed, **kwargs)
 
     monkeypatch.setattr(stages, "network_slots", sure_slots)
     monkeypatch.setattr(albedo_free, "search", no_search)

@@ -143,3 +143,14 @@ def test_ablations_turn_one_part_off_each():
         for other in parts.values():
             assert bool(torch.isfinite(other(scenes.image, scenes.gbuffer).position).all())
     assert network.init == "votes" and network.steps == 2  # the network itself unchanged
+
+
+def test_the_shipped_iterative_network_loads_safely_and_is_small():
+    from selfsup.checkpoint import ITERATIVE_CHECKPOINT, load_checkpoint
+
+    state = load_checkpoint(ITERATIVE_CHECKPOINT)  # weights_only: no code runs from the file
+    network, _ = load_network(ITERATIVE_CHECKPOINT)
+    assert isinstance(network, IterativeLightNet) and state["model_config"]["architecture"] == "iterative"
+    assert sum(p.numel() for p in network.parameters()) <= 10_000_000
+    assert ITERATIVE_CHECKPOINT.stat().st_size <= 40 * 2**20
+    assert network.confidence_weights != (0.0, 0.0, 0.0)  # calibrated on its validation scenes
