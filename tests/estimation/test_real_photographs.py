@@ -51,6 +51,42 @@ def test_a_glossy_object_in_the_dark_gives_its_light_within_two_degrees(tmp_path
     assert record["specular"] is False and record["highlight_pixels"] > 20
 
 
+# Our generator's analogues of the real objects that are hard (issue "Right on real photographs of
+# objects"): objects whose parts shadow each other under a grazing lamp, painted gold and glossy,
+# of dark metal with a sharp highlight, and painted with grey stripes across their shapes.
+ANALOGUES = {
+    "gold paint, parts shadowing each other": dict(albedo=(0.75, 0.55, 0.2), ks=0.6, shininess=30.0),
+    "dark metal": dict(albedo=(0.15, 0.15, 0.15), ks=0.9, shininess=150.0),
+    "grey stripes painted across the shapes": dict(pattern="stripes", ks=0.1),
+}
+
+
+GRAZING = [(0.8, -0.2, -0.56), (-0.85, -0.1, -0.5)]
+# Known short (strict: it fails the suite once it passes): a region joined across a stripe's
+# dim edge, where sRGB leaves the albedo's step a few codes, puts this lamp 10.8 degrees off.
+# Segmenting the log image places it within 0.2 but loses Mitsuba rooms (decisions, 2026-12-04).
+STRIPES_SHORT = pytest.mark.xfail(strict=True, reason="a region joined across a dim stripe edge: 10.8 degrees")
+
+
+@pytest.mark.parametrize("name,direction", [
+    pytest.param(name, direction, marks=STRIPES_SHORT if (name.startswith("grey stripes") and direction == GRAZING[0]) else ())
+    for name in sorted(ANALOGUES) for direction in GRAZING])
+def test_hard_objects_in_the_dark_give_their_light_within_two_degrees(tmp_path, name, direction):
+    # Grazing lamps from either side: the box and the cylinder cast shadows on the sphere and
+    # on the dark around them.
+    spec = studio_spec(direction, others=True, **ANALOGUES[name])
+    record = estimate_scene(_photograph(tmp_path, spec), EstimateOptions())
+    assert record["light_found"] is True and len(record["lights"]) == 1
+    assert _angle_deg(record, spec, direction) < 2.0
+
+
+def test_a_studio_paint_is_checked():
+    with pytest.raises(ValueError, match="pattern must be one of"):
+        studio_spec((0.0, 0.0, -1.0), pattern="plaid")
+    with pytest.raises(ValueError, match="pattern_scale"):
+        studio_spec((0.0, 0.0, -1.0), pattern="stripes", pattern_scale=0.0)
+
+
 def test_a_matte_object_leaves_no_highlight_out(tmp_path):
     direction = (0.3, -0.5, -0.81)
     spec = studio_spec(direction, others=False, ks=0.0)
