@@ -41,10 +41,11 @@ every pixel's brightness, which this fit throws away.
 The package, by what its parts do: :mod:`.observation` (the log shading, its segments
 and residual view), :mod:`.fit` (the model, its loss and Levenberg-Marquardt),
 :mod:`.light_search` (where the lights start), :mod:`.classes` (albedo classes) and
-:mod:`.covariance` (how well each light is placed).
+:mod:`.covariance` (how well each light is placed), :mod:`.regions` (segments joined across shading).
 """
 
-from selfsup.estimation.albedo_free.classes import CLASS_ITERATIONS, albedo_classes, group_medians, refine_on_classes
+from selfsup.estimation.albedo_free.classes import CLASS_ITERATIONS, albedo_classes, refine_on_classes
+from selfsup.estimation.albedo_free.regions import group_medians
 from selfsup.estimation.albedo_free.covariance import block_scores_of, position_covariance
 from selfsup.estimation.albedo_free.fit import (bounce_maps, highlight_pixels, light_shares, mirror_lobes, refine_positions,
                                                 shading_loss)

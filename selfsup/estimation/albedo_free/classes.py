@@ -8,27 +8,15 @@ from torch import Tensor
 
 from selfsup.estimation.albedo_free.fit import _log_model, _transport, refine_positions
 from selfsup.estimation.albedo_free.observation import MIN_SEGMENT_PIXELS, AlbedoFreeFit, LogShading, observe
+from selfsup.estimation.albedo_free.regions import group_medians
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.problem import FitProblem
 
-__all__ = ["group_medians", "albedo_classes", "refine_on_classes"]
+__all__ = ["albedo_classes", "refine_on_classes"]
 
 # LM steps of the chosen model on its albedo classes (refine_on_classes): 8 and 15 placed our
 # 384 capture frames alike, 245 and 246 successes (ad hoc, 2026-11-27, docs/decisions.md).
 CLASS_ITERATIONS = 8
-
-
-def group_medians(values: Tensor, group: Tensor, groups: int, upper: bool = False) -> tuple[Tensor, Tensor]:
-    """Each group's median of ``values (N,)`` by ``group (N,)`` (ids in ``[0, groups)``):
-    ``(groups,)`` medians (of an even count the lower middle value, with ``upper`` the upper;
-    an empty group's value means nothing: mask it by the count) and ``(groups,)`` counts.
-    One sort by value, then a stable one by group: each group's values in order, in a row."""
-    by_value = values.argsort()
-    ordered = values[by_value][group[by_value].argsort(stable=True)]
-    counts = torch.bincount(group, minlength=groups)
-    middle = counts // 2 if upper else (counts - 1).clamp_min(0) // 2
-    index = (counts.cumsum(0) - counts + middle).clamp(0, max(values.numel() - 1, 0))
-    return (ordered[index] if values.numel() else values.new_zeros(groups)), counts
 
 
 def albedo_classes(problem: FitProblem, labels: Tensor, position: Tensor, log_weight: Tensor,

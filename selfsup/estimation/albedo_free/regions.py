@@ -22,8 +22,9 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from torch import Tensor
 
-__all__ = ["join_shading_cuts", "EDGE_NOISE_SIGMAS", "MIN_CUT_PAIRS"]
+__all__ = ["join_shading_cuts", "group_medians", "EDGE_NOISE_SIGMAS", "MIN_CUT_PAIRS"]
 
 # A cut of fewer pixel pairs says too little to join its two segments.
 MIN_CUT_PAIRS = 4
@@ -40,11 +41,22 @@ def _find(parent: np.ndarray, i: int) -> int:
     return i
 
 
+def group_medians(values: Tensor, group: Tensor, groups: int, upper: bool = False) -> tuple[Tensor, Tensor]:
+    """Each group's median of ``values (N,)`` by ``group (N,)`` (ids in ``[0, groups)``):
+    ``(groups,)`` medians (of an even count the lower middle value, with ``upper`` the upper;
+    an empty group's value means nothing: mask it by the count) and ``(groups,)`` counts.
+    One sort by value, then a stable one by group: each group's values in order, in a row."""
+    by_value = values.argsort()
+    ordered = values[by_value][group[by_value].argsort(stable=True)]
+    counts = torch.bincount(group, minlength=groups)
+    middle = counts // 2 if upper else (counts - 1).clamp_min(0) // 2
+    index = (counts.cumsum(0) - counts + middle).clamp(0, max(values.numel() - 1, 0))
+    return (ordered[index] if values.numel() else values.new_zeros(groups)), counts
+
+
 def _medians_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     # The distinct keys, each one's median of ``values`` (the upper middle of an even count)
-    # and its count: :func:`selfsup.estimation.albedo_free.classes.group_medians` of the keys' ranks.
-    from selfsup.estimation.albedo_free.classes import group_medians
-
+    # and its count: :func:`group_medians` of the keys' ranks.
     unique, rank = np.unique(keys, return_inverse=True)
     medians, counts = group_medians(torch.from_numpy(np.ascontiguousarray(values, dtype=np.float64)),
                                     torch.from_numpy(rank.reshape(-1)), len(unique), upper=True)
