@@ -166,13 +166,13 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1.0, 1.0))))
 
 
-def lambert_direction(frame, centre: np.ndarray, normals: np.ndarray | None = None, from_depth: bool = False) -> np.ndarray:
+def lambert_direction(scene, centre: np.ndarray, normals: np.ndarray | None = None, from_depth: bool = False) -> np.ndarray:
     """A baseline of a set with truth: least squares of the linear grey image to ``n . b`` over the
     object's pixels between a tenth and 0.95 of the 99th percentile (no shadow, no clipping): ``b``.
     The normals ``n``: ``normals (H, W, 3)`` where given (a set's true normals), else with
     ``from_depth`` the depth's (cross product of central differences of the back-projected
-    pixels, interior pixels), else those of a sphere about ``centre`` (the ball's)."""
-    scene = read_capture(frame)
+    pixels, interior pixels: as the objects' ``score.py`` computes them), else those of a sphere
+    about ``centre`` (the ball's). ``scene``: the frame as :func:`read_capture` reads it."""
     depth = scene.depth.double().numpy()
     K = scene.K.double().numpy()
     v, u = np.mgrid[0:depth.shape[0], 0:depth.shape[1]].astype(np.float64)
@@ -220,9 +220,9 @@ def truth_angles(folder: Path, rows: list[dict]) -> None:
         lights = row["record"]["lights"]
         row["angle"] = round(angle_deg(np.asarray(brightest_at(lights, centre)["position"]) - centre, direction), 3) \
             if lights else 90.0
-        frame = frames[row["id"]]
-        row["lambert_angle"] = round(angle_deg(lambert_direction(frame, centre, true_normals), direction), 3)
-        row["lambert_depth_angle"] = round(angle_deg(lambert_direction(frame, centre, from_depth=True), direction), 3)
+        scene = read_capture(frames[row["id"]])
+        row["lambert_angle"] = round(angle_deg(lambert_direction(scene, centre, true_normals), direction), 3)
+        row["lambert_depth_angle"] = round(angle_deg(lambert_direction(scene, centre, from_depth=True), direction), 3)
 
 
 def _spread(points: np.ndarray) -> float:

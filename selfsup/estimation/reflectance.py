@@ -101,11 +101,12 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions, slots: T
         if rows:
             _estimate_rows(problem, options, labels, geometry, slots, rows, flag, results)
     if slots is not None:
-        # Where the network's lights led to a model the evidence does not support (no better than
-        # the ambient alone), it was wrong: those images are searched as without a network, and
-        # keep whichever answer has the more evidence (on the DiLiGenT ball 4 of 12 frames said
-        # "no light" from a sure network's lights, one more with them as a search's start).
-        doubtful = [i for i in range(problem.batch) if not (results[i][0].evidence or 0.0) > 0]
+        # Where a sure network's lights led to a model the evidence does not support (no better
+        # than the ambient alone), it was wrong: those images, which no search has seen, are
+        # searched as without a network and keep whichever answer has the more evidence (on the
+        # DiLiGenT ball 4 of 12 frames said "no light" from a sure network's lights). An unsure
+        # image's "no light" came from a search already.
+        doubtful = [i for i in range(problem.batch) if bool(sure[i]) and not (results[i][0].evidence or 0.0) > 0]
         if doubtful:
             before = {i: results[i] for i in doubtful}
             _estimate_rows(problem, options, labels, geometry, None, doubtful, False, results)
