@@ -27,13 +27,13 @@ __all__ = ["studio_spec", "sphere_centre", "PATTERNS"]
 PATTERNS = {"uniform": Texture.UNIFORM, "stripes": Texture.STRIPES, "noise": Texture.NOISE}
 
 
-def _materials(count: int, albedo: tuple[float, float, float], ks: float, shininess: float, pattern: str = "uniform",
-               second_albedo: tuple[float, float, float] | None = None, pattern_scale: float = 1.0,
+def _materials(count: int, albedo: tuple[float, float, float], ks: float, shininess: float, pattern: str,
+               second_albedo: tuple[float, float, float], pattern_scale: float,
                pattern_direction: tuple[float, float, float] = (0.6, 0.8, 0.0)) -> Materials:
     # ``count`` primitives of one paint (an albedo, or a pattern of it and ``second_albedo``)
     # and one gloss, float32 as the sampler's.
     kd = torch.tensor(albedo, dtype=torch.float32).expand(count, 3).clone()
-    alt = kd.clone() if second_albedo is None else torch.tensor(second_albedo, dtype=torch.float32).expand(count, 3).clone()
+    alt = torch.tensor(second_albedo, dtype=torch.float32).expand(count, 3).clone()
     direction = torch.tensor(pattern_direction, dtype=torch.float32)
     return Materials(kd_base=kd, kd_alt=alt, texture=torch.full((count,), PATTERNS[pattern], dtype=torch.long),
                      texture_scale=torch.full((count,), float(pattern_scale)),
