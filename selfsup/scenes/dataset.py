@@ -23,6 +23,7 @@ from selfsup.scenes.degrade import Degradations, degrade
 from selfsup.scenes.exact import RenderedScene, render_specs
 from selfsup.scenes.io import Scene
 from selfsup.scenes.sampler import SamplerConfig, SceneSpec, sample_scene
+from selfsup.scenes.studio import scene_spec
 
 __all__ = ["ProceduralScenes", "sampler_config", "scene_to_item", "collate", "materialise", "protocol_specs", "PROTOCOL_LIGHTS",
            "render_item", "render_items", "retain_freed_memory"]
@@ -109,8 +110,10 @@ def render_item(seed: int, sampler: SamplerConfig, degradations: Degradations, s
 def render_items(seeds: list[int], sampler: SamplerConfig, degradations: Degradations,
                  samples: int) -> list[tuple[RenderedScene, Scene]]:
     """:func:`render_item` of each seed, ray cast together: the same results, several
-    times faster per scene (see :func:`selfsup.scenes.exact.render_specs`)."""
-    rendered = render_specs([sample_scene(seed, sampler) for seed in seeds], samples=samples)
+    times faster per scene (see :func:`selfsup.scenes.exact.render_specs`). Each seed's scene is
+    :func:`selfsup.scenes.studio.scene_spec`'s: a room, or an object in the dark where
+    ``sampler.studio_prob`` draws one."""
+    rendered = render_specs([scene_spec(seed, sampler) for seed in seeds], samples=samples)
     return [(r, degrade(r.scene, degradations, seed, r.visibility)) for r, seed in zip(rendered, seeds)]
 
 

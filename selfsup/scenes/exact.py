@@ -258,7 +258,9 @@ def _shade(batch: _Batch, rays: _Rays, falloff: str) -> tuple[Tensor, Tensor, Te
     lights = batch.light_rows.index_select(1, rays.scene)  # (6 L, R): each ray's light positions and intensities
     diffuse, _ = blinn_phong(rays.points, rays.normals, rays.visibility, None, *lights.view(2, L, 3, -1), falloff,
                              specular=False)
-    radiance = kd * diffuse
+    # Rays that hit nothing are black: their points sit at the camera, where a light padded
+    # in (zero intensity, at the origin) of a scene cast beside one with more lights is 0 / 0.
+    radiance = torch.where(rays.valid, kd * diffuse, 0.0)
     # The specular term only on rays of specular primitives (most surfaces are matte).
     shiny = (material[_KS] * valid).nonzero(as_tuple=True)[0]
     if shiny.numel():

@@ -17,9 +17,9 @@ import torch
 from torch import Tensor
 
 from selfsup.scenes.raycast import Primitives
-from selfsup.scenes.sampler import Materials, SceneSpec, Texture
+from selfsup.scenes.sampler import Materials, SamplerConfig, SceneSpec, Texture, sample_scene
 
-__all__ = ["studio_spec", "sphere_centre", "PATTERNS"]
+__all__ = ["studio_spec", "sphere_centre", "PATTERNS", "drawn_studio_spec", "scene_spec"]
 
 
 # The paints of :func:`studio_spec`: one albedo, stripes of a second one (hard edges, as
@@ -110,3 +110,71 @@ def studio_spec(light_direction: tuple[float, float, float] | None, *, width: in
 def sphere_centre(spec: SceneSpec) -> Tensor:
     """The sphere's centre ``(3,)`` of a :func:`studio_spec` (the point light directions are judged from)."""
     return spec.prims.spheres[0, :3]
+
+
+# How :func:`drawn_studio_spec` draws a photometric-stereo frame (DiLiGenT-like: one object in a
+# narrow view, one lamp in front of it). Angles in degrees, lengths in sphere radii.
+STUDIO_FOV_DEG = (8.0, 35.0)        # the camera's horizontal field, log-uniform
+STUDIO_FILL = (0.5, 0.9)            # the objects' width over the view's at their distance
+STUDIO_DISTANCE_M = (0.5, 3.0)      # the sphere's distance from the camera (a depth sensor's range)
+STUDIO_LIGHT_CONE_DEG = 75.0        # the lamp within this angle of the direction to the camera
+STUDIO_LIGHT_DISTANCE = (5.0, 15.0)  # radii from the sphere's centre, log-uniform (outside the box and cylinder)
+STUDIO_PATTERN_PROBS = {"uniform": 0.6, "stripes": 0.2, "noise": 0.2}
+_STUDIO_STREAM = 0x5D1  # the studio draw's own generator stream, so that a room's seed gives the same room
+
+
+def _log_uniform(gen: torch.Generator, low: float, high: float) -> float:
+    return math.exp(math.log(low) + float(torch.rand(1, generator=gen, dtype=torch.float64)) * math.log(high / low))
+
+
+def drawn_studio_spec(seed: int, config: SamplerConfig | None = None) -> SceneSpec:
+    """A random :func:`studio_spec` from ``seed``: one object of one paint (uniform, stripes or
+    noise of two albedos; glossy or matte), alone or with a box and a cylinder, before a black
+    background, in a camera of :data:`STUDIO_FOV_DEG` that the objects fill :data:`STUDIO_FILL`
+    of at :data:`STUDIO_DISTANCE_M`, lit by one lamp within :data:`STUDIO_LIGHT_CONE_DEG` of the camera's direction at
+    :data:`STUDIO_LIGHT_DISTANCE` radii; the image size, exposure range and gloss ranges are
+    ``config``'s. The training pool's share of such frames is ``config.studio_prob``."""
+    config = config or SamplerConfig()
+    gen = torch.Generator().manual_seed(int(seed) * 2 + _STUDIO_STREAM)
+
+    def u(low: float, high: float) -> float:
+        return low + (high - low) * float(torch.rand(1, generator=gen, dtype=torch.float64))
+
+    fov = _log_uniform(gen, *STUDIO_FOV_DEG)
+    others = u(0, 1) < 0.5
+    distance = u(*STUDIO_DISTANCE_M)
+    # The objects' width (studio_spec's layout: 6.6 radii with the box and cylinder) fills the view's
+    # share (of its shorter side for the sphere alone, which the frame must not cut).
+    view = 2 * distance * math.tan(math.radians(fov) / 2) * (1.0 if others else min(config.height / config.width, 1.0))
+    radius = u(*STUDIO_FILL) * view / (6.6 if others else 2.0)
+    # The lamp: uniform over the cap of directions within the cone about the camera's (-z).
+    cos_theta = u(math.cos(math.radians(STUDIO_LIGHT_CONE_DEG)), 1.0)
+    sin_theta, phi = math.sqrt(1 - cos_theta**2), u(0, 2 * math.pi)
+    direction = (sin_theta * math.cos(phi), sin_theta * math.sin(phi), -cos_theta)
+    names, probs = zip(*STUDIO_PATTERN_PROBS.items())
+    pattern = names[int(torch.multinomial(torch.tensor(probs), 1, generator=gen))]
+    level, tint = u(0.15, 0.9), [u(0.6, 1.0) for _ in range(3)]
+    albedo = tuple(level * t / max(tint) for t in tint)
+    second = tuple(a * u(0.3, 0.8) for a in albedo)
+    glossy = u(0, 1) < config.specular_prob * 2  # objects photographed are glossier than rooms
+    ks = u(*config.ks_range) if glossy else 0.0
+    shininess = _log_uniform(gen, max(config.shininess_range[0], 1.0), max(config.shininess_range[1], 2.0))
+    ambient = 0.0 if u(0, 1) < 0.6 else u(0.0, 0.05)
+    spec = studio_spec(direction, width=config.width, height=config.height, fov_x_deg=fov, distance=distance,
+                       radius=radius, light_distance=_log_uniform(gen, *STUDIO_LIGHT_DISTANCE), others=others,
+                       albedo=albedo, ks=ks, shininess=shininess, ambient=ambient,
+                       exposure=u(*config.exposure_range), seed=int(seed), pattern=pattern, second_albedo=second,
+                       pattern_scale=radius * _log_uniform(gen, 0.5, 2.0))
+    return spec
+
+
+def scene_spec(seed: int, config: SamplerConfig | None = None) -> SceneSpec:
+    """The training pool's scene of ``seed``: :func:`drawn_studio_spec` with probability
+    ``config.studio_prob`` (drawn from its own stream), else the room of
+    :func:`selfsup.scenes.sampler.sample_scene` (the same room for the seed whatever the share)."""
+    config = config or SamplerConfig()
+    if config.studio_prob > 0:
+        pick = torch.Generator().manual_seed(int(seed) * 2 + _STUDIO_STREAM + 1)
+        if float(torch.rand(1, generator=pick, dtype=torch.float64)) < config.studio_prob:
+            return drawn_studio_spec(seed, config)
+    return sample_scene(seed, config)

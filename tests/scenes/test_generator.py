@@ -18,6 +18,7 @@ from selfsup.scenes.degrade import Degradations, degrade
 from selfsup.scenes.exact import render_spec, render_specs
 from selfsup.scenes.io import read_scene
 from selfsup.scenes.sampler import SamplerConfig, Texture, sample_scene, signed_distance
+from selfsup.scenes.studio import drawn_studio_spec, scene_spec
 
 SMALL = SamplerConfig(height=48, width=64, n_lights_probs=(0.5, 0.5))
 
@@ -34,8 +35,10 @@ def test_same_seed_same_scene_and_different_seeds_differ():
 
 
 def test_scenes_cast_together_render_exactly_as_each_alone():
-    # Seeds with one and two lights, with and without anti-aliased pixels.
-    specs = [sample_scene(seed, SMALL) for seed in range(5)]
+    # Seeds with one and two lights, with and without anti-aliased pixels; an object in the dark
+    # (its background rays hit nothing) beside rooms with more lights: the padded lights sit at
+    # the camera, where those rays' points are, and made its background NaN.
+    specs = [sample_scene(seed, SMALL) for seed in range(5)] + [drawn_studio_spec(0, SMALL)]
     assert len({spec.light_position.shape[0] for spec in specs}) == 2
     for samples in (1, 2):
         for alone, together in zip([render_spec(s, samples=samples) for s in specs], render_specs(specs, samples=samples)):
@@ -45,6 +48,22 @@ def test_scenes_cast_together_render_exactly_as_each_alone():
             assert alone.scene.meta == together.scene.meta
     with pytest.raises(ValueError, match="one size"):
         render_specs([specs[0], sample_scene(0, dataclasses.replace(SMALL, height=32))])
+
+
+def test_a_share_of_objects_in_the_dark_leaves_the_rooms_as_they_were():
+    # studio_prob draws from its own stream: a seed that stays a room is the same room.
+    mixed = dataclasses.replace(SMALL, studio_prob=0.5)
+    specs = [scene_spec(seed, mixed) for seed in range(40)]
+    studio = [bool(spec.meta.get("studio")) for spec in specs]
+    assert 10 <= sum(studio) <= 30
+    for seed, (spec, is_studio) in enumerate(zip(specs, studio)):
+        if not is_studio:
+            assert torch.equal(spec.light_position, sample_scene(seed, SMALL).light_position)
+    frame = render_spec(specs[studio.index(True)], samples=1).scene
+    assert bool(torch.isfinite(frame.image).all()) and 0.02 < float((frame.depth > 0).float().mean()) < 0.9
+    assert frame.light_pos.shape == (1, 3) and float(frame.image.amax()) > 0
+    with pytest.raises(ValueError, match="studio_prob"):
+        SamplerConfig(studio_prob=1.5)
 
 
 def test_dataset_batches_equal_its_items():
