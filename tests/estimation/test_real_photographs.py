@@ -162,3 +162,24 @@ def test_the_albedo_free_fit_takes_the_bounce_where_the_room_returns_light_and_l
     plain = estimate_scene(_room_with_bounce(3, 0.0), auto)
     assert plain["bounce_share"] is None  # no light returned: the bounce does not pay for its parameter
     assert estimate_scene(bounced, EstimateOptions(max_lights=1))["bounce_share"] is None  # off by default
+
+
+# Lamps of our generator's analogues (the plain object, dark metal, grey stripes, gold paint): the
+# network trained with objects in the dark (experiment=iterative_studio) placed them 1.1, 5.3,
+# 6.6 and 3.0 degrees off alone; the rooms' network (selfsup/checkpoints/iterative.pt) 0.5, 26,
+# 27 and 22 (2026-12-05).
+STUDIO_FRAMES = [((0.13, -0.14, -0.98), {}, False),
+                 ((0.12, -0.62, -0.77), ANALOGUES["dark metal"], True),
+                 ((0.69, -0.5, -0.53), ANALOGUES["grey stripes painted across the shapes"], False),
+                 ((-0.87, -0.43, -0.24), ANALOGUES["gold paint, parts shadowing each other"], True)]
+
+
+def test_the_network_trained_in_the_dark_places_a_lamp_alone(tmp_path):
+    options = EstimateOptions(method="cnn", checkpoint="selfsup/checkpoints/iterative_studio.pt")
+    angles = []
+    for k, (direction, paint, others) in enumerate(STUDIO_FRAMES):
+        spec = studio_spec(direction, others=others, seed=k, **paint)
+        record = estimate_scene(_photograph(tmp_path / str(k), spec, seed=k), options)
+        assert record["lights"] or record["unsupported_lights"]
+        angles.append(_angle_deg(record, spec, direction))
+    assert sorted(angles)[1] < 4.0 and max(angles) < 10.0  # of four: the second best, and the worst
