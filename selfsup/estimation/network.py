@@ -11,7 +11,7 @@ from torch import Tensor
 from selfsup.estimation.criterion import Candidate, candidates
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import FitProblem
-from selfsup.estimation.reflectance import reflectance_unknown
+from selfsup.estimation.reflectance import grey_where_unknown, reflectance_unknown
 from selfsup.estimation.solvers import refine
 
 __all__ = ["cached_network", "network_slots", "network_candidates"]
@@ -53,6 +53,7 @@ def network_candidates(problem: FitProblem, slots: Tensor, present: Tensor, spec
                         options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
     # The network's counted slots (at least one); refine with no iterations solves
     # their intensities and ambient and evaluates the fit.
+    problem = grey_where_unknown(problem, options)  # the lights the image's white where the albedo is unknown
     keep = present.sum(1).clamp(1, options.max_lights).tolist()
     chosen: list[Candidate | None] = [None] * problem.batch
     for n_lights in sorted(set(keep)):

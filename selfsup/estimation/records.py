@@ -10,6 +10,7 @@ from torch import Tensor
 from selfsup.estimation.criterion import Candidate, block_px, by_model, criterion_light, stacked_fits
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import Fit, FitProblem, solve_at, transport_maps
+from selfsup.estimation.reflectance import grey_where_unknown
 from selfsup.estimation.uncertainty import position_covariance
 
 __all__ = ["records", "surface_shares"]
@@ -44,7 +45,9 @@ def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, 
                                   normal_error=options.tuning.normal_error).cpu()
         if resolve:
             final = replace(options.tuning.refine, specular=specular, robust_scale=options.tuning.final_robust_scale)
-            _, intensity, ambient, *_ = solve_at(criterion_light(problem.select(at), options), fit.position, final)
+            # On the grey image where the albedo is unknown and the lights neutral (the lights the image's white).
+            judged = criterion_light(grey_where_unknown(problem.select(at), options), options)
+            _, intensity, ambient, *_ = solve_at(judged, fit.position, final)
         for j, i in enumerate(group):
             covariances[i] = cov[j]
             if resolve:

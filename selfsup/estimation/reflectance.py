@@ -48,6 +48,19 @@ def reflectance_unknown(problem: FitProblem, rel_tol: float = 1e-6) -> Tensor:
     return ((hi - lo) <= rel_tol * hi.abs().clamp_min(1e-30)).all(1)
 
 
+def grey_where_unknown(problem: FitProblem, options: EstimateOptions) -> FitProblem:
+    """``problem`` with the image of each image whose albedo is unknown (:func:`reflectance_unknown`)
+    made grey (its channels' mean in each), where ``tuning.light_colour`` is ``neutral``: intensities
+    solved on it are every light's and the ambient's as the image's white, as the albedo-free fit's
+    (:func:`intensities_of`). Solved per channel, the network's lamps on DiLiGenT's bear took the
+    bear's brown (the weakest channel under a fifth of the strongest in 15 of 24 frames)."""
+    unknown = reflectance_unknown(problem)
+    if options.tuning.light_colour != "neutral" or not bool(unknown.any()):
+        return problem
+    grey = problem.image.mean(1, keepdim=True).expand_as(problem.image)
+    return replace(problem, image=torch.where(unknown[:, None, None, None], grey, problem.image))
+
+
 def albedo_free_images(problem: FitProblem, options: EstimateOptions) -> list[bool]:
     if options.method == "cnn" or options.tuning.reflectance == "given":
         return [False] * problem.batch

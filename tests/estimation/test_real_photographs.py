@@ -182,4 +182,8 @@ def test_the_network_trained_in_the_dark_places_a_lamp_alone(tmp_path):
         record = estimate_scene(_photograph(tmp_path / str(k), spec, seed=k), options)
         assert record["lights"] or record["unsupported_lights"]
         angles.append(_angle_deg(record, spec, direction))
+        # The albedo unknown (the gold paint's colour is the surfaces' as much as the lamp's): the
+        # lights and the ambient are the image's white, as the albedo-free fit's.
+        for colour in [light["intensity"] for light in record["lights"] + record["unsupported_lights"]] + [record["ambient"]]:
+            assert max(colour) - min(colour) <= 1e-6 * max(max(colour), 1e-12)
     assert sorted(angles)[1] < 4.0 and max(angles) < 10.0  # of four: the second best, and the worst
