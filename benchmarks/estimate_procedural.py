@@ -88,14 +88,17 @@ def run_set(name: str, count: int, seed: int, options: EstimateOptions) -> dict:
 def parse_options(pairs: list[str]) -> dict:
     """``["block_width=0.1", "refine.robust_scale=0.05"]`` -> keyword arguments of
     :class:`EstimateOptions` (``refine.*`` become a :class:`RefineOptions`); values are
-    Python literals."""
+    Python literals, or else the text itself (``method=cnn``, ``checkpoint=path/to.pt``)."""
     estimate, refine = {}, {}
     for pair in pairs:
         key, sep, value = pair.partition("=")
         if not sep:
             raise ValueError(f"--option takes KEY=VALUE, got {pair!r}")
         target, key = (refine, key[len("refine."):]) if key.startswith("refine.") else (estimate, key)
-        target[key] = ast.literal_eval(value)
+        try:
+            target[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):  # a bare word or path: the string itself (method=cnn)
+            target[key] = value
     if refine:
         estimate["refine"] = RefineOptions(**refine)
     return estimate

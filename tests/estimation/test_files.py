@@ -326,3 +326,7 @@ def test_benchmark_options_reach_estimate_and_refine_settings():
     assert (options.tuning.block_width, options.tuning.weak_light_shadow_gain, options.tuning.refine.robust_scale) == (0.1, 0, 0.05)
     with pytest.raises(ValueError, match="KEY=VALUE"):
         parse_options(["block_width"])
+    # Words and paths as the docs write them, quoted or not.
+    assert parse_options(["method=cnn", "checkpoint=selfsup/checkpoints/iterative.pt"]) == \
+        parse_options(["method='cnn'", "checkpoint='selfsup/checkpoints/iterative.pt'"]) == \
+        {"method": "cnn", "checkpoint": "selfsup/checkpoints/iterative.pt"}
