@@ -12,19 +12,34 @@ Camera frame (OpenCV: x right, y down, z forward), metres.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from selfsup.scenes.camera import CameraModel, camera_capture, write_capture_frame
+from selfsup.scenes.capture import capture_frames, read_capture
+from selfsup.scenes.exact import render_spec
+from selfsup.scenes.io import Scene
 from selfsup.scenes.raycast import Primitives
 from selfsup.scenes.sampler import Materials, SamplerConfig, SceneSpec, Texture, sample_scene
 
-__all__ = ["studio_spec", "sphere_centre", "PATTERNS", "drawn_studio_spec", "scene_spec"]
+__all__ = ["studio_spec", "sphere_centre", "PATTERNS", "HARD_PAINTS", "drawn_studio_spec", "scene_spec", "PHOTO_CAMERA",
+           "photograph"]
 
 
 # The paints of :func:`studio_spec`: one albedo, stripes of a second one (hard edges, as
 # painted bands), or fractal noise between the two (an albedo that changes smoothly).
 PATTERNS = {"uniform": Texture.UNIFORM, "stripes": Texture.STRIPES, "noise": Texture.NOISE}
+
+# :func:`studio_spec`'s analogues of the real objects that are hard (issue "Right on real
+# photographs of objects"): parts that shadow each other under gold, glossy paint; dark metal
+# with a sharp highlight; grey stripes painted across the shapes.
+HARD_PAINTS = {
+    "gold paint, parts shadowing each other": dict(albedo=(0.75, 0.55, 0.2), ks=0.6, shininess=30.0),
+    "dark metal": dict(albedo=(0.15, 0.15, 0.15), ks=0.9, shininess=150.0),
+    "grey stripes painted across the shapes": dict(pattern="stripes", ks=0.1),
+}
 
 
 def _materials(count: int, albedo: tuple[float, float, float], ks: float, shininess: float, pattern: str,
@@ -107,6 +122,20 @@ def studio_spec(light_direction: tuple[float, float, float] | None, *, width: in
                      exposure=exposure, seed=seed, meta={"studio": True, "objects": count})
 
 
+# The camera of a photometric-stereo set: auto exposure, sRGB, 8 bits, PNG, millimetre depth.
+PHOTO_CAMERA = CameraModel(key=(0.12, 0.3), white_balance=False, vignetting=0.0, jpeg_quality=None,
+                           misregistration_px=0.0, disparity_step=0.0, depth_bumps=0.0, edge_holes=0.0, random_holes=0.0)
+
+
+def photograph(folder: str | Path, spec: SceneSpec, seed: int = 0) -> Scene:
+    """``spec`` rendered exactly, through :data:`PHOTO_CAMERA` (its draw ``seed``), written as a
+    capture folder ``folder`` (docs/scene-format.md) and read back: the frame as a user's file."""
+    rendered = render_spec(spec)
+    shot = camera_capture(rendered.scene.image, rendered.scene.depth, rendered.scene.K, PHOTO_CAMERA, seed=seed)
+    write_capture_frame(Path(folder), "frame", shot)
+    return read_capture(capture_frames(folder)[0])
+
+
 def sphere_centre(spec: SceneSpec) -> Tensor:
     """The sphere's centre ``(3,)`` of a :func:`studio_spec` (the point light directions are judged from)."""
     return spec.prims.spheres[0, :3]
@@ -131,8 +160,8 @@ def drawn_studio_spec(seed: int, config: SamplerConfig | None = None) -> SceneSp
     """A random :func:`studio_spec` from ``seed``: one object of one paint (uniform, stripes or
     noise of two albedos; glossy or matte), alone or with a box and a cylinder, before a black
     background, in a camera of :data:`STUDIO_FOV_DEG` that the objects fill :data:`STUDIO_FILL`
-    of at :data:`STUDIO_DISTANCE_M`, lit by one lamp within :data:`STUDIO_LIGHT_CONE_DEG` of the camera's direction at
-    :data:`STUDIO_LIGHT_DISTANCE` radii; the image size, exposure range and gloss ranges are
+    of at :data:`STUDIO_DISTANCE_M`, lit by one lamp within :data:`STUDIO_LIGHT_CONE_DEG` of the
+    camera's direction at :data:`STUDIO_LIGHT_DISTANCE` radii; the image size, exposure range and gloss ranges are
     ``config``'s. The training pool's share of such frames is ``config.studio_prob``."""
     config = config or SamplerConfig()
     gen = torch.Generator().manual_seed(int(seed) * 2 + _STUDIO_STREAM)
@@ -160,12 +189,11 @@ def drawn_studio_spec(seed: int, config: SamplerConfig | None = None) -> SceneSp
     ks = u(*config.ks_range) if glossy else 0.0
     shininess = _log_uniform(gen, max(config.shininess_range[0], 1.0), max(config.shininess_range[1], 2.0))
     ambient = 0.0 if u(0, 1) < 0.6 else u(0.0, 0.05)
-    spec = studio_spec(direction, width=config.width, height=config.height, fov_x_deg=fov, distance=distance,
+    return studio_spec(direction, width=config.width, height=config.height, fov_x_deg=fov, distance=distance,
                        radius=radius, light_distance=_log_uniform(gen, *STUDIO_LIGHT_DISTANCE), others=others,
                        albedo=albedo, ks=ks, shininess=shininess, ambient=ambient,
                        exposure=u(*config.exposure_range), seed=int(seed), pattern=pattern, second_albedo=second,
                        pattern_scale=radius * _log_uniform(gen, 0.5, 2.0))
-    return spec
 
 
 def scene_spec(seed: int, config: SamplerConfig | None = None) -> SceneSpec:

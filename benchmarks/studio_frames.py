@@ -1,0 +1,89 @@
+"""The network (or the whole estimator) on our generator's objects in the dark, against truth.
+
+    python -m benchmarks.studio_frames --option method=cnn --option checkpoint=selfsup/checkpoints/iterative_studio.pt
+    python -m benchmarks.studio_frames --option method=cnn --option checkpoint=selfsup/checkpoints/iterative.pt --name studio_frames_rooms
+
+``--count`` frames (default 12) of :func:`selfsup.scenes.studio.studio_spec`, each photographed as
+a photometric-stereo set is (:func:`selfsup.scenes.studio.photograph`: auto exposure, sRGB, 8
+bits, millimetre depth): the lamp's direction from the sphere drawn from a fixed seed (in front of
+the object, above the camera's axis), the paint cycling through plain and
+:data:`selfsup.scenes.studio.HARD_PAINTS`, the box and cylinder beside it in every other frame.
+Each frame is estimated with ``mode=estimate``'s settings plus ``--option``s and scored by the
+angle between the true direction and the sphere's centre to the brightest light. Results:
+``benchmarks/results/<name>_<device>_<date>.*`` (a row per frame and a median row).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmarks.common import write_results
+from benchmarks.estimate_procedural import parse_options
+from selfsup.estimation.options import EstimateOptions
+from selfsup.estimation.stages import estimate_scene
+from selfsup.scenes.studio import HARD_PAINTS, photograph, sphere_centre, studio_spec
+
+COLUMNS = ["frame", "paint", "others", "direction", "angle_deg", "light_found"]
+
+
+def frames(count: int, seed: int = 0) -> list[tuple[tuple[float, float, float], str, bool]]:
+    """``count`` (direction, paint name, others): directions towards the camera and above its axis."""
+    rng = np.random.default_rng(seed)
+    paints = ["plain", *HARD_PAINTS]
+    out = []
+    for k in range(count):
+        d = rng.normal(size=3)
+        d[2], d[1] = -abs(d[2]) - 0.3, -abs(d[1])
+        d /= np.linalg.norm(d)
+        out.append((tuple(float(x) for x in d), paints[k % len(paints)], bool(k % 2)))
+    return out
+
+
+def run(count: int, options: EstimateOptions, name: str, write: bool = True) -> list[dict]:
+    rows = []
+    for k, (direction, paint, others) in enumerate(frames(count)):
+        spec = studio_spec(direction, others=others, seed=k, **HARD_PAINTS.get(paint, {}))
+        with tempfile.TemporaryDirectory() as folder:
+            record = estimate_scene(photograph(folder, spec, seed=k), options)
+        lights = record["lights"] or record["unsupported_lights"]
+        angle = 90.0
+        if lights:
+            v = np.asarray(lights[0]["position"]) - sphere_centre(spec).numpy()
+            angle = math.degrees(math.acos(float(np.clip(v @ np.asarray(direction) / np.linalg.norm(v), -1, 1))))
+        rows.append({"frame": k, "paint": paint, "others": others, "direction": [round(x, 3) for x in direction],
+                     "angle_deg": round(angle, 2), "light_found": record["light_found"]})
+        print(rows[-1], flush=True)
+    rows.append({"frame": "**median**", "angle_deg": round(statistics.median(r["angle_deg"] for r in rows), 2)})
+    if write:
+        header = (f"Objects in the dark (`python -m benchmarks.studio_frames`, {count} frames), each "
+                  f"estimated with the settings changed: {options_text(options)}; the angle between the "
+                  "true lamp direction and the sphere's centre to the brightest light (90 where none).")
+        print(write_results(name, torch.device("cpu"), rows, header, COLUMNS))
+    return rows
+
+
+def options_text(options: EstimateOptions) -> str:
+    return f"method={options.method}, checkpoint={options.checkpoint}"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--count", type=int, default=12)
+    parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                        help="an estimate setting or tuned constant, e.g. method=cnn (repeatable)")
+    parser.add_argument("--name", default="studio_frames")
+    args = parser.parse_args()
+    if args.count < 1:
+        raise SystemExit("--count must be >= 1")
+    run(args.count, EstimateOptions.from_settings(**parse_options(args.option)), args.name)
+
+
+if __name__ == "__main__":
+    main()
