@@ -86,8 +86,9 @@ def pool_teacher(sampler, degradations, samples: int, base_seed: int, count: int
     answers = read_answers(cache)
     missing = [i for i in range(count) if i not in answers]
     fine = dataclasses.replace(sampler, height=sampler.height * scale, width=sampler.width * scale)
+    # The pool's rooms may hold more lights than the slots taught (the trainer's pool holds them all).
     scenes = ProceduralScenes(fine, degradations, length=max(count, 1), base_seed=base_seed, samples=samples,
-                              max_lights=max_lights)
+                              max_lights=max(max_lights, len(sampler.n_lights_probs)))
     options = EstimateOptions(method=method)  # mode=estimate's own settings (its max_lights: 2)
     started = time.perf_counter()
     with cache.open("a") as out:

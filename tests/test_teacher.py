@@ -43,6 +43,14 @@ def test_the_teachers_answers_are_read_back_and_a_torn_line_is_searched_again(tm
     assert mended[2]["searched"] == 0 and len(cache.read_text().splitlines()) == 2  # the torn line was cut off
 
 
+def test_the_teacher_takes_rooms_with_more_lights_than_its_slots(tmp_path):
+    # The iterative recipe's pools hold three-light rooms and two slots: the teacher searched
+    # them as the trainer's pool holds them (it refused them with "more than max_lights").
+    three = sampler_config(height=24, width=32, n_lights_probs=[0.0, 0.0, 1.0])
+    position, mask, _ = pool_teacher(three, Degradations(), 1, 5, 1, 2, tmp_path / "teacher.jsonl", scale=1, workers=1)
+    assert position.shape == (1, 2, 3) and mask.shape == (1, 2)
+
+
 def test_the_cache_is_named_by_everything_that_changes_the_answers(tmp_path):
     base = teacher_cache_path(tmp_path, ONE_LIGHT, Degradations(), 1, 5, 2, "refine")
     assert base == teacher_cache_path(tmp_path, ONE_LIGHT, Degradations(), 1, 5, 2, "refine")
