@@ -16,7 +16,8 @@ rooms of ``--extra-views`` (2) frames each go into the adapt half (the network l
 not views: more rooms, fewer views each; the test half stays 24 rooms of 4 views). The truth
 (``truth/``) is read only to score the test half.
 
-``run`` adapts the shipped network on both adapt folders with ``mode=adapt``'s settings
+``run`` adapts the shipped network (``--start``: another checkpoint, the iterative network's
+included) on both adapt folders with ``mode=adapt``'s settings
 (the command itself, timed), then scores the network alone (``estimate.method=cnn``)
 and the whole estimator (the default ``cnn+refine``) on the test folders with the
 shipped and the adapted checkpoint, and the network on two procedural sets of
@@ -114,15 +115,18 @@ def _procedural(checkpoint: Path | None, scenes: int) -> dict[str, dict]:
     return out
 
 
-def run(data: Path, out_checkpoint: Path, extra: list[str], procedural_scenes: int = 200, write: bool = True):
+def run(data: Path, out_checkpoint: Path, extra: list[str], procedural_scenes: int = 200, write: bool = True,
+        start: Path | None = None, name: str = "adapt"):
     from benchmarks.captures import run as estimate_sets
     from benchmarks.common import write_results
     from selfsup.estimation import EstimateOptions
 
+    if start is not None:
+        extra = [f"adapt.checkpoint={start.resolve()}", *extra]
     seconds, line = _adapt_command(data, out_checkpoint, extra)
     print(f"adapted in {seconds:.0f} s: {line}", flush=True)
     rows = []
-    for name, checkpoint in (("shipped", None), ("adapted", out_checkpoint)):
+    for name, checkpoint in (("shipped" if start is None else start.name, start), ("adapted", out_checkpoint)):
         for method in ("cnn", "cnn+refine"):
             options = EstimateOptions(method=method, checkpoint=None if checkpoint is None else str(checkpoint))
             scored, _ = estimate_sets([data / "test"], SETS, write=False, options=options)
@@ -135,14 +139,15 @@ def run(data: Path, out_checkpoint: Path, extra: list[str], procedural_scenes: i
                          "two_light_right_count": f"{summary['two_light_right_count']:.3f}",
                          "median_worst_error": round(summary["median_position_error"], 4)})
     if write:
-        header = (f"The shipped network adapted by `mode=adapt` on the adapt half of {data} (Mitsuba rooms split by "
-                  f"room; `python -m benchmarks.adapt make`), scored on the test half: success = every light within "
-                  f"0.05 of the scene size; procedural = two of `mode=eval`'s sets (seed 9000, 160x120), the network "
+        adapted = "The shipped network" if start is None else f"The network of {start}"
+        header = (f"{adapted} adapted by `mode=adapt` on the adapt half of {data} (Mitsuba rooms split by room; "
+                  f"`python -m benchmarks.adapt make`), scored on the test half: success = every light within 0.05 "
+                  f"of the scene size; procedural = two of `mode=eval`'s sets (seed 9000, 160x120), the network "
                   f"alone: true reflectance (its cost volumes see the albedo; mode=adapt's forgetting guard validates "
                   f"on this set's first 100) and capture-like (a drawn camera, indirect light, 1-3 lights, no albedo). "
                   f"Adaptation: {seconds:.0f} s for the command, start-up "
                   f"included ({line}). Settings changed: {' '.join(extra) or 'none'}.")
-        print(write_results("adapt", torch.device("cpu"), rows, header, COLUMNS))
+        print(write_results(name, torch.device("cpu"), rows, header, COLUMNS))
     return rows
 
 
@@ -216,6 +221,8 @@ def main() -> None:
     r = commands.add_parser("run", help="adapt on the adapt half, score on the test half")
     r.add_argument("--data", type=Path, required=True)
     r.add_argument("--checkpoint", type=Path, default=Path("data/adapted.pt"), help="where the adapted network goes")
+    r.add_argument("--name", default="adapt", help="the results file's name")
+    r.add_argument("--start", type=Path, default=None, help="the network adapted (default: the shipped one)")
     r.add_argument("--procedural", type=int, default=200, help="procedural validation scenes")
     r.add_argument("--no-write", action="store_true")
     r.add_argument("overrides", nargs="*", help="mode=adapt settings, e.g. adapt.steps=300")
@@ -232,7 +239,8 @@ def main() -> None:
     elif args.command == "landscape":
         landscape(args.data, steps=args.steps)
     else:
-        run(args.data, args.checkpoint.resolve(), args.overrides, args.procedural, write=not args.no_write)
+        run(args.data, args.checkpoint.resolve(), args.overrides, args.procedural, write=not args.no_write,
+            start=args.start, name=args.name)
 
 
 if __name__ == "__main__":

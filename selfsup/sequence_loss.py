@@ -14,6 +14,10 @@ No light label is read. Two things come from the re-render loss with the scene's
   through the shadowed layer of the step's lights (intensities and ambient in closed form),
   the pseudo-Huber distance of each needed slot to its minimum, the presences against the
   slots the minimum needs, and at the init each vote's angle to its slot's minimum.
+
+A user's captures (``mode=adapt``) have no albedo: :func:`taught_sequence_loss` re-renders
+each step with each region's albedo solved in closed form beside the intensities, and the
+per-frame search's lights take the minimum's place.
 """
 
 from __future__ import annotations
@@ -25,14 +29,16 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from render import EpipolarShadowOptions, ShadowedBlinnPhong
-from selfsup.linear import basis_images, pseudo_huber, single_light_costs, solve_intensities
-from selfsup.losses import SceneBatch
+from render import Material
+from selfsup.linear import basis_images, pseudo_huber, segment_albedo, single_light_costs, solve_intensities
+from selfsup.losses import SceneBatch, TeacherOptions
 from selfsup.model import residual_after
 from selfsup.network import IterativePrediction
 from selfsup.network.grid import work_grid
 from selfsup.network.physics import LightState, gauss_newton_step, rerender
 
-__all__ = ["SequenceLossOptions", "SequenceTerms", "rerender_minimum", "sequence_loss", "UNBOUNDED"]
+__all__ = ["SequenceLossOptions", "SequenceTerms", "rerender_minimum", "sequence_loss", "taught_sequence_loss",
+           "UNBOUNDED"]
 
 # The epipolar shadows' unbounded solid (everything behind the visible surface): a third of the
 # bounded default's cost, the training renderer's setting (configs/renderer/shadowed.yaml).
@@ -242,3 +248,63 @@ def sequence_loss(prediction: IterativePrediction, scenes: SceneBatch, renderer:
         visibility = torch.ones_like(g.mask[:, None].expand(-1, target.shape[1], -1, -1), dtype=scenes.image.dtype)
     return SequenceTerms(total, photometric.detach(), position.detach(), presence.detach(), votes.detach(),
                          model.detach(), visibility.detach())
+
+
+def taught_sequence_loss(prediction: IterativePrediction, image: Tensor, gbuffer, segments: tuple[Tensor, int],
+                         renderer: ShadowedBlinnPhong, options: SequenceLossOptions, teacher: TeacherOptions,
+                         taught: Tensor | None = None, taught_mask: Tensor | None = None) -> SequenceTerms:
+    """The loss of every step of ``prediction`` on frames without albedo (a user's captures).
+
+    For the init and each update step (weighed ``gamma^(T - t)``): the robust re-render error
+    through the shadowed layer, each region's albedo solved in closed form beside the
+    intensities and the ambient (:func:`selfsup.linear.segment_albedo`, diffuse only, as the
+    cost-volume network's adaptation loss); the pseudo-Huber distance of slot ``k`` to the
+    per-frame search's ``k``-th light (brightest first) over the scene size, at
+    ``teacher.scale``; and, weighed ``teacher.count``, the presences against the lights the
+    search found. The lights switched on in the re-render are the search's where it found
+    some, else the network's own count.
+
+    Args:
+        prediction: the network's output on the frames (its view may be finer than the loss's).
+        image: ``(B, 3, h, w)`` linear colour of the loss's view; ``gbuffer`` its G-buffer
+            (same camera frame, metres).
+        segments: ``(labels (B, h w) long, count)``: each pixel's region of one albedo
+            (``count``: none, left out).
+        taught, taught_mask: the search's lights ``(B, K, 3)`` and which are lights ``(B, K)``
+            (None: no frame has any).
+    """
+    from selfsup.losses import _robust_cost
+    from selfsup.model import GREY_ALBEDO, scene_frame
+
+    labels, count = segments
+    frame = scene_frame(image, gbuffer)
+    B, K = prediction.presence.shape
+    mask = gbuffer.mask[:, None].to(image.dtype).expand_as(image) * (labels < count).view(gbuffer.mask.shape)[:, None]
+    material = Material(kd=torch.full((B, *gbuffer.mask.shape[1:], 3), GREY_ALBEDO, dtype=image.dtype,
+                                      device=image.device))
+    has = taught_mask.any(1) if taught_mask is not None else torch.zeros(B, dtype=torch.bool, device=image.device)
+    counted = (torch.arange(K, device=image.device) < prediction.count[:, None]).to(image.dtype)
+    on = torch.where(has[:, None], taught_mask.to(image.dtype) if taught_mask is not None else counted, counted)
+    T = len(prediction.steps) - 1
+    zero = image.new_zeros(())
+    photometric, position, presence = zero, zero, zero
+    model, visibility = None, None
+    for t, step in enumerate(prediction.steps):
+        weight = options.gamma ** (T - t)
+        transport = renderer.transport(gbuffer, material, step.position)
+        kd = segment_albedo(transport.diffuse.detach() * on[:, :, None, None], image, mask, labels, count)
+        cols = basis_images(kd, None, transport.diffuse, None) * on[:, None, :, None, None]
+        _, _, model = solve_intensities(cols, kd, image, mask, ridge=1e-6)
+        model = model * mask
+        cost = _robust_cost(model, image, mask, frame.exposure, options.robust_scale)
+        photometric = photometric + weight * cost.mean()
+        visibility = transport.visibility
+        if bool(has.any()):
+            rows = taught_mask[has].to(image.dtype)
+            distance = (step.position[has] - taught[has]).norm(dim=-1) / frame.size[has, None]
+            position = position + weight * (pseudo_huber(distance, teacher.scale) * rows).sum() / rows.sum()
+            if K > 1:
+                presence = presence + weight * F.binary_cross_entropy_with_logits(step.logits[has, 1:], rows[:, 1:])
+    total = options.photometric * photometric + teacher.position * position + teacher.count * presence
+    return SequenceTerms(total, photometric.detach(), position.detach(), presence.detach(), zero, model.detach(),
+                         visibility.detach())

@@ -20,6 +20,12 @@ read. What keeps it from going wrong:
   (:func:`selfsup.adapt.guards.guard_penalty`); each validation measures the held-back
   frames' loss, count and degenerate lights and the procedural validation's error, and a
   checkpoint :func:`selfsup.adapt.guards.refusals` names is never kept;
+- **the iterative network** (:class:`selfsup.network.IterativeLightNet`) adapts the same way
+  with its own losses at every unrolled step: on the user's frames
+  :func:`selfsup.sequence_loss.taught_sequence_loss` (the albedo-free re-render and the
+  search's lights), on the procedural scenes :func:`selfsup.sequence_loss.sequence_loss`
+  against each scene's re-render minimum, its pool rendered and prepared as its recipe's
+  (``experiment=iterative``: twice the grid, prepared as a capture);
 - **the best by the held-back loss** among the accepted validations is written to
   ``adapt.out`` as it is found (the starting network if none beats it), so a killed run
   leaves its best; ``<adapt.out>.run/last.pt`` resumes the run exactly (the batches of
@@ -50,6 +56,8 @@ from selfsup.estimation.jobs import locked
 from selfsup.evaluate import evaluate_network, summarise
 from selfsup.losses import LossOptions, SceneBatch, reconstruction_loss, scene_batch
 from selfsup.model import GREY_ALBEDO, LightNet, scene_frame
+from selfsup.network import IterativeLightNet
+from selfsup.sequence_loss import SequenceLossOptions, rerender_minimum, sequence_loss, taught_sequence_loss
 
 __all__ = ["AdaptOptions", "Procedural", "adapt_files"]
 
@@ -145,16 +153,41 @@ class _Run:
         for frame in frames.train:
             self.groups[frame.size].append(frame)
         self.procedural_loss = replace(loss, count_weight=options.procedural_count_weight)
+        self.iterative = isinstance(network, IterativeLightNet)
+        # The iterative network's terms: its recipe's (configs/experiment/iterative.yaml's loss node).
+        self.sequence = SequenceLossOptions(robust_scale=loss.robust_scale)
         K = network.max_lights
         self.pool = None
         if options.procedural_batch:
-            self.pool = materialise(ProceduralScenes(procedural.sampler, procedural.degradations, length=procedural.scenes,
-                                                     base_seed=procedural.seed, samples=procedural.samples, max_lights=K),
-                                    workers=0, progress=False)
+            self.pool = self._procedural_pool(procedural, K)
         self.validation = materialise(ProceduralScenes(procedural.validation_sampler, procedural.validation_degradations,
                                                        length=procedural.validation_scenes, base_seed=9000,
                                                        samples=procedural.validation_samples, max_lights=K),
                                       workers=0, progress=False)
+
+    def _procedural_pool(self, procedural: Procedural, slots: int) -> dict[str, Tensor]:
+        # The mixed-in scenes, as the network learned them: the cost-volume network's at the
+        # sampler's size; the iterative one's rendered at twice it, prepared as a capture and
+        # pooled onto its grid, with each scene's re-render minimum (found once, here).
+        from selfsup.estimation.prepare import prepared_pool
+        from selfsup.scenes.dataset import ProceduralScenes, materialise
+
+        sampler = procedural.sampler
+        lights = max(slots, len(sampler.n_lights_probs))
+        if not self.iterative:
+            return materialise(ProceduralScenes(sampler, procedural.degradations, length=procedural.scenes,
+                                                base_seed=procedural.seed, samples=procedural.samples, max_lights=slots),
+                               workers=0, progress=False)
+        fine = replace(sampler, height=2 * sampler.height, width=2 * sampler.width)
+        pool = materialise(ProceduralScenes(fine, procedural.degradations, length=procedural.scenes,
+                                            base_seed=procedural.seed, samples=procedural.samples, max_lights=lights),
+                           workers=0, progress=False)
+        pool = prepared_pool(pool, max(sampler.height, sampler.width))
+        minima = [rerender_minimum(scene_batch({k: v[i:i + 64] for k, v in pool.items()}), slots, self.sequence)
+                  for i in range(0, pool["image"].shape[0], 64)]
+        pool["target_pos"] = torch.cat([p for p, _ in minima])
+        pool["target_needed"] = torch.cat([n for _, n in minima])
+        return pool
 
     def user_batch(self, step: int):
         """Step ``step``'s frames: a size group drawn by its share of the frames, then
@@ -180,6 +213,13 @@ class _Run:
         frames' :class:`~selfsup.model.SceneFrame`."""
         prediction = self.network(batch.network_image, batch.network_gbuffer, None)
         frame = scene_frame(batch.image, batch.gbuffer)
+        if self.iterative:
+            terms = taught_sequence_loss(prediction, batch.image, batch.gbuffer, batch.segments, self.renderer,
+                                         self.sequence, self.teacher, batch.teacher, batch.teacher_mask)
+            parts = {"photometric": float(terms.photometric)}
+            if batch.teacher is not None:
+                parts.update(teacher_position=float(terms.position), teacher_count=float(terms.presence))
+            return terms.total, parts, terms, prediction, frame
         scenes = SceneBatch(batch.image, batch.gbuffer, Material(kd=torch.full((*batch.image.shape[:1],
                                                                                  *batch.image.shape[2:], 3), GREY_ALBEDO,
                                                                                 device=batch.image.device)))
@@ -199,13 +239,13 @@ class _Run:
         if self.pool is not None:
             pool = self.procedural_batch(step)
             scenes = scene_batch(pool)
-            # As the shipped network learned: a share of the steps' cost volumes see the albedo.
-            albedo = float(torch.rand((), generator=torch.Generator().manual_seed(self.options.seed * 7_919 + step))
-                           ) < self.options.procedural_albedo_share
-            prediction = self.network(scenes.image, scenes.gbuffer, scenes.material.kd if albedo else None)
-            procedural = reconstruction_loss(prediction, scenes, self.renderer, self.procedural_loss, pool)
-            total = total + procedural.total
-            parts["procedural"] = float(procedural.total.detach())
+            if self.iterative:  # its own recipe's terms (it reads no albedo)
+                terms = sequence_loss(self.network(scenes.image, scenes.gbuffer), scenes, self.renderer,
+                                      pool["target_pos"], pool["target_needed"], self.sequence)
+                total = total + terms.total
+                parts["procedural"] = float(terms.total.detach())
+            else:
+                total, parts = self._procedural_lightnet(step, pool, scenes, total, parts)
         if self.options.anchor_weight > 0:
             anchor = sum(((p - p0) ** 2).sum() for p, p0 in zip(self.network.parameters(), self.start_weights))
             total = total + self.options.anchor_weight * anchor
@@ -213,6 +253,17 @@ class _Run:
         if not torch.isfinite(total):
             raise FloatingPointError(f"non-finite adaptation loss at step {step}: {parts}")
         return total, parts
+
+    def _procedural_lightnet(self, step: int, pool: dict[str, Tensor], scenes: SceneBatch, total: Tensor,
+                             parts: dict[str, float]) -> tuple[Tensor, dict[str, float]]:
+        # The cost-volume network's procedural terms: as the shipped network learned, a share of
+        # the steps' cost volumes see the albedo, and the count head reads the true count.
+        albedo = float(torch.rand((), generator=torch.Generator().manual_seed(self.options.seed * 7_919 + step))
+                       ) < self.options.procedural_albedo_share
+        prediction = self.network(scenes.image, scenes.gbuffer, scenes.material.kd if albedo else None)
+        procedural = reconstruction_loss(prediction, scenes, self.renderer, self.procedural_loss, pool)
+        parts["procedural"] = float(procedural.total.detach())
+        return total + procedural.total, parts
 
     @torch.no_grad()
     def validate(self) -> tuple[dict, Tensor | None]:
@@ -274,13 +325,12 @@ def adapt_files(input: str | list[str], out: str | Path, checkpoint: str | None 
                       loss, teacher, renderer, procedural, work)
 
 
-def _start_network(checkpoint: str | None, device: torch.device) -> tuple[LightNet, dict]:
-    # The network adaptation starts from (the cost-volume network; the iterative one is refused).
+def _start_network(checkpoint: str | None, device: torch.device) -> tuple[LightNet | IterativeLightNet, dict]:
+    # The network adaptation starts from: the cost-volume network or the iterative one.
     network, state = load_network(checkpoint or LIGHTNET_CHECKPOINT, map_location=device)
-    if not isinstance(network, LightNet):
-        raise ValueError(f"adapt.checkpoint={checkpoint}: mode=adapt fine-tunes the cost-volume network (LightNet, "
-                         f"{LIGHTNET_CHECKPOINT.name}); adapting the iterative network is not built yet: leave "
-                         "adapt.checkpoint out, or give a LightNet checkpoint (python train.py experiment=captures)")
+    if not isinstance(network, (LightNet, IterativeLightNet)):
+        raise ValueError(f"adapt.checkpoint={checkpoint}: mode=adapt fine-tunes a LightNet or an IterativeLightNet, "
+                         f"got a {type(network).__name__}")
     return network.to(device).train(), state
 
 

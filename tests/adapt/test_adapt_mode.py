@@ -128,14 +128,27 @@ def test_bad_settings_are_named(tmp_path):
         run(_cfg(f"adapt.input={EXAMPLE}", f"adapt.out={tmp_path / 'a.pt'}", "adapt.frames.holdout=1.5"))
     with pytest.raises(ValueError, match="adapt.resume"):
         run(_cfg(f"adapt.input={EXAMPLE}", f"adapt.out={tmp_path / 'a.pt'}", "adapt.resume=maybe"))
-    # The iterative network cannot be adapted yet: named, with what to give instead.
+
+
+def test_the_iterative_network_adapts_and_its_checkpoint_estimates(tmp_path):
+    # A small iterative network through mode=adapt: its own losses at every step (the albedo-free
+    # re-render and the search's lights on the frames, its recipe's on prepared procedural scenes).
     from selfsup.checkpoint import save_network
     from selfsup.network import IterativeLightNet
 
     small = dict(long_side=16, widths=[8, 8], global_width=8, update_width=8, steps=1)
-    iterative = save_network(tmp_path / "iterative.pt", IterativeLightNet(**small), {"architecture": "iterative", **small})
-    with pytest.raises(ValueError, match="not built yet"):
-        run(_cfg(f"adapt.input={EXAMPLE}", f"adapt.out={tmp_path / 'a.pt'}", f"adapt.checkpoint={iterative}"))
+    start = save_network(tmp_path / "iterative.pt", IterativeLightNet(**small), {"architecture": "iterative", **small})
+    out = tmp_path / "adapted.pt"
+    summary = run(_cfg(f"adapt.input={EXAMPLE}", f"adapt.out={out}", f"adapt.checkpoint={start}", "adapt.steps=2",
+                       "adapt.tensorboard=false"))
+    assert summary["steps"] == 2 and "held-back loss" in summary["line"]
+    network, state = load_network(out)
+    assert isinstance(network, IterativeLightNet) and state["adapted_from"] == str(start)
+    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "configs")):
+        estimate = compose(config_name="train", overrides=[
+            "mode=estimate", f"estimate.input={EXAMPLE}", f"estimate.output={tmp_path / 'lights.jsonl'}",
+            f"estimate.checkpoint={out}", "estimate.method=cnn", "estimate.progress=false", "estimate.workers=1"])
+    assert run(estimate)["failed"] == 0
 
 
 def test_the_search_is_kept_and_read_back_not_run_again(tmp_path, monkeypatch):

@@ -10,7 +10,8 @@ from selfsup.network import IterativeLightNet
 from selfsup.scenes.dataset import collate, render_items, scene_to_item
 from selfsup.scenes.degrade import Degradations
 from selfsup.scenes.sampler import SamplerConfig
-from selfsup.sequence_loss import SequenceLossOptions, rerender_minimum, sequence_loss
+from selfsup.losses import TeacherOptions
+from selfsup.sequence_loss import SequenceLossOptions, rerender_minimum, sequence_loss, taught_sequence_loss
 
 SMALL = dict(max_lights=2, long_side=32, widths=(8, 16, 16), global_width=16, update_width=8, steps=2)
 
@@ -83,6 +84,35 @@ def test_each_steps_loss_reaches_its_update_weights_through_the_shadowed_layer()
     assert update is not None and float(update.abs().sum()) > 0
     # The vote field learns from the init's re-render through the meeting point.
     assert float(network.votes.out.weight.grad.abs().sum()) > 0
+
+
+def test_the_albedo_free_taught_loss_reaches_the_update_weights_and_pulls_to_the_search():
+    # mode=adapt's loss of the iterative network on frames without albedo: each step re-rendered
+    # with each region's albedo solved, slot k pulled to the search's k-th light, no albedo read.
+    batch = _batch(2)
+    scenes = scene_batch(batch)
+    labels = torch.where(scenes.gbuffer.mask, torch.zeros_like(scenes.gbuffer.mask, dtype=torch.long),
+                         torch.ones_like(scenes.gbuffer.mask, dtype=torch.long)).flatten(1)  # one region; 1: none
+    network = IterativeLightNet(**SMALL)
+    prediction = network(scenes.image, scenes.gbuffer)
+    taught = batch["light_pos"][:, :2].clone()
+    mask = torch.tensor([[True, False], [False, False]])  # the second frame: the search found nothing
+    terms = taught_sequence_loss(prediction, scenes.image, scenes.gbuffer, (labels, 1), ShadowedBlinnPhong(),
+                                 SequenceLossOptions(), TeacherOptions(count=0.1), taught, mask)
+    terms.total.backward()
+    assert terms.render.shape == scenes.image.shape and terms.visibility.shape == (2, 2, 24, 32)
+    assert float(terms.position) > 0 and bool(torch.isfinite(terms.total))
+    assert float(network.update.weights_out.weight.grad.abs().sum()) > 0
+    # At the search's lights the position term is nil.
+    for step in prediction.steps:
+        step.position = taught.clone()
+    at = taught_sequence_loss(prediction, scenes.image, scenes.gbuffer, (labels, 1), ShadowedBlinnPhong(),
+                              SequenceLossOptions(), TeacherOptions(), taught, mask)
+    assert float(at.position) < 1e-6
+    # No search at all: the re-render alone, with the network's own count.
+    alone = taught_sequence_loss(prediction, scenes.image, scenes.gbuffer, (labels, 1), ShadowedBlinnPhong(),
+                                 SequenceLossOptions(), TeacherOptions())
+    assert float(alone.position) == 0 and float(alone.photometric) > 0
 
 
 def test_checkpoint_round_trip_loads_with_weights_only(tmp_path):
