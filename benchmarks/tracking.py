@@ -212,9 +212,10 @@ def summary(root: str, set_name: str, kind: str, runs: list[dict]) -> dict:
 
 
 def run(roots: list[Path], sets=SETS, write: bool = True, name: str = "tracking", kinds=SEQUENCE_KINDS,
-        refresh: int = 30, device: str = "cpu") -> tuple[list[dict], Path | None]:
+        refresh: int = 30, device: str = "cpu", options=None) -> tuple[list[dict], Path | None]:
     """Score every sequence under ``roots/<set>/<kind>_<seed>`` (the ``kinds`` given), the
-    tracker's ``refresh`` as ``track.refresh``; one row per root, set and kind."""
+    tracker's ``refresh`` as ``track.refresh`` and its full estimates' ``options`` (an
+    :class:`~selfsup.estimation.EstimateOptions`; None: the defaults); one row per root, set and kind."""
     rows = []
     for root in roots:
         for set_name in sets:
@@ -222,7 +223,8 @@ def run(roots: list[Path], sets=SETS, write: bool = True, name: str = "tracking"
                 continue
             folders = sorted(p for p in (root / set_name).iterdir() if p.is_dir())
             for kind in kinds:
-                runs = [track_sequence(p, refresh=refresh, device=device) for p in folders if p.name.rsplit("_", 1)[0] == kind]
+                runs = [track_sequence(p, options, refresh=refresh, device=device) for p in folders
+                        if p.name.rsplit("_", 1)[0] == kind]
                 if runs:
                     rows.append(summary(root.name, set_name, kind, runs))
                     print(json.dumps(rows[-1]), flush=True)
@@ -238,6 +240,8 @@ def run(roots: list[Path], sets=SETS, write: bool = True, name: str = "tracking"
                   "tracker's warm steps; full: its full estimates; independent: mode=estimate's pipeline on the "
                   f"frame); read = reading the frame from its files, apart. track.refresh = {refresh} (sequences of 24 "
                   "frames, Mitsuba 16: the default 30 never comes due).")
+        if options is not None and options.changed_settings():
+            header += f" Estimation settings changed: {options.changed_settings()}."
         path = write_results(name, torch.device(device), rows, header, COLUMNS)
     return rows, path
 
@@ -290,6 +294,8 @@ def main() -> None:
     r.add_argument("--kinds", nargs="+", default=list(SEQUENCE_KINDS), choices=SEQUENCE_KINDS)
     r.add_argument("--refresh", type=int, default=30, help="track.refresh")
     r.add_argument("--device", default="cpu", help="cpu or cuda[:i]: where the tracker and the estimator run")
+    r.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="an estimate setting of the tracker's full estimates and the per-frame ones (checkpoint=...)")
     args = parser.parse_args()
     if args.command == "make":
         make(args.out, args.seeds, args.frames)
@@ -298,8 +304,14 @@ def main() -> None:
     elif args.command == "animate":
         animate(args.sequence, args.out, args.size, tuple(args.pixel), args.object)
     else:
+        options = None
+        if args.option:
+            from benchmarks.estimate_procedural import parse_options
+            from selfsup.estimation import EstimateOptions
+
+            options = EstimateOptions.from_settings(**parse_options(args.option))
         print(run(args.sequences, args.sets, write=not args.no_write, name=args.name, kinds=args.kinds,
-                  refresh=args.refresh, device=args.device)[1])
+                  refresh=args.refresh, device=args.device, options=options)[1])
 
 
 if __name__ == "__main__":

@@ -148,7 +148,12 @@ def test_the_iterative_network_adapts_and_its_checkpoint_estimates(tmp_path):
         estimate = compose(config_name="train", overrides=[
             "mode=estimate", f"estimate.input={EXAMPLE}", f"estimate.output={tmp_path / 'lights.jsonl'}",
             f"estimate.checkpoint={out}", "estimate.method=cnn", "estimate.progress=false", "estimate.workers=1"])
+        track = compose(config_name="train", overrides=[
+            "mode=track", f"track.input={EXAMPLE}", f"track.output={tmp_path / 'track.jsonl'}",
+            f"track.checkpoint={out}", "track.progress=false"])
     assert run(estimate)["failed"] == 0
+    assert not run(track)["failed"]
+    assert len((tmp_path / "track.jsonl").read_text().splitlines()) == 3
 
 
 def test_the_search_is_kept_and_read_back_not_run_again(tmp_path, monkeypatch):
