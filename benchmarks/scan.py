@@ -218,7 +218,7 @@ def timed_scans(scans: Path) -> list[dict]:
     return rows
 
 
-def tracked(folder: Path, posed: bool, size: float) -> dict:
+def tracked(folder: Path, posed: bool, size: float, options=None) -> dict:
     """``mode=track`` (refresh 0: full estimates on evidence only) through a posed scan, with
     its poses (the lights carried through the camera's moves) or without (a copy of the
     folder without ``poses.json``): the median over frames of the worst tracked light's world
@@ -235,7 +235,7 @@ def tracked(folder: Path, posed: bool, size: float) -> dict:
             source.mkdir()
             for sub in ("color", "depth", "intrinsics"):
                 (source / sub).symlink_to((folder / sub).resolve())
-        summary = track_files(source, Path(tmp) / "track.jsonl", refresh=0, progress=False)
+        summary = track_files(source, Path(tmp) / "track.jsonl", options, refresh=0, progress=False)
         records = [json.loads(line) for line in (Path(tmp) / "track.jsonl").read_text().splitlines()]
     errors = []
     for record in records:
@@ -245,25 +245,28 @@ def tracked(folder: Path, posed: bool, size: float) -> dict:
     return {"error": round(statistics.median(errors), 4), "full": summary["full"]}
 
 
-def run(scans: Path, write: bool = True, timing: Path | None = None, name: str = "scan") -> list[dict]:
+def run(scans: Path, write: bool = True, timing: Path | None = None, name: str = "scan", options=None) -> list[dict]:
     """Every posed folder under each set of ``scans`` estimated frame by frame and as a scan:
-    a row per scan and a summary row per set; with ``timing``, :func:`timed_scans` of it."""
+    a row per scan and a summary row per set; with ``timing``, :func:`timed_scans` of it.
+    ``options``: the estimate settings of the frames, the scan's keyframes and the tracker
+    (an :class:`~selfsup.estimation.EstimateOptions`; None: the defaults)."""
     from selfsup.estimation import EstimateOptions, estimate_files
     from selfsup.scan import scan_files
 
+    options = options or EstimateOptions()
     rows = []
     for set_folder in sorted(p for p in scans.iterdir() if p.is_dir()):
         scored = []
         for folder in sorted(p for p in set_folder.iterdir() if (p / "poses.json").is_file()):
             with tempfile.TemporaryDirectory() as tmp:
-                estimate_files(folder, Path(tmp) / "frames.jsonl", EstimateOptions(), progress=False, workers=1)
+                estimate_files(folder, Path(tmp) / "frames.jsonl", options, progress=False, workers=1)
                 records = [json.loads(line) for line in (Path(tmp) / "frames.jsonl").read_text().splitlines()]
                 started = time.perf_counter()
-                scan_files(folder, Path(tmp) / "room.json", progress=False)
+                scan_files(folder, Path(tmp) / "room.json", options=options, progress=False)
                 room = json.loads((Path(tmp) / "room.json").read_text())
                 room["seconds"] = round(time.perf_counter() - started, 1)
             size = room_size(folder)  # every frame's depth read once for the three scores
-            with_poses, without = tracked(folder, True, size), tracked(folder, False, size)
+            with_poses, without = tracked(folder, True, size, options), tracked(folder, False, size, options)
             scored.append({**score(folder, records, room, size), "scan": f"{set_folder.name}/{folder.name}",
                            "tracked_posed_error": with_poses["error"], "tracked_posed_full": with_poses["full"],
                            "tracked_unposed_error": without["error"], "tracked_unposed_full": without["full"]})
@@ -272,7 +275,8 @@ def run(scans: Path, write: bool = True, timing: Path | None = None, name: str =
     if timing is not None:
         rows += timed_scans(timing)
     if write:
-        command = f"python -m benchmarks.scan run --scans {scans} --name {name}" + (f" --timing {timing}" if timing else "")
+        command = (f"python -m benchmarks.scan run --scans {scans} --name {name}" + (f" --timing {timing}" if timing else "")
+                   + "".join(f" --option {key}={value}" for key, value in options.changed_settings().items()))
         names = [p.name for p in scans.iterdir() if p.is_dir()]
         flags = "".join(f" --{flag}" for flag in ("mitsuba", "behind") if any(flag in n for n in names))
         header = (f"`{command}` (made by `python -m benchmarks.scan make{flags} --out {scans}`). "
@@ -396,6 +400,8 @@ def main(argv: list[str] | None = None) -> None:
     r.add_argument("--no-write", action="store_true")
     r.add_argument("--timing", type=Path, help="posed scans to time the command on (make --frames 30)")
     r.add_argument("--name", default="scan", help="the results file's name")
+    r.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="an estimate setting of the frames, the scan and the tracker (checkpoint=...)")
     f = sub.add_parser("figure", help="one scan's fused points from above with its lights")
     f.add_argument("--scan", type=Path, required=True, help="a posed capture folder")
     f.add_argument("--room", type=Path, required=True, help="its mode=scan output")
@@ -413,7 +419,11 @@ def main(argv: list[str] | None = None) -> None:
     elif args.command == "figure":
         print(f"wrote {figure(args.scan, args.room, args.out)}")
     else:
-        run(args.scans, not args.no_write, args.timing, args.name)
+        from benchmarks.estimate_procedural import parse_options
+        from selfsup.estimation import EstimateOptions
+
+        options = EstimateOptions.from_settings(**parse_options(args.option))
+        run(args.scans, not args.no_write, args.timing, args.name, options)
 
 
 if __name__ == "__main__":
