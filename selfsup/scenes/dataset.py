@@ -25,8 +25,8 @@ from selfsup.scenes.io import Scene
 from selfsup.scenes.sampler import SamplerConfig, SceneSpec, sample_scene
 from selfsup.scenes.studio import scene_spec
 
-__all__ = ["ProceduralScenes", "sampler_config", "scene_to_item", "collate", "materialise", "protocol_specs", "PROTOCOL_LIGHTS",
-           "render_item", "render_items", "retain_freed_memory"]
+__all__ = ["ProceduralScenes", "sampler_config", "scene_to_item", "area_truth", "collate", "materialise", "protocol_specs",
+           "PROTOCOL_LIGHTS", "render_item", "render_items", "retain_freed_memory"]
 
 # Room-normalised light positions (x across, y up, z into the room, in [0, 1]) of the
 # protocol set: front/back x left/right high, and two in the middle at two heights.
@@ -112,9 +112,27 @@ def render_items(seeds: list[int], sampler: SamplerConfig, degradations: Degrada
     """:func:`render_item` of each seed, ray cast together: the same results, several
     times faster per scene (see :func:`selfsup.scenes.exact.render_specs`). Each seed's scene is
     :func:`selfsup.scenes.studio.scene_spec`'s: a room, or an object in the dark where
-    ``sampler.studio_prob`` draws one."""
-    rendered = render_specs([scene_spec(seed, sampler) for seed in seeds], samples=samples)
-    return [(r, degrade(r.scene, degradations, seed, r.visibility)) for r, seed in zip(rendered, seeds)]
+    ``sampler.studio_prob`` draws one. Rooms lit by panels (``sampler.panel_prob``: 16 points
+    a light) are cast apart from the others, whose lights would be padded to theirs."""
+    specs = [scene_spec(seed, sampler) for seed in seeds]
+    rendered: list[RenderedScene | None] = [None] * len(specs)
+    for area in (False, True):
+        rows = [i for i, spec in enumerate(specs) if ("area_lights" in spec.meta) == area]
+        for i, r in zip(rows, render_specs([specs[i] for i in rows], samples=samples)):
+            rendered[i] = r
+    return [(r, area_truth(degrade(r.scene, degradations, seed, r.visibility))) for r, seed in zip(rendered, seeds)]
+
+
+def area_truth(scene: Scene) -> Scene:
+    """``scene`` with its area lights (``meta["area_lights"]["centres"]``: the ceiling panels
+    of :func:`selfsup.scenes.studio.scene_spec`) reported as one light each: at its centre,
+    its points' intensities summed. Rendered (and degraded) first: the image is the panels'."""
+    area = scene.meta.get("area_lights") or {}
+    if "centres" not in area or scene.light_pos is None:
+        return scene
+    centres = torch.tensor(area["centres"], dtype=scene.light_pos.dtype)
+    intensity = scene.light_intensity.reshape(len(centres), -1, scene.light_intensity.shape[-1]).sum(1)
+    return dataclasses.replace(scene, light_pos=centres, light_intensity=intensity)
 
 
 # glibc's mallopt(3) parameter M_TOP_PAD: how much free memory at the top of the heap

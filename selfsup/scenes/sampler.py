@@ -57,6 +57,7 @@ class SamplerConfig:
     scale_range: tuple[float, float] = (0.7, 1.4)
     light_power_range: tuple[float, float] = (1 / 3, 1.0)  # each light's power (times its distance^2), relative
     studio_prob: float = 0.0  # share of scenes that are objects photographed in the dark (selfsup.scenes.studio), not rooms
+    panel_prob: float = 0.0  # share of rooms lit by ceiling panels (selfsup.scenes.studio.scene_spec), not point lights
 
     def __post_init__(self):
         # Bad settings are named here, not met as a NaN probability or an empty room deep in sampling.
@@ -79,7 +80,7 @@ class SamplerConfig:
         a, b = self.n_objects
         if not (0 <= a <= b):
             raise ValueError(f"sampler n_objects must be a range [low, high] with 0 <= low <= high, got {[a, b]}")
-        for name in ("two_side_walls_prob", "specular_prob", "ambient_zero_prob", "studio_prob"):
+        for name in ("two_side_walls_prob", "specular_prob", "ambient_zero_prob", "studio_prob", "panel_prob"):
             if not 0 <= getattr(self, name) <= 1:
                 raise ValueError(f"sampler {name} must be a probability in [0, 1], got {getattr(self, name)}")
         if not self.light_margin >= 0:

@@ -13,12 +13,12 @@ from torch.utils.data import DataLoader
 
 from render import GBuffer, Material, PointLights, render
 from selfsup.scenes import dataset
-from selfsup.scenes.dataset import ProceduralScenes, collate, protocol_specs
+from selfsup.scenes.dataset import ProceduralScenes, collate, protocol_specs, render_items, scene_to_item
 from selfsup.scenes.degrade import Degradations, degrade
 from selfsup.scenes.exact import render_spec, render_specs
 from selfsup.scenes.io import read_scene
 from selfsup.scenes.sampler import SamplerConfig, Texture, sample_scene, signed_distance
-from selfsup.scenes.studio import drawn_studio_spec, scene_spec
+from selfsup.scenes.studio import PANEL_POINTS, drawn_studio_spec, scene_spec
 
 SMALL = SamplerConfig(height=48, width=64, n_lights_probs=(0.5, 0.5))
 
@@ -64,6 +64,32 @@ def test_a_share_of_objects_in_the_dark_leaves_the_rooms_as_they_were():
     assert frame.light_pos.shape == (1, 3) and float(frame.image.amax()) > 0
     with pytest.raises(ValueError, match="studio_prob"):
         SamplerConfig(studio_prob=1.5)
+
+
+def test_a_share_of_rooms_lit_by_ceiling_panels_reports_their_centres():
+    # panel_prob draws from its own stream: a seed that stays lit by points is the same room;
+    # a panel's room is rendered from its grid of points and reported as one light at its centre.
+    mixed = dataclasses.replace(SMALL, panel_prob=0.5, n_lights_probs=(0.5, 0.5))
+    specs = [scene_spec(seed, mixed) for seed in range(20)]
+    panel = ["area_lights" in spec.meta for spec in specs]
+    assert 4 <= sum(panel) <= 16
+    for seed, (spec, is_panel) in enumerate(zip(specs, panel)):
+        point = sample_scene(seed, dataclasses.replace(mixed, panel_prob=0.0))
+        if not is_panel:
+            assert torch.equal(spec.light_position, point.light_position)
+        else:
+            n = point.light_position.shape[0]
+            assert spec.light_position.shape[0] == n * PANEL_POINTS ** 2
+    seeds = [seed for seed, is_panel in enumerate(panel) if is_panel][:2]
+    for (rendered, scene), seed in zip(render_items(seeds, mixed, Degradations(indirect=1.0), 1), seeds):
+        centres = torch.tensor(specs[seed].meta["area_lights"]["centres"])
+        assert torch.allclose(scene.light_pos, centres) and scene.light_intensity.shape == centres.shape
+        assert torch.allclose(scene.light_intensity.sum(0), rendered.scene.light_intensity.sum(0))
+        assert bool(torch.isfinite(scene.image).all()) and float(scene.image.amax()) > 0
+        item = scene_to_item(scene, 2)
+        assert int(item["light_mask"].sum()) == centres.shape[0]
+    with pytest.raises(ValueError, match="panel_prob"):
+        SamplerConfig(panel_prob=-0.1)
 
 
 def test_dataset_batches_equal_its_items():
