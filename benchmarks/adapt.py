@@ -79,12 +79,17 @@ def make(out: Path, rooms: int = 48, views: int = 4, seed: int = 7300, swing_deg
                           "seconds": round(time.perf_counter() - started, 1)}), flush=True)
 
 
-def _adapt_command(data: Path, checkpoint: Path, extra: list[str]) -> tuple[float, str]:
-    """Run ``mode=adapt`` on the adapt half; its wall time (start-up included) and its summary line."""
+def _adapt_command(data: Path, checkpoint: Path, extra: list[str], search: Path | None = None) -> tuple[float, str]:
+    """Run ``mode=adapt`` on the adapt half; its wall time (start-up included) and its summary line.
+    ``search``: the per-frame search's records of an earlier run of the same start (its
+    ``teacher.jsonl``), read instead of searched again (the wall time then leaves the search out)."""
     folders = ",".join(str((data / "adapt" / s).resolve()) for s in SETS)
     command = [sys.executable, "train.py", "mode=adapt", f"adapt.input=[{folders}]", f"adapt.out={checkpoint}",
                "adapt.progress=false", *extra]
     shutil.rmtree(f"{checkpoint}.run", ignore_errors=True)  # a run from scratch: its search and steps timed
+    if search is not None:
+        Path(f"{checkpoint}.run").mkdir(parents=True)
+        shutil.copy(search, Path(f"{checkpoint}.run") / "teacher.jsonl")
     started = time.perf_counter()
     done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True)
     seconds = time.perf_counter() - started
@@ -116,14 +121,14 @@ def _procedural(checkpoint: Path | None, scenes: int) -> dict[str, dict]:
 
 
 def run(data: Path, out_checkpoint: Path, extra: list[str], procedural_scenes: int = 200, write: bool = True,
-        start: Path | None = None, name: str = "adapt"):
+        start: Path | None = None, name: str = "adapt", search: Path | None = None):
     from benchmarks.captures import run as estimate_sets
     from benchmarks.common import write_results
     from selfsup.estimation import EstimateOptions
 
     if start is not None:
         extra = [f"adapt.checkpoint={start.resolve()}", *extra]
-    seconds, line = _adapt_command(data, out_checkpoint, extra)
+    seconds, line = _adapt_command(data, out_checkpoint, extra, search)
     print(f"adapted in {seconds:.0f} s: {line}", flush=True)
     rows = []
     for name, checkpoint in (("shipped" if start is None else start.name, start), ("adapted", out_checkpoint)):
@@ -146,7 +151,7 @@ def run(data: Path, out_checkpoint: Path, extra: list[str], procedural_scenes: i
                   f"alone: true reflectance (its cost volumes see the albedo; mode=adapt's forgetting guard validates "
                   f"on this set's first 100) and capture-like (a drawn camera, indirect light, 1-3 lights, no albedo). "
                   f"Adaptation: {seconds:.0f} s for the command, start-up "
-                  f"included ({line}). Settings changed: {' '.join(extra) or 'none'}.")
+                  f"included{'; the search read from ' + str(search) + ', not timed' if search else ''} ({line}). Settings changed: {' '.join(extra) or 'none'}.")
         print(write_results(name, torch.device("cpu"), rows, header, COLUMNS))
     return rows
 
@@ -222,6 +227,8 @@ def main() -> None:
     r.add_argument("--data", type=Path, required=True)
     r.add_argument("--checkpoint", type=Path, default=Path("data/adapted.pt"), help="where the adapted network goes")
     r.add_argument("--name", default="adapt", help="the results file's name")
+    r.add_argument("--search", type=Path, default=None,
+                   help="an earlier run's teacher.jsonl of the same start, read instead of searched again")
     r.add_argument("--start", type=Path, default=None, help="the network adapted (default: the shipped one)")
     r.add_argument("--procedural", type=int, default=200, help="procedural validation scenes")
     r.add_argument("--no-write", action="store_true")
@@ -240,7 +247,7 @@ def main() -> None:
         landscape(args.data, steps=args.steps)
     else:
         run(args.data, args.checkpoint.resolve(), args.overrides, args.procedural, write=not args.no_write,
-            start=args.start, name=args.name)
+            start=args.start, name=args.name, search=args.search)
 
 
 if __name__ == "__main__":
