@@ -151,7 +151,8 @@ def run(data: Path, out_checkpoint: Path, extra: list[str], procedural_scenes: i
                   f"alone: true reflectance (its cost volumes see the albedo; mode=adapt's forgetting guard validates "
                   f"on this set's first 100) and capture-like (a drawn camera, indirect light, 1-3 lights, no albedo). "
                   f"Adaptation: {seconds:.0f} s for the command, start-up "
-                  f"included{'; the search read from ' + str(search) + ', not timed' if search else ''} ({line}). Settings changed: {' '.join(extra) or 'none'}.")
+                  f"included{'; the search read from ' + str(search) + ', not timed' if search else ''} ({line}). "
+                  f"Settings changed: {' '.join(extra) or 'none'}.")
         print(write_results(name, torch.device("cpu"), rows, header, COLUMNS))
     return rows
 

@@ -51,7 +51,7 @@ from selfsup.evaluate import calibrate_confidence, calibrate_count_threshold, su
 from selfsup.losses import LossOptions, TeacherOptions, reconstruction_loss, scene_batch, teacher_loss
 from selfsup.model import LightNet, LightPrediction, scene_frame
 from selfsup.network import IterativePrediction
-from selfsup.sequence_loss import SequenceLossOptions, rerender_minimum, sequence_loss
+from selfsup.sequence_loss import SequenceLossOptions, pool_minima, sequence_loss
 
 __all__ = ["DataOptions", "OptimOptions", "TrainerOptions", "LoggerOptions", "Trainer", "render_grid"]
 
@@ -266,15 +266,12 @@ class Trainer:
                 self._pools[key].update(self._taught(base, count))
         return self._pools[key]
 
-    def _minima(self, pool: dict[str, Tensor], batch: int = 64) -> dict[str, Tensor]:
-        """``target_pos (N, K, 3)`` and ``target_needed (N, K)``: each training scene's
-        re-render minimum (:func:`selfsup.sequence_loss.rerender_minimum`), found once."""
+    def _minima(self, pool: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Each training scene's re-render minimum (:func:`selfsup.sequence_loss.pool_minima`), found once."""
         started = time.perf_counter()
-        parts = [rerender_minimum(scene_batch({k: v[i:i + batch] for k, v in pool.items()}),
-                                  self.model_config.get("max_lights", 2), self.loss)
-                 for i in range(0, pool["image"].shape[0], batch)]
+        minima = pool_minima(pool, self.model_config.get("max_lights", 2), self.loss)
         log.info("re-render minima of %d scenes in %.1f s", pool["image"].shape[0], time.perf_counter() - started)
-        return {"target_pos": torch.cat([p for p, _ in parts]), "target_needed": torch.cat([n for _, n in parts])}
+        return minima
 
     def _taught(self, base_seed: int, count: int) -> dict[str, Tensor]:
         """``teacher_pos (count, K, 3)`` and ``teacher_mask (count, K)`` of a training pool:

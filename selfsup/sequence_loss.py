@@ -31,14 +31,14 @@ from torch import Tensor
 from render import EpipolarShadowOptions, ShadowedBlinnPhong
 from render import Material
 from selfsup.linear import basis_images, pseudo_huber, segment_albedo, single_light_costs, solve_intensities
-from selfsup.losses import SceneBatch, TeacherOptions
-from selfsup.model import residual_after
+from selfsup.losses import SceneBatch, TeacherOptions, _robust_cost, scene_batch
+from selfsup.model import GREY_ALBEDO, residual_after, scene_frame
 from selfsup.network import IterativePrediction
 from selfsup.network.grid import work_grid
 from selfsup.network.physics import LightState, gauss_newton_step, rerender
 
-__all__ = ["SequenceLossOptions", "SequenceTerms", "rerender_minimum", "sequence_loss", "taught_sequence_loss",
-           "UNBOUNDED"]
+__all__ = ["SequenceLossOptions", "SequenceTerms", "rerender_minimum", "pool_minima", "sequence_loss",
+           "taught_sequence_loss", "UNBOUNDED"]
 
 # The epipolar shadows' unbounded solid (everything behind the visible surface): a third of the
 # bounded default's cost, the training renderer's setting (configs/renderer/shadowed.yaml).
@@ -201,6 +201,15 @@ def rerender_minimum(scenes: SceneBatch, max_lights: int, options: SequenceLossO
     return positions, needed
 
 
+def pool_minima(pool: dict[str, Tensor], max_lights: int, options: SequenceLossOptions = SequenceLossOptions(),
+                batch: int = 64) -> dict[str, Tensor]:
+    """``target_pos (N, K, 3)`` and ``target_needed (N, K)``: :func:`rerender_minimum` of every
+    scene of a pool (stacked items of :func:`selfsup.scenes.dataset.scene_to_item`), ``batch`` at a time."""
+    parts = [rerender_minimum(scene_batch({k: v[i:i + batch] for k, v in pool.items()}), max_lights, options)
+             for i in range(0, pool["image"].shape[0], batch)]
+    return {"target_pos": torch.cat([p for p, _ in parts]), "target_needed": torch.cat([n for _, n in parts])}
+
+
 def _vote_term(prediction: IterativePrediction, target: Tensor, needed: Tensor) -> Tensor:
     # 1 - cos of each valid cell's vote and its direction to the slot's minimum, over needed slots.
     direction, _ = prediction.votes
@@ -273,18 +282,17 @@ def taught_sequence_loss(prediction: IterativePrediction, image: Tensor, gbuffer
         taught, taught_mask: the search's lights ``(B, K, 3)`` and which are lights ``(B, K)``
             (None: no frame has any).
     """
-    from selfsup.losses import _robust_cost
-    from selfsup.model import GREY_ALBEDO, scene_frame
-
     labels, count = segments
     frame = scene_frame(image, gbuffer)
     B, K = prediction.presence.shape
     mask = gbuffer.mask[:, None].to(image.dtype).expand_as(image) * (labels < count).view(gbuffer.mask.shape)[:, None]
     material = Material(kd=torch.full((B, *gbuffer.mask.shape[1:], 3), GREY_ALBEDO, dtype=image.dtype,
                                       device=image.device))
-    has = taught_mask.any(1) if taught_mask is not None else torch.zeros(B, dtype=torch.bool, device=image.device)
-    counted = (torch.arange(K, device=image.device) < prediction.count[:, None]).to(image.dtype)
-    on = torch.where(has[:, None], taught_mask.to(image.dtype) if taught_mask is not None else counted, counted)
+    on = (torch.arange(K, device=image.device) < prediction.count[:, None]).to(image.dtype)  # the network's count
+    has = torch.zeros(B, dtype=torch.bool, device=image.device)
+    if taught_mask is not None:  # where the search found lights, its count
+        has = taught_mask.any(1)
+        on = torch.where(has[:, None], taught_mask.to(image.dtype), on)
     T = len(prediction.steps) - 1
     zero = image.new_zeros(())
     photometric, position, presence = zero, zero, zero

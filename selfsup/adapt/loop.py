@@ -57,7 +57,7 @@ from selfsup.evaluate import evaluate_network, summarise
 from selfsup.losses import LossOptions, SceneBatch, reconstruction_loss, scene_batch
 from selfsup.model import GREY_ALBEDO, LightNet, scene_frame
 from selfsup.network import IterativeLightNet
-from selfsup.sequence_loss import SequenceLossOptions, rerender_minimum, sequence_loss, taught_sequence_loss
+from selfsup.sequence_loss import SequenceLossOptions, pool_minima, sequence_loss, taught_sequence_loss
 
 __all__ = ["AdaptOptions", "Procedural", "adapt_files"]
 
@@ -183,11 +183,7 @@ class _Run:
                                             base_seed=procedural.seed, samples=procedural.samples, max_lights=lights),
                            workers=0, progress=False)
         pool = prepared_pool(pool, max(sampler.height, sampler.width))
-        minima = [rerender_minimum(scene_batch({k: v[i:i + 64] for k, v in pool.items()}), slots, self.sequence)
-                  for i in range(0, pool["image"].shape[0], 64)]
-        pool["target_pos"] = torch.cat([p for p, _ in minima])
-        pool["target_needed"] = torch.cat([n for _, n in minima])
-        return pool
+        return {**pool, **pool_minima(pool, slots, self.sequence)}
 
     def user_batch(self, step: int):
         """Step ``step``'s frames: a size group drawn by its share of the frames, then
@@ -326,11 +322,8 @@ def adapt_files(input: str | list[str], out: str | Path, checkpoint: str | None 
 
 
 def _start_network(checkpoint: str | None, device: torch.device) -> tuple[LightNet | IterativeLightNet, dict]:
-    # The network adaptation starts from: the cost-volume network or the iterative one.
+    # The network adaptation starts from (either architecture; load_network names an unknown one).
     network, state = load_network(checkpoint or LIGHTNET_CHECKPOINT, map_location=device)
-    if not isinstance(network, (LightNet, IterativeLightNet)):
-        raise ValueError(f"adapt.checkpoint={checkpoint}: mode=adapt fine-tunes a LightNet or an IterativeLightNet, "
-                         f"got a {type(network).__name__}")
     return network.to(device).train(), state
 
 

@@ -47,6 +47,18 @@ def _captures(tmp_path: Path) -> Path:
     return folder
 
 
+def _estimate_and_track(tmp_path: Path, checkpoint: Path):
+    """mode=estimate (the network alone) and mode=track on examples/capture with ``checkpoint``."""
+    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "configs")):
+        estimate = compose(config_name="train", overrides=[
+            "mode=estimate", f"estimate.input={EXAMPLE}", f"estimate.output={tmp_path / 'lights.jsonl'}",
+            f"estimate.checkpoint={checkpoint}", "estimate.method=cnn", "estimate.progress=false", "estimate.workers=1"])
+        track = compose(config_name="train", overrides=[
+            "mode=track", f"track.input={EXAMPLE}", f"track.output={tmp_path / 'track.jsonl'}",
+            f"track.checkpoint={checkpoint}", "track.progress=false"])
+    return estimate, track
+
+
 def test_unusable_frames_are_named_and_skipped_and_the_rest_split(tmp_path):
     frames = load_frames([_captures(tmp_path)], FrameOptions(holdout=0.5, block=2))
     assert sorted(Path(name).stem for name in frames.skipped) == ["z_black", "z_no_depth", "z_no_depth_file"]
@@ -103,13 +115,7 @@ def test_adapt_writes_a_checkpoint_that_estimate_and_track_take_and_resumes(tmp_
     assert "adapt/user" in events.Tags()["scalars"] and "held/held_loss" in events.Tags()["scalars"]
     assert any(tag.startswith("held/before") for tag in events.Tags()["images"])
     assert any(tag.startswith("held/after") for tag in events.Tags()["images"])
-    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "configs")):
-        estimate = compose(config_name="train", overrides=[
-            "mode=estimate", f"estimate.input={EXAMPLE}", f"estimate.output={tmp_path / 'lights.jsonl'}",
-            f"estimate.checkpoint={out}", "estimate.method=cnn", "estimate.progress=false", "estimate.workers=1"])
-        track = compose(config_name="train", overrides=[
-            "mode=track", f"track.input={EXAMPLE}", f"track.output={tmp_path / 'track.jsonl'}",
-            f"track.checkpoint={out}", "track.progress=false"])
+    estimate, track = _estimate_and_track(tmp_path, out)
     assert run(estimate)["failed"] == 0
     assert len((tmp_path / "lights.jsonl").read_text().splitlines()) == 3
     assert not run(track)["failed"]
@@ -144,13 +150,7 @@ def test_the_iterative_network_adapts_and_its_checkpoint_estimates(tmp_path):
     assert summary["steps"] == 2 and "held-back loss" in summary["line"]
     network, state = load_network(out)
     assert isinstance(network, IterativeLightNet) and state["adapted_from"] == str(start)
-    with initialize_config_dir(version_base="1.3", config_dir=str(ROOT / "configs")):
-        estimate = compose(config_name="train", overrides=[
-            "mode=estimate", f"estimate.input={EXAMPLE}", f"estimate.output={tmp_path / 'lights.jsonl'}",
-            f"estimate.checkpoint={out}", "estimate.method=cnn", "estimate.progress=false", "estimate.workers=1"])
-        track = compose(config_name="train", overrides=[
-            "mode=track", f"track.input={EXAMPLE}", f"track.output={tmp_path / 'track.jsonl'}",
-            f"track.checkpoint={out}", "track.progress=false"])
+    estimate, track = _estimate_and_track(tmp_path, out)
     assert run(estimate)["failed"] == 0
     assert not run(track)["failed"]
     assert len((tmp_path / "track.jsonl").read_text().splitlines()) == 3
