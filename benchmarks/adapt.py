@@ -114,44 +114,59 @@ def _procedural(checkpoint: Path | None, scenes: int) -> dict[str, dict]:
     out = {}
     for name, (probs, degradations, albedo) in sets.items():
         pool = materialise(ProceduralScenes(sampler_config(height=120, width=160, n_lights_probs=list(probs)), degradations,
-                                            length=scenes, base_seed=9000, samples=2, max_lights=network.max_lights),
+                                            length=scenes, base_seed=9000, samples=2,
+                                            max_lights=max(network.max_lights, len(probs))),
                            workers=2, progress=False)
         out[name] = summarise(evaluate_network(network, pool, albedo=albedo))
     return out
 
 
+def _earlier_adaptation(checkpoint: Path) -> str:
+    """The summary an adapted checkpoint carries (``mode=adapt`` writes its metrics beside the weights)."""
+    saved = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    if not saved.get("metrics", {}).get("adapted"):
+        raise SystemExit(f"{checkpoint} was not written by mode=adapt (no 'adapted' metrics); run without --adapted")
+    metrics, before = saved["metrics"], saved.get("before", {})
+    return (f"{metrics['step']} steps from {saved.get('adapted_from')}: held-back loss "
+            f"{before.get('held_loss', float('nan')):.3f} -> {metrics['held_loss']:.3f}")
+
+
 def run(data: Path, out_checkpoint: Path, extra: list[str], procedural_scenes: int = 200, write: bool = True,
-        start: Path | None = None, name: str = "adapt", search: Path | None = None):
+        start: Path | None = None, name: str = "adapt", search: Path | None = None, adapted: bool = False):
     from benchmarks.captures import run as estimate_sets
     from benchmarks.common import write_results
     from selfsup.estimation import EstimateOptions
 
     if start is not None:
         extra = [f"adapt.checkpoint={start.resolve()}", *extra]
-    seconds, line = _adapt_command(data, out_checkpoint, extra, search)
+    if adapted:  # scored only: an earlier run's adapted checkpoint
+        seconds, line = float("nan"), _earlier_adaptation(out_checkpoint)
+    else:
+        seconds, line = _adapt_command(data, out_checkpoint, extra, search)
     print(f"adapted in {seconds:.0f} s: {line}", flush=True)
     rows = []
-    for name, checkpoint in (("shipped" if start is None else start.name, start), ("adapted", out_checkpoint)):
+    for label, checkpoint in (("shipped" if start is None else start.name, start), ("adapted", out_checkpoint)):
         for method in ("cnn", "cnn+refine"):
             options = EstimateOptions(method=method, checkpoint=None if checkpoint is None else str(checkpoint))
             scored, _ = estimate_sets([data / "test"], SETS, write=False, options=options)
-            rows += [{"network": name, "estimator": "network alone" if method == "cnn" else "whole (cnn+refine)",
+            rows += [{"network": label, "estimator": "network alone" if method == "cnn" else "whole (cnn+refine)",
                       "frames": row["scenes"], **{k: v for k, v in row.items() if k in COLUMNS}} for row in scored]
         for set_name, summary in _procedural(checkpoint, procedural_scenes).items():
-            rows.append({"network": name, "estimator": "network alone", "set": f"procedural: {set_name}",
+            rows.append({"network": label, "estimator": "network alone", "set": f"procedural: {set_name}",
                          "frames": procedural_scenes, "success": f"{summary['success_rate']:.3f}",
                          "one_light_success": f"{summary['one_light_success']:.3f}",
                          "two_light_right_count": f"{summary['two_light_right_count']:.3f}",
                          "median_worst_error": round(summary["median_position_error"], 4)})
     if write:
-        adapted = "The shipped network" if start is None else f"The network of {start}"
-        header = (f"{adapted} adapted by `mode=adapt` on the adapt half of {data} (Mitsuba rooms split by room; "
+        subject = "The shipped network" if start is None else f"The network of {start}"
+        header = (f"{subject} adapted by `mode=adapt` on the adapt half of {data} (Mitsuba rooms split by room; "
                   f"`python -m benchmarks.adapt make`), scored on the test half: success = every light within 0.05 "
                   f"of the scene size; procedural = two of `mode=eval`'s sets (seed 9000, 160x120), the network "
                   f"alone: true reflectance (its cost volumes see the albedo; mode=adapt's forgetting guard validates "
                   f"on this set's first 100) and capture-like (a drawn camera, indirect light, 1-3 lights, no albedo). "
-                  f"Adaptation: {seconds:.0f} s for the command, start-up "
-                  f"included{'; the search read from ' + str(search) + ', not timed' if search else ''} ({line}). "
+                  + (f"Adaptation: an earlier run's checkpoint {out_checkpoint.name}, not timed here ({line}). " if adapted else
+                     f"Adaptation: {seconds:.0f} s for the command, start-up "
+                     f"included{'; the search read from ' + str(search) + ', not timed' if search else ''} ({line}). ") +
                   f"Settings changed: {' '.join(extra) or 'none'}.")
         print(write_results(name, torch.device("cpu"), rows, header, COLUMNS))
     return rows
@@ -232,6 +247,8 @@ def main() -> None:
                    help="an earlier run's teacher.jsonl of the same start, read instead of searched again")
     r.add_argument("--start", type=Path, default=None, help="the network adapted (default: the shipped one)")
     r.add_argument("--procedural", type=int, default=200, help="procedural validation scenes")
+    r.add_argument("--adapted", action="store_true",
+                   help="--checkpoint is an earlier run's adapted network: score it, do not adapt again")
     r.add_argument("--no-write", action="store_true")
     r.add_argument("overrides", nargs="*", help="mode=adapt settings, e.g. adapt.steps=300")
     g = commands.add_parser("landscape", help="where the re-render loss is least about the true light")
@@ -248,7 +265,7 @@ def main() -> None:
         landscape(args.data, steps=args.steps)
     else:
         run(args.data, args.checkpoint.resolve(), args.overrides, args.procedural, write=not args.no_write,
-            start=args.start, name=args.name, search=args.search)
+            start=args.start, name=args.name, search=args.search, adapted=args.adapted)
 
 
 if __name__ == "__main__":

@@ -54,13 +54,12 @@ def group_medians(values: Tensor, group: Tensor, groups: int, upper: bool = Fals
     return (ordered[index] if values.numel() else values.new_zeros(groups)), counts
 
 
-def _medians_by_key(keys: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    # The distinct keys, each one's median of ``values`` (the upper middle of an even count)
-    # and its count: :func:`group_medians` of the keys' ranks.
-    unique, rank = np.unique(keys, return_inverse=True)
-    medians, counts = group_medians(torch.from_numpy(np.ascontiguousarray(values, dtype=np.float64)),
-                                    torch.from_numpy(rank.reshape(-1)), len(unique), upper=True)
-    return unique, medians.numpy(), counts.numpy()
+def _medians(values: np.ndarray, group: Tensor, groups: int) -> tuple[np.ndarray, np.ndarray]:
+    # Each group's median of ``values`` (the upper middle of an even count) and its count:
+    # :func:`group_medians` of numpy values.
+    medians, counts = group_medians(torch.from_numpy(np.ascontiguousarray(values, dtype=np.float64)), group, groups,
+                                    upper=True)
+    return medians.numpy(), counts.numpy()
 
 
 def join_shading_cuts(labels: np.ndarray, log_grey: np.ndarray, chroma: np.ndarray, noise: np.ndarray,
@@ -122,17 +121,15 @@ def join_shading_cuts(labels: np.ndarray, log_grey: np.ndarray, chroma: np.ndarr
     count = int(labels.max()) + 1 if (labels >= 0).any() else 0
     parent = np.arange(count)
     if keys_all:
-        keys = np.concatenate(keys_all)
-        unique, excess, _ = _medians_by_key(keys, np.concatenate(excess_all))
-        _, colour, _ = _medians_by_key(keys, np.concatenate(colour_all))
-        _, _, pairs = _medians_by_key(keys, np.concatenate(excess_all))
+        unique, rank = np.unique(np.concatenate(keys_all), return_inverse=True)
+        rank = torch.from_numpy(rank.reshape(-1))
+        excess, pairs = _medians(np.concatenate(excess_all), rank, len(unique))
+        colour, _ = _medians(np.concatenate(colour_all), rank, len(unique))
         # Each segment's colour: the median chromaticity of its pixels (the cut's few pixels
-        # can agree where the two sides' colours do not).
+        # can agree where the two sides' colours do not); the labels are the groups.
         inside = labels >= 0
-        hue = np.stack([_medians_by_key(labels[inside], chroma[..., c][inside])[1] for c in range(2)], -1)
-        ids = np.unique(labels[inside])
-        region_hue = np.zeros((count, 2))
-        region_hue[ids] = hue
+        group = torch.from_numpy(np.ascontiguousarray(labels[inside], dtype=np.int64))
+        region_hue = np.stack([_medians(chroma[..., c][inside], group, count)[0] for c in range(2)], -1)
         apart = np.linalg.norm(region_hue[unique // count] - region_hue[unique % count], axis=-1)
         joined = unique[(excess <= max_step) & (colour <= max_chroma) & (apart <= max_chroma) & (pairs >= MIN_CUT_PAIRS)]
         for key in joined.tolist():
