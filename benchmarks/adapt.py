@@ -137,13 +137,18 @@ def run(data: Path, out_checkpoint: Path, extra: list[str], procedural_scenes: i
     from benchmarks.common import write_results
     from selfsup.estimation import EstimateOptions
 
+    if adapted and (search is not None or extra):
+        raise SystemExit("--adapted scores an earlier run's checkpoint: --search and mode=adapt settings do not apply")
     if start is not None:
         extra = [f"adapt.checkpoint={start.resolve()}", *extra]
-    if adapted:  # scored only: an earlier run's adapted checkpoint
-        seconds, line = float("nan"), _earlier_adaptation(out_checkpoint)
+    if adapted:  # scored only: an earlier run's adapted checkpoint, its own summary
+        line = _earlier_adaptation(out_checkpoint)
+        timing = f"an earlier run's checkpoint {out_checkpoint.name}, not timed here ({line}). "
     else:
         seconds, line = _adapt_command(data, out_checkpoint, extra, search)
-    print(f"adapted in {seconds:.0f} s: {line}", flush=True)
+        searched = f"; the search read from {search}, not timed" if search else ""
+        timing = f"{seconds:.0f} s for the command, start-up included{searched} ({line}). "
+    print(f"adaptation: {timing}", flush=True)
     rows = []
     for label, checkpoint in (("shipped" if start is None else start.name, start), ("adapted", out_checkpoint)):
         for method in ("cnn", "cnn+refine"):
@@ -164,10 +169,7 @@ def run(data: Path, out_checkpoint: Path, extra: list[str], procedural_scenes: i
                   f"of the scene size; procedural = two of `mode=eval`'s sets (seed 9000, 160x120), the network "
                   f"alone: true reflectance (its cost volumes see the albedo; mode=adapt's forgetting guard validates "
                   f"on this set's first 100) and capture-like (a drawn camera, indirect light, 1-3 lights, no albedo). "
-                  + (f"Adaptation: an earlier run's checkpoint {out_checkpoint.name}, not timed here ({line}). " if adapted else
-                     f"Adaptation: {seconds:.0f} s for the command, start-up "
-                     f"included{'; the search read from ' + str(search) + ', not timed' if search else ''} ({line}). ") +
-                  f"Settings changed: {' '.join(extra) or 'none'}.")
+                  f"Adaptation: {timing}Settings changed: {' '.join(extra) or 'none'}.")
         print(write_results(name, torch.device("cpu"), rows, header, COLUMNS))
     return rows
 

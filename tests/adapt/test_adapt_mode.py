@@ -106,9 +106,12 @@ def test_adapt_writes_a_checkpoint_that_estimate_and_track_take_and_resumes(tmp_
     network, state = load_network(out)
     assert state["adapted_from"] == "shipped" and "held_loss" in state["metrics"]
     from benchmarks.adapt import _earlier_adaptation  # the benchmark scores an adaptation it did not run
+    from benchmarks.adapt import run as adapt_benchmark
     assert _earlier_adaptation(out).startswith("4 steps from shipped: held-back loss")
     with pytest.raises(SystemExit, match="not written by mode=adapt"):
         _earlier_adaptation(LIGHTNET_CHECKPOINT)
+    with pytest.raises(SystemExit, match="do not apply"):  # refused before anything runs
+        adapt_benchmark(tmp_path, out, ["adapt.steps=4"], adapted=True)
     assert load_checkpoint(last)["step"] == 4
     teacher = [json.loads(line) for line in (Path(f"{out}.run") / "teacher.jsonl").read_text().splitlines()]
     assert len(teacher) == 6 and len({record["id"] for record in teacher}) == 6  # searched once, kept for the resume
