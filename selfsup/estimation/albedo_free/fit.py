@@ -229,11 +229,21 @@ def mirror_lobes(gbuffer: GBuffer, position: Tensor, max_angle_deg: float) -> Te
 
 def highlight_pixels(obs: LogShading, fit: AlbedoFreeFit, max_angle_deg: float, min_excess: float = 0.0) -> Tensor:
     """``(B, H, W)`` bool: the pixels of ``fit``'s lights' :func:`mirror_lobes` that are
-    brighter than its model (a residual against their segment's offset above ``min_excess``
-    times the fit's Cauchy scale): where a glossy surface may show a highlight the
-    diffuse-only fit does not explain. Segment residuals only."""
+    brighter than its model (a residual above ``min_excess`` times the fit's Cauchy scale):
+    where a glossy surface may show a highlight the diffuse-only fit does not explain. Each
+    residual is taken against its segment's offset over the segment's pixels outside the
+    lobes (over all of them where it lies inside): a highlight that covers much of its
+    segment lifts even a robust offset, and its dimmer rim then reads as darker than the
+    model and stays in (a glossy wall beside a lamp, half of its segment in the lobe).
+    Segment residuals only."""
     if obs.segments is None:
         raise ValueError("highlight pixels are found on segment residuals; pairs have no pixel of their own")
-    _, residual = _evaluate(obs, fit.position, fit.log_weight, fit.log_bounce)
+    transport, _ = _effective(obs, _transport(obs, fit.position), fit.log_weight, fit.log_bounce)
+    log_model, _ = _log_model(transport, fit.log_weight)
+    ratio = (obs.log_shading - log_model).flatten(1)
     lobes = mirror_lobes(obs.gbuffer, fit.position, max_angle_deg)
+    outside = obs.pairs & ~lobes.flatten(1)
+    has_outside = obs.segment_means(outside.to(ratio.dtype), obs.pairs.to(ratio.dtype)) > 0
+    offset = torch.where(has_outside, obs.offsets(ratio, outside), obs.offsets(ratio))
+    residual = torch.where(obs.pairs, ratio - offset, torch.zeros_like(ratio))
     return lobes & (residual.view_as(lobes) > min_excess * obs.scale.view(-1, 1, 1))

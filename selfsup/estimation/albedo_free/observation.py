@@ -81,12 +81,13 @@ class LogShading:
         totals = weight.new_zeros(weight.shape[0], slots).scatter_add_(1, self.segments, weight)
         return (sums / (totals if x.dim() == 2 else totals[:, None]).clamp_min(1e-30)).gather(-1, index)
 
-    def offsets(self, x: Tensor) -> Tensor:
+    def offsets(self, x: Tensor, valid: Tensor | None = None) -> Tensor:
         """Each segment's robust location of ``x (B, P)`` (a log ratio of the
         observation to a model), at each of its pixels ``(B, P)``: means reweighted
         under the Cauchy loss at ``scale`` times :data:`OFFSET_SCALES` in turn, from the
-        plain mean. Segments only."""
-        valid = self.pairs.to(x.dtype)
+        plain mean; over the pixels ``valid (B, P)`` bool (default: :attr:`pairs`), 0 for
+        a segment with none of them. Segments only."""
+        valid = (self.pairs if valid is None else valid).to(x.dtype)
         centre = self.segment_means(x, valid)
         for factor in OFFSET_SCALES:
             centre = self.segment_means(x, valid / (1 + ((x - centre) / (factor * self.scale[:, None])) ** 2))
