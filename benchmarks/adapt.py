@@ -127,7 +127,8 @@ def _earlier_adaptation(checkpoint: Path) -> str:
     if not saved.get("metrics", {}).get("adapted"):
         raise SystemExit(f"{checkpoint} was not written by mode=adapt (no 'adapted' metrics); run without --adapted")
     metrics, before = saved["metrics"], saved.get("before", {})
-    return (f"{metrics['step']} steps from {saved.get('adapted_from')}: held-back loss "
+    # The step whose weights were kept (the best held-back loss), not the run's last.
+    return (f"the weights of adaptation step {metrics['step']} from {saved.get('adapted_from')}: held-back loss "
             f"{before.get('held_loss', float('nan')):.3f} -> {metrics['held_loss']:.3f}")
 
 
