@@ -67,10 +67,7 @@ def _residual(obs: LogShading, log_model: Tensor, robust: bool = True) -> Tensor
         return torch.where(_per_image(obs.pairs, model), _per_image(obs.observed, model) - model,
                            torch.zeros((), dtype=model.dtype, device=model.device))
     ratio = (obs.log_shading - log_model).flatten(1)
-    residual = ratio - obs.offsets(ratio)
-    if obs.weight is not None:  # a noise-dominated image's residuals, each over its own noise
-        residual = residual * obs.weight
-    return torch.where(obs.pairs, residual, torch.zeros_like(ratio))
+    return torch.where(obs.pairs, ratio - obs.offsets(ratio), torch.zeros_like(ratio))
 
 
 def bounce_maps(obs: LogShading, diffuse: Tensor, log_weight: Tensor) -> Tensor:
@@ -147,11 +144,8 @@ def _jacobian(obs: LogShading, position: Tensor, log_weight: Tensor, robust: boo
     # pixels' residuals), so a residual's derivative is the model's less that mean of it
     # (mean - d, which is -(d - mean) exactly).
     d_log = d_log.flatten(2)  # (B, k, P)
-    weights, rows = _cauchy_weights(obs, residual), obs.pairs
-    if obs.weight is not None:  # weighted residuals: the offsets' means under the weights squared
-        weights, rows = weights * obs.weight**2, obs.pairs * obs.weight
-    mean = obs.segment_means(d_log, weights)
-    return residual, mean.sub_(d_log).mul_(rows[:, None])
+    mean = obs.segment_means(d_log, _cauchy_weights(obs, residual))
+    return residual, mean.sub_(d_log).mul_(obs.pairs[:, None])
 
 
 def _unpack(step: Tensor, L: int) -> tuple[Tensor, Tensor]:
@@ -251,6 +245,5 @@ def highlight_pixels(obs: LogShading, fit: AlbedoFreeFit, max_angle_deg: float, 
     outside = obs.pairs & ~lobes.flatten(1)
     has_outside = obs.segment_means(outside.to(ratio.dtype), obs.pairs.to(ratio.dtype)) > 0
     offset = torch.where(has_outside, obs.offsets(ratio, outside), obs.offsets(ratio))
-    residual = ratio - offset if obs.weight is None else (ratio - offset) * obs.weight
-    residual = torch.where(obs.pairs, residual, torch.zeros_like(ratio))
+    residual = torch.where(obs.pairs, ratio - offset, torch.zeros_like(ratio))
     return lobes & (residual.view_as(lobes) > min_excess * obs.scale.view(-1, 1, 1))

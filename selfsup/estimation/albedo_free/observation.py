@@ -30,16 +30,6 @@ __all__ = ["LogShading", "AlbedoFreeFit", "pair_differences", "albedo_segments",
 # same fits at twice the time.
 OFFSET_SCALES = (8.0, 4.0, 2.0, 1.0, 1.0)
 
-# A frame whose noise is at least this share of its median pixel's value is noise-dominated: one
-# Cauchy scale (that share, in log units) leaves the lights nothing to explain, so each residual is
-# weighted by the robust scale over its own pixel's log noise instead (:func:`observe`). The
-# sensor-noisy orbiting camera of the procedural sequences (a dark room under one lamp, 1.05-1.12)
-# said "no light" in every frame with one scale (evidence -19.6) and finds its lamp weighted (+38.8);
-# clean and sensor-noisy capture sets lie at 0.0003-0.23 (Mitsuba, devset), where the noise level
-# (the median second difference) is mostly the shading's curvature and weighting their dark pixels
-# down cost a frame in three sets (benchmarks/results/whitening_trial_cpu2_2026-12-05.md).
-NOISE_DOMINATED = 0.3
-
 
 @dataclass
 class LogShading:
@@ -56,9 +46,6 @@ class LogShading:
         segments: ``(B, H W)`` each pixel's albedo segment (``segment_count``: none), or None for pairs.
         segment_count: how many segment ids there are (one more than the largest label; the
             id of "none"): the segment sums' length, whatever the image's size.
-        weight: ``(B, P)`` each residual's weight (the Cauchy scale over its pixel's own log
-            noise, :data:`NOISE_DOMINATED`), or None: every residual weighs one. Residuals,
-            Jacobians and the segment offsets (weights squared) all take it.
     """
 
     log_shading: Tensor
@@ -70,7 +57,6 @@ class LogShading:
     scale: Tensor
     segments: Tensor | None = None
     segment_count: int = 0
-    weight: Tensor | None = None
 
     def differences(self, x: Tensor) -> Tensor:
         """The albedo-free view of log images ``x (B, [k,] H, W)`` -> ``(B, [k,] P)``: pair
@@ -79,11 +65,7 @@ class LogShading:
             return pair_differences(x)
         flat = x.flatten(-2)
         valid = self.pairs.to(flat.dtype)
-        mean_weight, factor = valid, valid
-        if self.weight is not None:  # each pixel's weight: its segment's mean under its square
-            w = self.weight.to(flat.dtype)
-            mean_weight, factor = valid * w**2, valid * w
-        return (flat - self.segment_means(flat, mean_weight)) * (factor if flat.dim() == 2 else factor[:, None])
+        return (flat - self.segment_means(flat, valid)) * (valid if flat.dim() == 2 else valid[:, None])
 
     def segment_means(self, x: Tensor, weight: Tensor) -> Tensor:
         """Each pixel's segment's ``weight (B, P)``-weighted mean of ``x (B, [k,] P)``, at
@@ -106,13 +88,9 @@ class LogShading:
         plain mean; over the pixels ``valid (B, P)`` bool (default: :attr:`pairs`), 0 for
         a segment with none of them. Segments only."""
         valid = (self.pairs if valid is None else valid).to(x.dtype)
-        w = None if self.weight is None else self.weight.to(x.dtype)
-        if w is not None:  # a weighted residual's location: its weight squared
-            valid = valid * w**2
         centre = self.segment_means(x, valid)
         for factor in OFFSET_SCALES:
-            deviation = x - centre if w is None else (x - centre) * w
-            centre = self.segment_means(x, valid / (1 + (deviation / (factor * self.scale[:, None])) ** 2))
+            centre = self.segment_means(x, valid / (1 + ((x - centre) / (factor * self.scale[:, None])) ** 2))
         return centre
 
 
@@ -274,9 +252,7 @@ def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float 
     ``residuals``: ``segments`` (each pixel's log shading minus its albedo segment's mean,
     :func:`albedo_segments` at ``segment_scale``, or ``labels (B, H, W)`` when found
     already) or ``pairs`` (differences of neighbours). The Cauchy scale is ``robust_scale`` (a relative change), at least
-    ``noise_floor`` x the image's noise level relative to its median; in a noise-dominated
-    image (that level at least :data:`NOISE_DOMINATED`, segments only) ``robust_scale``, each
-    residual weighted by it over its pixel's own log noise (:attr:`LogShading.weight`).
+    ``noise_floor`` x the image's noise level relative to its median.
     """
     if residuals not in ALBEDO_FREE_RESIDUALS:
         raise ValueError(f"residuals must be one of {ALBEDO_FREE_RESIDUALS}, got {residuals!r}")
@@ -295,16 +271,8 @@ def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float 
         pairs = segments < count
     else:
         pairs = _pair_mask(valid)
-    weight = None
-    noisy = relative_noise >= NOISE_DOMINATED
-    if residuals == "segments" and bool(noisy.any()):
-        # The log's noise at each pixel: the sensor's over the pixel's own value, beside the scale.
-        log_noise = problem.noise_level()[:, None, None] / problem.image.mean(1).clamp_min(1e-12)
-        whitened = robust_scale / torch.sqrt(robust_scale**2 + log_noise**2)
-        weight = torch.where(noisy[:, None, None], whitened, torch.ones_like(whitened)).flatten(1).to(grey.dtype)
-        scale = torch.where(noisy, torch.full_like(scale, robust_scale), scale)
     obs = LogShading(log_shading, pairs, log_shading, problem.gbuffer, Material(kd=problem.material.kd),
-                     problem.falloff, scale.to(grey.dtype), segments, count, weight)
+                     problem.falloff, scale.to(grey.dtype), segments, count)
     obs.observed = obs.differences(log_shading)  # the same view of the data as of every model
     return obs
 
@@ -315,4 +283,4 @@ def _tiled(obs: LogShading, count: int) -> LogShading:
     rows = torch.arange(obs.gbuffer.batch_size, device=obs.gbuffer.points.device).repeat_interleave(count)
     return LogShading(rep(obs.log_shading), rep(obs.pairs), rep(obs.observed), obs.gbuffer.select(rows),
                       Material(kd=rep(obs.material.kd)), obs.falloff, rep(obs.scale), rep(obs.segments),
-                      obs.segment_count, rep(obs.weight))
+                      obs.segment_count)
