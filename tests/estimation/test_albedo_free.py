@@ -399,8 +399,8 @@ def test_a_highlight_over_most_of_its_segment_is_held_out_in_full():
     # A wall of one albedo (one segment) 0.5 m behind a light beside the camera, its shading
     # exactly the model's but for a broad Blinn-Phong highlight (shininess 10) whose 40-degree
     # lobe covers four fifths of the wall. Against the offset of the whole segment (lifted by the
-    # highlight) 888 of the lobe's pixels read darker than the model; against the offset of the
-    # wall outside the lobe every one of them is brighter, and none outside the lobe counts.
+    # highlight) part of the lobe's pixels read darker than the model (888 of 2,434 here); against
+    # the offset of the wall outside the lobe every one of them is brighter, none outside it counts.
     K = torch.tensor([[40.0, 0, 31.5], [0, 40.0, 23.5], [0, 0, 1]])
     gbuffer = GBuffer.from_depth(torch.full((1, 48, 64), 2.0), K, torch.tensor([0.0, 0.0, -1.0]).expand(1, 48, 64, 3))
     position = torch.tensor([[[-0.3, 0.0, 0.5]]])
@@ -414,6 +414,8 @@ def test_a_highlight_over_most_of_its_segment_is_held_out_in_full():
     obs.log_shading = (shading + 2.0 * shading.amax() * n_dot_h**10).log() + 1.0  # the albedo's unknown scale: 1.0
     lobes = albedo_free.mirror_lobes(gbuffer, position, 40.0)
     assert 0.75 < float(lobes.float().mean()) < 0.85
+    _, against_whole_segment = albedo_fit._evaluate(obs, position, fit.log_weight)
+    assert int((lobes & (against_whole_segment.view_as(lobes) > 0)).sum()) < int(lobes.sum())  # the case is hard
     assert torch.equal(albedo_free.highlight_pixels(obs, fit, 40.0), lobes)
 
 

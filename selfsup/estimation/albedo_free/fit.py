@@ -244,6 +244,6 @@ def highlight_pixels(obs: LogShading, fit: AlbedoFreeFit, max_angle_deg: float, 
     lobes = mirror_lobes(obs.gbuffer, fit.position, max_angle_deg)
     outside = obs.pairs & ~lobes.flatten(1)
     has_outside = obs.segment_means(outside.to(ratio.dtype), obs.pairs.to(ratio.dtype)) > 0
-    offset = torch.where(has_outside, obs.offsets(ratio, outside), obs.offsets(ratio))
-    residual = torch.where(obs.pairs, ratio - offset, torch.zeros_like(ratio))
+    residual = torch.where(obs.pairs, ratio - obs.offsets(ratio, torch.where(has_outside, outside, obs.pairs)),
+                           torch.zeros_like(ratio))
     return lobes & (residual.view_as(lobes) > min_excess * obs.scale.view(-1, 1, 1))
