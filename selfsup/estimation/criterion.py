@@ -42,6 +42,7 @@ class Candidate:
     vignetting: float | None = None  # the corner light loss of the lens the fit took out (albedo-free fits)
     highlight_pixels: int | None = None  # pixels left out of the placement as a highlight (albedo-free fits)
     bounce_share: float | None = None  # the modelled light's share bounced off the surfaces (albedo-free fits with it)
+    gloss: tuple[float, float] | None = None  # the albedo-free fit's specular lobe (ratio to the diffuse, shininess), if any
 
 
 def block_px(options: EstimateOptions, width: int, albedo_free: bool = False) -> int:

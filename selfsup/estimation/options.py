@@ -27,6 +27,7 @@ LIGHT_COLOUR = ("neutral", "shared", "free")
 VIGNETTING = ("auto", "none")
 HIGHLIGHTS = ("leave_out", "keep")
 ALBEDO_FREE_BOUNCE = ("auto", "never")
+ALBEDO_FREE_GLOSS = ("auto", "never")
 REFINE_METHODS = ("lm", "adam", "gd")
 
 
@@ -138,6 +139,10 @@ class Tuning:
             degrees of their half vector) that are brighter than their model: where a
             glossy surface shows their highlight, which the diffuse-only fit cannot
             explain and a light beside it can (0: every pixel).
+            ``albedo_free_gloss``: ``auto`` gives the fit a specular lobe beside the diffuse
+            light (its ratio and shininess one pair a frame, from a grid at the first
+            light), where the criterion prefers it: metal and broad paint gloss
+            (:mod:`selfsup.estimation.albedo_free.gloss`) | ``never``.
             ``unlit_evidence``: one more light is also taken where the capture's black
             pixels need it (:mod:`selfsup.estimation.unlit`: the fewer lights' shadows
             shown lit), judged under the criterion's cast shadows.
@@ -201,6 +206,7 @@ class Tuning:
     albedo_free_lobe_deg: float = 20.0
     highlights: str = "leave_out"
     albedo_free_bounce: str = "never"
+    albedo_free_gloss: str = "never"
     unlit_evidence: bool = True
     albedo_class_rounds: int = 1
     albedo_class_level: float = 0.1
@@ -276,7 +282,7 @@ def _check_tuning(t: Tuning) -> None:
          "null or an integer >= 1")
     need(t.criterion_stride >= 1, "criterion_stride", ">= 1 pixel")
     for name, choices in (("reflectance", REFLECTANCE), ("albedo_free_residuals", ALBEDO_FREE_RESIDUALS),
-                          ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT), ("light_colour", LIGHT_COLOUR), ("vignetting", VIGNETTING), ("highlights", HIGHLIGHTS), ("albedo_free_bounce", ALBEDO_FREE_BOUNCE),
+                          ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT), ("light_colour", LIGHT_COLOUR), ("vignetting", VIGNETTING), ("highlights", HIGHLIGHTS), ("albedo_free_bounce", ALBEDO_FREE_BOUNCE), ("albedo_free_gloss", ALBEDO_FREE_GLOSS),
                           ("indirect", INDIRECT), ("search_shadows", SHADOW_METHODS),
                           ("criterion_shadows", SHADOW_METHODS)):
         _check_choice(f"tuning.{name}", getattr(t, name), choices)

@@ -49,6 +49,10 @@ class FitProblem:
         cropped: ``(B,)`` bool, the images that are a crop of their frame
             (:func:`selfsup.estimation.prepare.cropped_to_depth`: an object in the dark),
             whose lens's vignetting the albedo-free fit does not look for; None: none is.
+        gloss: ``(B, 2)``: the albedo-free fit's specular lobe of each image, the ratio of its
+            peak to the diffuse light (``ks / kd``, one for the frame) and its shininess
+            (:func:`selfsup.estimation.albedo_free.choose_gloss`); a ratio of 0: diffuse only.
+            None: every image diffuse only.
     """
 
     gbuffer: GBuffer
@@ -61,6 +65,7 @@ class FitProblem:
     normal_tilt: Tensor | None = None
     shadow_options: object | None = None
     cropped: Tensor | None = None
+    gloss: Tensor | None = None
     _median: Tensor | None = field(default=None, init=False, repr=False, compare=False)
     _noise: Tensor | None = field(default=None, init=False, repr=False, compare=False)
     # Median and noise level of each subsample (by stride) already found: the solvers
@@ -110,6 +115,7 @@ class FitProblem:
             self.image[index], None if self.ambient is None else self.ambient[index], self.falloff, self.shadows,
             self.indirect, None if self.normal_tilt is None else self.normal_tilt[index], self.shadow_options,
             None if self.cropped is None else self.cropped[index],
+            None if self.gloss is None else self.gloss[index],
         )
         # Each image's median is its own: the selection's are these rows (a sort of every
         # image's values each time was 7% of a batched estimate's GPU time).
@@ -125,6 +131,11 @@ class FitProblem:
     def with_material(self, material: Material) -> "FitProblem":
         """The same images with another reflectance (the same observations: medians and noise levels kept)."""
         return self._changed(material=material)
+
+    def with_gloss(self, gloss: Tensor | None) -> "FitProblem":
+        """The same images with the albedo-free fit's specular lobe ``gloss (B, 2)`` (ratio,
+        shininess; None: diffuse only)."""
+        return self._changed(gloss=gloss)
 
     def with_indirect(self, indirect: bool = True) -> "FitProblem":
         """The same images with (or without) each light's indirect light in its basis images."""
@@ -168,6 +179,8 @@ class FitProblem:
             None if all(p.cropped is None for p in problems) else torch.cat(
                 [torch.zeros(p.batch, dtype=torch.bool, device=p.image.device) if p.cropped is None else p.cropped
                  for p in problems]),
+            None if all(p.gloss is None for p in problems) else torch.cat(
+                [p.image.new_zeros(p.batch, 2) if p.gloss is None else p.gloss for p in problems]),
         )
 
 

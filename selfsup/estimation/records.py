@@ -111,6 +111,7 @@ def _record(scene_id: str, best: Candidate, tried: list[Candidate], cov: Tensor,
         "evidence": None if best.evidence is None else round(best.evidence, 3),
         "unsupported_lights": unsupported, "vignetting": best.vignetting, "highlight_pixels": best.highlight_pixels,
         "bounce_share": best.bounce_share,
+        "gloss": None if best.gloss is None else {"ratio": best.gloss[0], "shininess": best.gloss[1]},
         "specular": best.specular, "coat": best.coat, "reflectance": best.reflectance,
         "candidates": [{"n_lights": c.n_lights, "specular": c.specular, "coat": c.coat, "criterion": round(c.criterion, 3)}
                        for c in tried],

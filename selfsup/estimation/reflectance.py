@@ -213,6 +213,9 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         raise ValueError(f"kd is one constant, so the lights are fitted albedo-free, but image {pairs.index(min(pairs))} "
                          f"has {min(pairs)} usable residuals (lit pixels of albedo segments, or pairs of neighbouring "
                          f"pixels with kd > 0 and light; at least {MIN_RESIDUALS} needed)")
+    if options.tuning.albedo_free_gloss == "auto" and labels is not None:
+        # Metal and glossy paint: a specular lobe beside the diffuse light, where it pays.
+        problem, found = albedo_free.choose_gloss(problem, found, labels, options.tuning.albedo_free_scale, criterion)
 
     best = [(found, i, c) for i, c in enumerate(criterion(found))]  # (fit, row, criterion) per image
     tried = [[(1, c)] for _, _, c in best]
@@ -285,17 +288,18 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
         if with_bounce is not None:
             chosen = with_bounce(every, chosen)
         losses, counted = chosen.loss.tolist(), chosen.pairs.tolist()
-        bounced = chosen.bounced().tolist()
-        evidence = [bic(unlit, pairs, 0, block) - bic(loss, pairs, 4 * n_lights + int(b), block)
-                    for unlit, loss, pairs, b in zip(ambient_only_loss(every, chosen).tolist(), losses, counted, bounced)]
-        for i, loss, pairs, b in zip(group, losses, counted, bounced):
-            whole[i] = bic(loss, pairs, 4 * n_lights + int(bool(corner_loss[i] > 0)) + int(b), block)
+        # The model's own parameters: a position and a contrast per light, the bounce's strength, the lobe's two.
+        own = [4 * n_lights + int(b) + g for b, g in zip(chosen.bounced().tolist(), gloss_parameters(sub))]
+        evidence = [bic(unlit, pairs, 0, block) - bic(loss, pairs, k, block)
+                    for unlit, loss, pairs, k in zip(ambient_only_loss(every, chosen).tolist(), losses, counted, own)]
+        for i, loss, pairs, k in zip(group, losses, counted, own):
+            whole[i] = bic(loss, pairs, k + int(bool(corner_loss[i] > 0)), block)
         highlight = torch.zeros_like(sub.gbuffer.mask)
         if segments is not None and options.tuning.highlights == "leave_out" and options.tuning.albedo_free_lobe_deg > 0:
             # The diffuse-only fit cannot explain a glossy surface's highlight: its pixels (in the
             # lights' mirror lobes, clearly brighter than the model) are left out of the placement.
             highlight = albedo_free.highlight_pixels(every, chosen, options.tuning.albedo_free_lobe_deg,
-                                                     HIGHLIGHT_EXCESS)
+                                                     HIGHLIGHT_EXCESS) & diffuse_images(sub)[:, None, None]
             segments = torch.where(highlight, -1, segments)
         if segments is not None and options.tuning.albedo_class_rounds > 0:
             # The chosen model's lights placed on its segments merged into classes of one albedo.
@@ -311,11 +315,34 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
             candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free",
                                   evidence=evidence[j], vignetting=round(float(corner_loss[i]), 3),
                                   highlight_pixels=int(highlight[j].sum()),
-                                  bounce_share=round(float(bounce_share[j]), 4) if bounced[j] else None)
+                                  bounce_share=round(float(bounce_share[j]), 4) if bool(chosen.bounced()[j]) else None,
+                                  gloss=lobe_of(sub, j))
             # The records keep the tried models' counts and criteria only.
             others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
             results[i] = (candidate, others)
     return results, whole
+
+
+def gloss_parameters(problem: FitProblem) -> list[int]:
+    """Each image's parameters of its albedo-free specular lobe (:attr:`FitProblem.gloss`): two, or none."""
+    if problem.gloss is None:
+        return [0] * problem.batch
+    return [albedo_free.GLOSS_PARAMETERS if r > 0 else 0 for r in problem.gloss[:, 0].tolist()]
+
+
+def diffuse_images(problem: FitProblem) -> Tensor:
+    """``(B,)`` bool: the images whose albedo-free model has no specular lobe."""
+    if problem.gloss is None:
+        return torch.ones(problem.batch, dtype=torch.bool, device=problem.image.device)
+    return ~(problem.gloss[:, 0] > 0)
+
+
+def lobe_of(problem: FitProblem, row: int) -> tuple[float, float] | None:
+    """Image ``row``'s albedo-free specular lobe ``(ratio, shininess)``, or None (diffuse only)."""
+    if problem.gloss is None or not float(problem.gloss[row, 0]) > 0:
+        return None
+    ratio, shininess = problem.gloss[row].tolist()
+    return round(ratio, 4), round(shininess, 2)
 
 
 def albedo_free_covariance(observed: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFit, problem: FitProblem,
@@ -335,8 +362,11 @@ def _or_black_pixels_need(problem: FitProblem, options: EstimateOptions, fewer: 
                           more: albedo_free.AlbedoFreeFit, taken: list[bool]) -> list[bool]:
     """``taken`` (one light more, per image of ``problem``) or, where the criterion did not
     take it, the capture's black pixels need it (:func:`selfsup.estimation.unlit.needs_another_light`
-    under the criterion's cast shadows). Only the images not taken already are rendered."""
-    rest = [j for j, t in enumerate(taken) if not t]
+    under the criterion's cast shadows). Only the images not taken already are rendered, and
+    only those of a diffuse model: where the fit has a specular lobe (metal, gloss), a black
+    pixel may be one the lobe does not reach as well as a shadow."""
+    diffuse_only = diffuse_images(problem).tolist()
+    rest = [j for j, t in enumerate(taken) if not t and diffuse_only[j]]
     if not rest:
         return taken
     rows = torch.tensor(rest, dtype=torch.long, device=problem.image.device)
@@ -360,6 +390,7 @@ def _without_highlights(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, m
     on almost every frame). Without the highlight the pair has nothing to explain."""
     every_pixel = albedo_free.observe(problem, options.tuning.albedo_free_scale, labels=labels, **_residuals(options))
     held_out = albedo_free.highlight_pixels(every_pixel, fewer, options.tuning.albedo_free_lobe_deg)
+    held_out &= diffuse_images(problem)[:, None, None]  # a lobe in the model: its highlight is the model's
     outside = albedo_free.observe(problem, options.tuning.albedo_free_scale,
                                   labels=torch.where(held_out, torch.full_like(labels, -1), labels), **_residuals(options))
     # No iterations: the loss of each fit at its positions and log weights, on these pixels.

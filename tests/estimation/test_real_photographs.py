@@ -173,3 +173,48 @@ def test_the_studio_frames_benchmark_scores_a_frame_by_its_lamp_angle():
     assert all(d[2] < 0 and d[1] <= 0 and abs(math.hypot(*d) - 1) < 1e-9 for d, _, _ in drawn)  # towards the camera, above
     rows = run(1, EstimateOptions(method="cnn", checkpoint="selfsup/checkpoints/iterative_studio.pt"), "x", write=False)
     assert rows[0]["light_found"] and rows[0]["angle_deg"] < 5.0 and rows[-1]["angle_deg"] == rows[0]["angle_deg"]
+
+
+def test_a_specular_lobe_in_the_albedo_free_fit_takes_rough_metal_with_one_light(tmp_path):
+    # Rough dark metal (diffuse 0.03, a broad lobe): the diffuse-only fit widens the lobe with a
+    # second light, 4.6 degrees off; with albedo_free_gloss=auto one light and its lobe, 0.1.
+    direction = (-0.6, -0.3, -0.74)
+    spec = studio_spec(direction, others=False, albedo=(0.03, 0.03, 0.03), ks=0.9, shininess=12.0)
+    scene = photograph(tmp_path, spec)
+    plain = estimate_scene(scene, EstimateOptions())
+    assert len(plain["lights"]) == 2 and plain["gloss"] is None
+    record = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_gloss="auto")))
+    assert record["light_found"] is True and len(record["lights"]) == 1
+    assert _angle_deg(record, spec, direction) < 2.0
+    assert record["gloss"]["ratio"] > 1.0 and record["gloss"]["shininess"] > 0
+
+
+def test_the_lobes_jacobian_is_its_transports_derivative():
+    # The albedo-free LM's Jacobian with a lobe against central differences of its residual (float64).
+    from selfsup.estimation.albedo_free.fit import _evaluate, _jacobian
+    from selfsup.estimation.albedo_free.observation import observe
+
+    spec = studio_spec((0.3, -0.5, -0.81), others=False, width=40, height=30, albedo=(0.5, 0.5, 0.5), ks=0.5,
+                       shininess=12.0)
+    scene = render_spec(spec).scene
+    problem = prepare([scene], EstimateOptions())
+    problem = problem.with_gloss(torch.tensor([[3.0, 12.0]], dtype=problem.image.dtype))
+    obs = observe(problem, residuals="pairs")
+    position = spec.light_position[None].to(problem.image.dtype) * 1.1
+    log_weight = torch.tensor([[-3.0, 0.0]], dtype=problem.image.dtype)
+    obs64 = observe(problem, residuals="pairs")
+    for name in ("log_shading", "observed", "scale"):
+        setattr(obs64, name, getattr(obs, name).double())
+    import dataclasses
+    obs64.gbuffer = dataclasses.replace(obs.gbuffer, points=obs.gbuffer.points.double(), normals=obs.gbuffer.normals.double())
+    obs64.material = dataclasses.replace(obs.material, kd=obs.material.kd.double(), ks=obs.material.ks.double(),
+                                         shininess=obs.material.shininess.double())
+    position, log_weight = position.double(), log_weight.double()
+    residual, jac = _jacobian(obs64, position, log_weight)
+    step = 1e-6
+    for k in range(3):
+        moved = [position.clone(), position.clone()]
+        moved[0][0, 0, k] += step
+        moved[1][0, 0, k] -= step
+        numeric = (_evaluate(obs64, moved[0], log_weight)[1] - _evaluate(obs64, moved[1], log_weight)[1]) / (2 * step)
+        assert torch.allclose(jac[0, k], numeric[0], rtol=1e-4, atol=1e-6 * float(numeric.abs().max()))

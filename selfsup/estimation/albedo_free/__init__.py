@@ -51,10 +51,11 @@ from selfsup.estimation.albedo_free.fit import (bounce_maps, highlight_pixels, l
                                                 shading_loss)
 from selfsup.estimation.albedo_free.observation import (MIN_SEGMENT_PIXELS, AlbedoFreeFit, LogShading, albedo_segments,
                                                         observe, pair_differences, tuned_segments)
+from selfsup.estimation.albedo_free.gloss import GLOSS_PARAMETERS, choose_gloss
 from selfsup.estimation.albedo_free.light_search import (AMBIENT_STEPS, RATIO_STEPS, anchor_pairs, refine_from, search,
                                                          search_each, split_starts)
 
 __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "albedo_segments", "tuned_segments", "shading_loss", "search",
            "search_each", "split_starts", "anchor_pairs", "refine_positions", "bounce_maps", "light_shares", "mirror_lobes",
            "highlight_pixels", "position_covariance", "block_scores_of", "group_medians", "albedo_classes",
-           "refine_on_classes", "refine_from", "AMBIENT_STEPS", "RATIO_STEPS", "CLASS_ITERATIONS", "MIN_SEGMENT_PIXELS"]
+           "refine_on_classes", "refine_from", "choose_gloss", "GLOSS_PARAMETERS", "AMBIENT_STEPS", "RATIO_STEPS", "CLASS_ITERATIONS", "MIN_SEGMENT_PIXELS"]

@@ -21,9 +21,18 @@ __all__ = ["shading_loss", "refine_positions", "bounce_maps", "light_shares", "m
 
 
 def _transport(obs: LogShading, position: Tensor) -> Tensor:
-    # Unit diffuse transport (B, L, H, W), shading alone.
-    return light_transport(obs.gbuffer, obs.material, position, falloff=obs.falloff, shadows="none",
-                           specular=False).diffuse
+    # Unit transport (B, L, H, W), shading alone: diffuse, plus the image's specular lobe at its
+    # ratio where the observation has one (glossy_material), on the lit side only.
+    t = light_transport(obs.gbuffer, obs.material, position, falloff=obs.falloff, shadows="none",
+                        specular=obs.material.ks is not None)
+    if t.specular is None:
+        return t.diffuse
+    return t.diffuse + _gloss_ratio(obs)[..., None] * torch.where(t.diffuse > 0, t.specular, 0.0)
+
+
+def _gloss_ratio(obs: LogShading) -> Tensor:
+    # Each image's lobe ratio, (B, 1, 1) (broadcast against (B, L, H, W) with one more axis).
+    return obs.material.ks[:, :1, :1, 0]
 
 
 def _log_model(diffuse: Tensor, log_weight: Tensor) -> tuple[Tensor, Tensor]:
@@ -121,8 +130,14 @@ def _jacobian(obs: LogShading, position: Tensor, log_weight: Tensor, robust: boo
     the one at these parameters when known (:func:`_evaluate`'s)."""
     B, L, _ = position.shape
     jac = light_transport_jacobian(obs.gbuffer, obs.material, position, 1.0, falloff=obs.falloff, shadows="none",
-                                   specular=False)
-    diffuse, bounce = _effective(obs, jac.transport.diffuse, log_weight, log_bounce)  # (B, L, H, W)
+                                   specular=obs.material.ks is not None)
+    unit, d_unit = jac.transport.diffuse, jac.diffuse
+    if jac.specular is not None:  # the lobe at its ratio, on the lit side only (as _transport)
+        lit = unit > 0
+        ratio = _gloss_ratio(obs)[..., None]
+        unit = unit + ratio * torch.where(lit, jac.transport.specular, 0.0)
+        d_unit = d_unit + ratio[..., None] * torch.where(lit[..., None], jac.specular, 0.0)
+    diffuse, bounce = _effective(obs, unit, log_weight, log_bounce)  # (B, L, H, W)
     log_model, shading = _log_model(diffuse, log_weight)
     w = log_weight.exp()
     H, W = diffuse.shape[-2:]
@@ -130,7 +145,7 @@ def _jacobian(obs: LogShading, position: Tensor, log_weight: Tensor, robust: boo
     # (d / d log b = b sum_i w_i G_i / S), each block written into one (B, k, H, W) array and
     # divided by S there (no copies between).
     d_log = diffuse.new_empty(B, 4 * L + int(bounce is not None), H, W)
-    torch.mul(w[:, 1:, None, None, None], jac.diffuse.permute(0, 1, 4, 2, 3),
+    torch.mul(w[:, 1:, None, None, None], d_unit.permute(0, 1, 4, 2, 3),
               out=d_log[:, : 3 * L].view(B, L, 3, H, W))
     d_log[:, 3 * L] = w[:, :1, None]
     torch.mul(w[:, 2:, None, None], diffuse[:, 1:], out=d_log[:, 3 * L + 1 : 4 * L])

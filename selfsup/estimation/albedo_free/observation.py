@@ -20,7 +20,7 @@ from selfsup.estimation.options import ALBEDO_FREE_RESIDUALS, Tuning
 from selfsup.estimation.problem import FitProblem
 
 __all__ = ["LogShading", "AlbedoFreeFit", "pair_differences", "albedo_segments", "tuned_segments", "observe",
-           "MIN_SEGMENT_PIXELS"]
+           "glossy_material", "MIN_SEGMENT_PIXELS"]
 
 # The robust segment offsets (:meth:`LogShading.offsets`): reweighted means from the plain
 # mean, the Cauchy scale times these factors (wide first, so that a start pulled towards a
@@ -41,7 +41,9 @@ class LogShading:
             (:func:`pair_differences` order), or with ``segments`` valid pixels of a
             usable segment (``P = H W``).
         observed: ``(B, P)`` the observation's :meth:`differences`.
-        gbuffer, material, falloff: the geometry and renderer settings of the transport.
+        gbuffer, material, falloff: the geometry and renderer settings of the transport
+            (with ``material.ks``, each image's specular lobe beside the diffuse light:
+            :func:`glossy_material`).
         scale: ``(B,)`` Cauchy scale of the residuals (log units).
         segments: ``(B, H W)`` each pixel's albedo segment (``segment_count``: none), or None for pairs.
         segment_count: how many segment ids there are (one more than the largest label; the
@@ -271,7 +273,7 @@ def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float 
         pairs = segments < count
     else:
         pairs = _pair_mask(valid)
-    obs = LogShading(log_shading, pairs, log_shading, problem.gbuffer, Material(kd=problem.material.kd),
+    obs = LogShading(log_shading, pairs, log_shading, problem.gbuffer, glossy_material(problem.material.kd, problem.gloss),
                      problem.falloff, scale.to(grey.dtype), segments, count)
     obs.observed = obs.differences(log_shading)  # the same view of the data as of every model
     return obs
@@ -281,6 +283,19 @@ def _tiled(obs: LogShading, count: int) -> LogShading:
     # Every image ``count`` times in a row.
     rep = lambda x: None if x is None else x.repeat_interleave(count, 0)  # noqa: E731
     rows = torch.arange(obs.gbuffer.batch_size, device=obs.gbuffer.points.device).repeat_interleave(count)
-    return LogShading(rep(obs.log_shading), rep(obs.pairs), rep(obs.observed), obs.gbuffer.select(rows),
-                      Material(kd=rep(obs.material.kd)), obs.falloff, rep(obs.scale), rep(obs.segments),
-                      obs.segment_count)
+    m = obs.material
+    material = Material(kd=rep(m.kd), ks=rep(m.ks), shininess=m.shininess if m.shininess.dim() == 0 else rep(m.shininess))
+    return LogShading(rep(obs.log_shading), rep(obs.pairs), rep(obs.observed), obs.gbuffer.select(rows), material,
+                      obs.falloff, rep(obs.scale), rep(obs.segments), obs.segment_count)
+
+
+def glossy_material(kd: Tensor, gloss: Tensor | None) -> Material:
+    """The albedo-free fit's reflectance: ``kd (B, H, W, 3)`` and, with ``gloss (B, 2)``
+    (:attr:`~selfsup.estimation.problem.FitProblem.gloss`), a specular lobe of each image's
+    ratio to the diffuse light (``ks (B, H, W, 1)``, one value an image, an expanded view) and
+    shininess ``(B,)``; diffuse only where ``gloss`` is None."""
+    if gloss is None:
+        return Material(kd=kd)
+    B, H, W, _ = kd.shape
+    gloss = gloss.to(kd)
+    return Material(kd=kd, ks=gloss[:, 0].view(B, 1, 1, 1).expand(B, H, W, 1), shininess=gloss[:, 1].clamp_min(1e-3))
