@@ -7,8 +7,9 @@ diffuse light is nil) or a broad paint gloss spreads the lobe over much of the o
 diffuse-only fit then moves its light towards the lobe, or takes a second light beside the
 first to widen the peak. Independent renders of rough gold and aluminium (Mitsuba's GGX
 conductors, path traced, through a camera) took two lights in every frame, the first
-2-24 degrees off; one light with the lobe places it within 0.2-4 degrees and beats the pair
-by the criterion (``benchmarks/results/gloss_cpu2_2026-12-06.md``).
+up to 24.6 degrees off; with the lobe the estimator takes one light in 14 of 16, 0.5-4.8
+degrees off (``benchmarks/results/gloss_cpu2_2026-12-06.md``). Off by default
+(``tuning.albedo_free_gloss``): the matte DiLiGenT bear takes a lobe too and loses 0.6 degrees.
 
 With one paint over the frame (a photographed object) the lobe is one more term of the
 shading, its ratio to the diffuse light (``ks / kd``) and its shininess one pair for the
