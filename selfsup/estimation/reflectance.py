@@ -289,7 +289,8 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
             chosen = with_bounce(every, chosen)
         losses, counted = chosen.loss.tolist(), chosen.pairs.tolist()
         # The model's own parameters: a position and a contrast per light, the bounce's strength, the lobe's two.
-        own = [4 * n_lights + int(b) + g for b, g in zip(chosen.bounced().tolist(), gloss_parameters(sub))]
+        bounced = chosen.bounced().tolist()
+        own = [4 * n_lights + int(b) + g for b, g in zip(bounced, gloss_parameters(sub))]
         evidence = [bic(unlit, pairs, 0, block) - bic(loss, pairs, k, block)
                     for unlit, loss, pairs, k in zip(ambient_only_loss(every, chosen).tolist(), losses, counted, own)]
         for i, loss, pairs, k in zip(group, losses, counted, own):
@@ -315,7 +316,7 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
             candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free",
                                   evidence=evidence[j], vignetting=round(float(corner_loss[i]), 3),
                                   highlight_pixels=int(highlight[j].sum()),
-                                  bounce_share=round(float(bounce_share[j]), 4) if bool(chosen.bounced()[j]) else None,
+                                  bounce_share=round(float(bounce_share[j]), 4) if bounced[j] else None,
                                   gloss=lobe_of(sub, j))
             # The records keep the tried models' counts and criteria only.
             others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
@@ -323,18 +324,16 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
     return results, whole
 
 
-def gloss_parameters(problem: FitProblem) -> list[int]:
-    """Each image's parameters of its albedo-free specular lobe (:attr:`FitProblem.gloss`): two, or none."""
-    if problem.gloss is None:
-        return [0] * problem.batch
-    return [albedo_free.GLOSS_PARAMETERS if r > 0 else 0 for r in problem.gloss[:, 0].tolist()]
-
-
 def diffuse_images(problem: FitProblem) -> Tensor:
     """``(B,)`` bool: the images whose albedo-free model has no specular lobe."""
     if problem.gloss is None:
         return torch.ones(problem.batch, dtype=torch.bool, device=problem.image.device)
     return ~(problem.gloss[:, 0] > 0)
+
+
+def gloss_parameters(problem: FitProblem) -> list[int]:
+    """Each image's parameters of its albedo-free specular lobe (:attr:`FitProblem.gloss`): two, or none."""
+    return [0 if diffuse else albedo_free.GLOSS_PARAMETERS for diffuse in diffuse_images(problem).tolist()]
 
 
 def lobe_of(problem: FitProblem, row: int) -> tuple[float, float] | None:

@@ -200,16 +200,16 @@ def test_the_lobes_jacobian_is_its_transports_derivative():
     problem = prepare([scene], EstimateOptions())
     problem = problem.with_gloss(torch.tensor([[3.0, 12.0]], dtype=problem.image.dtype))
     obs = observe(problem, residuals="pairs")
-    position = spec.light_position[None].to(problem.image.dtype) * 1.1
-    log_weight = torch.tensor([[-3.0, 0.0]], dtype=problem.image.dtype)
-    obs64 = observe(problem, residuals="pairs")
-    for name in ("log_shading", "observed", "scale"):
-        setattr(obs64, name, getattr(obs, name).double())
     import dataclasses
-    obs64.gbuffer = dataclasses.replace(obs.gbuffer, points=obs.gbuffer.points.double(), normals=obs.gbuffer.normals.double())
-    obs64.material = dataclasses.replace(obs.material, kd=obs.material.kd.double(), ks=obs.material.ks.double(),
-                                         shininess=obs.material.shininess.double())
-    position, log_weight = position.double(), log_weight.double()
+
+    g, m = obs.gbuffer, obs.material
+    obs64 = dataclasses.replace(obs, log_shading=obs.log_shading.double(), observed=obs.observed.double(),
+                                scale=obs.scale.double(),
+                                gbuffer=dataclasses.replace(g, points=g.points.double(), normals=g.normals.double()),
+                                material=dataclasses.replace(m, kd=m.kd.double(), ks=m.ks.double(),
+                                                             shininess=m.shininess.double()))
+    position = spec.light_position[None].double() * 1.1
+    log_weight = torch.tensor([[-3.0, 0.0]], dtype=torch.float64)
     residual, jac = _jacobian(obs64, position, log_weight)
     step = 1e-6
     for k in range(3):
