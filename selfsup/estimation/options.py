@@ -28,6 +28,7 @@ VIGNETTING = ("auto", "none")
 HIGHLIGHTS = ("leave_out", "keep")
 ALBEDO_FREE_BOUNCE = ("auto", "never")
 ALBEDO_FREE_GLOSS = ("auto", "never")
+ALBEDO_FREE_COUNT = ("segments", "classes")
 REFINE_METHODS = ("lm", "adam", "gd")
 
 
@@ -143,6 +144,11 @@ class Tuning:
             light (its ratio and shininess one pair a frame, from a grid at the first
             light), where the criterion prefers it: metal and broad paint gloss
             (:mod:`selfsup.estimation.albedo_free.gloss`) | ``never``.
+            ``albedo_free_count``: where one light more is judged: ``segments`` (each
+            albedo segment's level free) | ``classes`` (each model on its own segments
+            merged into albedo classes, the classes counted as parameters: a light that
+            explains how bright segments are beside each other pays for itself;
+            :data:`selfsup.estimation.reflectance.CLASS_COUNT_PENALTY`).
             ``unlit_evidence``: one more light is also taken where the capture's black
             pixels need it (:mod:`selfsup.estimation.unlit`: the fewer lights' shadows
             shown lit), judged under the criterion's cast shadows.
@@ -207,6 +213,7 @@ class Tuning:
     highlights: str = "leave_out"
     albedo_free_bounce: str = "never"
     albedo_free_gloss: str = "never"
+    albedo_free_count: str = "classes"
     unlit_evidence: bool = True
     albedo_class_rounds: int = 1
     albedo_class_level: float = 0.1
@@ -283,6 +290,7 @@ def _check_tuning(t: Tuning) -> None:
     need(t.criterion_stride >= 1, "criterion_stride", ">= 1 pixel")
     for name, choices in (("reflectance", REFLECTANCE), ("albedo_free_residuals", ALBEDO_FREE_RESIDUALS),
                           ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT), ("light_colour", LIGHT_COLOUR), ("vignetting", VIGNETTING), ("highlights", HIGHLIGHTS), ("albedo_free_bounce", ALBEDO_FREE_BOUNCE), ("albedo_free_gloss", ALBEDO_FREE_GLOSS),
+                          ("albedo_free_count", ALBEDO_FREE_COUNT),
                           ("indirect", INDIRECT), ("search_shadows", SHADOW_METHODS),
                           ("criterion_shadows", SHADOW_METHODS)):
         _check_choice(f"tuning.{name}", getattr(t, name), choices)

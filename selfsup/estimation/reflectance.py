@@ -36,6 +36,13 @@ BOUNCE_ITERATIONS = 8
 # A highlight's pixel (left out of the chosen lights' placement): brighter than the diffuse
 # model by this many times the fit's Cauchy scale, inside the lights' mirror lobes.
 HIGHLIGHT_EXCESS = 2.0
+# How many times a light's parameters count when one light more is judged on albedo classes
+# (estimate.tuning.albedo_free_count=classes): each model's classes are merged under its own
+# lights, a choice the criterion does not count. Measured (2026-12-06, results file
+# count_classes_cpu2_2026-12-06.md): counted once, one-light Mitsuba rooms took a second light in 2
+# of 48 frames and the DiLiGenT bear in 5 of 24 (1 on segments); twice, none and 1, the
+# two-light counts still 8 rooms up over six capture sets; three times, the bear none.
+CLASS_COUNT_PENALTY = 2
 
 
 def reflectance_unknown(problem: FitProblem, rel_tol: float = 1e-6) -> Tensor:
@@ -234,7 +241,7 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
             more = albedo_free.search_each(sub, albedo_free.search(sub, n_lights, fixed=before, **kwargs,
                                                                    **network_starts(at, n_lights)), **kwargs)
         taken, fewer_value, more_value = _judged(sub, before, more, [best[i][2] for i in growing], kwargs["labels"],
-                                                 options, criterion)
+                                                 options, criterion, None if geometry is None else geometry[at])
         still = []
         for j, (i, c) in enumerate(zip(growing, more_value)):
             tried[i][-1] = (n_lights - 1, fewer_value[j])  # the records keep the values compared
@@ -247,14 +254,17 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
 
 
 def _judged(sub: FitProblem, before: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
-            fewer_value: list[float], labels: Tensor | None, options: EstimateOptions, criterion
-            ) -> tuple[list[bool], list[float], list[float]]:
+            fewer_value: list[float], labels: Tensor | None, options: EstimateOptions, criterion,
+            geometry: Tensor | None = None) -> tuple[list[bool], list[float], list[float]]:
     # Whether each image takes the fit of one light more: its criterion lower (judged without the
-    # highlights where enough residuals are left) and each light carrying min_light_share, or the
-    # black pixels asking for it; and the two criteria compared.
+    # highlights where enough residuals are left; on albedo classes with albedo_free_count=classes)
+    # and each light carrying min_light_share, or the black pixels asking for it; and the two
+    # criteria compared.
     shares = albedo_free.light_shares(sub, more).amin(1).tolist()
     more_value = criterion(more)
-    if labels is not None and options.tuning.albedo_free_lobe_deg > 0:
+    if labels is not None and options.tuning.albedo_free_count == "classes":
+        fewer_value, more_value = _judged_on_classes(sub, before, more, labels, geometry, options, criterion)
+    elif labels is not None and options.tuning.albedo_free_lobe_deg > 0:
         fewer_there, more_there = _without_highlights(sub, before, more, labels, options)
         kept = (more_there.pairs >= MIN_RESIDUALS).tolist()
         fewer_value = [c if ok else v for c, ok, v in zip(criterion(fewer_there), kept, fewer_value)]
@@ -376,6 +386,34 @@ def _or_black_pixels_need(problem: FitProblem, options: EstimateOptions, fewer: 
     for j, need in zip(rest, needed):
         out[j] = need
     return out
+
+
+def _judged_on_classes(sub: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
+                       labels: Tensor, geometry: Tensor | None, options: EstimateOptions, criterion
+                       ) -> tuple[list[float], list[float]]:
+    """The criteria of ``fewer`` and ``more`` (fits of n - 1 and n lights), each refined on its
+    own segments ``labels`` merged into albedo classes (:func:`albedo_free.refine_on_classes`),
+    the classes counted as parameters (each one level) and each light's :data:`CLASS_COUNT_PENALTY`
+    times, ``fewer``'s brighter mirror-lobe pixels
+    left out as in :func:`_without_highlights`. A segment's free level absorbs most of what a
+    second light does to it; how bright the segments of one paint are beside each other is what
+    the light explains, and a model that explains it joins more segments into fewer classes
+    (measured: with the true lights as starts, the true pair wins in 22 of 24 two-light Mitsuba
+    captures on classes, in 15 on segments)."""
+    tuning = options.tuning
+    if tuning.albedo_free_lobe_deg > 0:
+        every_pixel = albedo_free.observe(sub, tuning.albedo_free_scale, labels=labels, **_residuals(options))
+        held_out = albedo_free.highlight_pixels(every_pixel, fewer, tuning.albedo_free_lobe_deg)
+        labels = torch.where(held_out & diffuse_images(sub)[:, None, None], torch.full_like(labels, -1), labels)
+    values = []
+    for fit in (fewer, more):
+        refined, observed = albedo_free.refine_on_classes(
+            sub, labels, fit, tuning.albedo_free_scale, 1, level_tolerance=tuning.albedo_class_level,
+            chroma_tolerance=tuning.albedo_class_chroma, geometry=geometry)
+        classes = [int(torch.unique(c[p]).numel()) for c, p in zip(observed.segments, observed.pairs)]
+        own = [k + 4 * fit.position.shape[1] * (CLASS_COUNT_PENALTY - 1) for k in classes]  # one level a class
+        values.append(criterion(refined, own))
+    return values[0], values[1]
 
 
 def _without_highlights(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
