@@ -41,7 +41,7 @@ HIGHLIGHT_EXCESS = 2.0
 # lights, a choice the criterion does not count. Measured (2026-12-06, results file
 # count_classes_cpu2_2026-12-06.md): counted once, one-light Mitsuba rooms took a second light in 2
 # of 48 frames and the DiLiGenT bear in 5 of 24 (1 on segments); twice, none and 1, the
-# two-light counts still 8 rooms up over six capture sets; three times, the bear none.
+# two-light counts still 4 rooms up over eight capture sets; three times, the bear none.
 CLASS_COUNT_PENALTY = 2
 
 
@@ -395,11 +395,12 @@ def _judged_on_classes(sub: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: 
     own segments ``labels`` merged into albedo classes (:func:`albedo_free.refine_on_classes`),
     the classes counted as parameters (each one level) and each light's :data:`CLASS_COUNT_PENALTY`
     times, ``fewer``'s brighter mirror-lobe pixels
-    left out as in :func:`_without_highlights`. A segment's free level absorbs most of what a
-    second light does to it; how bright the segments of one paint are beside each other is what
-    the light explains, and a model that explains it joins more segments into fewer classes
-    (measured: with the true lights as starts, the true pair wins in 22 of 24 two-light Mitsuba
-    captures on classes, in 15 on segments)."""
+    left out as in :func:`_without_highlights`. A segment's free level absorbs what a second
+    light does to it; how bright the segments of one paint are beside each other is part of what
+    the light explains, and a model that explains it joins more segments into fewer classes.
+    Measured over eight capture sets: 4 more two-light rooms counted, 2 one-light rooms' stray
+    pairs gone; the true pair as found from the truth still pays in only 6-20 of 24 two-light
+    rooms a set (15-20 on segments: benchmarks/results/count_classes_cpu2_2026-12-06.md)."""
     tuning = options.tuning
     if tuning.albedo_free_lobe_deg > 0:
         every_pixel = albedo_free.observe(sub, tuning.albedo_free_scale, labels=labels, **_residuals(options))
