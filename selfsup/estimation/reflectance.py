@@ -263,7 +263,8 @@ def _judged(sub: FitProblem, before: albedo_free.AlbedoFreeFit, more: albedo_fre
     shares = albedo_free.light_shares(sub, more).amin(1).tolist()
     more_value = criterion(more)
     if labels is not None and options.tuning.albedo_free_count == "classes":
-        fewer_value, more_value = _judged_on_classes(sub, before, more, labels, geometry, options, criterion)
+        fewer_value, more_value = _judged_on_classes(sub, before, more, labels, geometry, options, criterion,
+                                                     fewer_value, more_value)
     elif labels is not None and options.tuning.albedo_free_lobe_deg > 0:
         fewer_there, more_there = _without_highlights(sub, before, more, labels, options)
         kept = (more_there.pairs >= MIN_RESIDUALS).tolist()
@@ -389,13 +390,14 @@ def _or_black_pixels_need(problem: FitProblem, options: EstimateOptions, fewer: 
 
 
 def _judged_on_classes(sub: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
-                       labels: Tensor, geometry: Tensor | None, options: EstimateOptions, criterion
-                       ) -> tuple[list[float], list[float]]:
+                       labels: Tensor, geometry: Tensor | None, options: EstimateOptions, criterion,
+                       fewer_value: list[float], more_value: list[float]) -> tuple[list[float], list[float]]:
     """The criteria of ``fewer`` and ``more`` (fits of n - 1 and n lights), each refined on its
     own segments ``labels`` merged into albedo classes (:func:`albedo_free.refine_on_classes`),
-    the classes counted as parameters (each one level) and each light's :data:`CLASS_COUNT_PENALTY`
-    times, ``fewer``'s brighter mirror-lobe pixels
-    left out as in :func:`_without_highlights`. A segment's free level absorbs what a second
+    the classes counted as parameters (each one level) and each light's
+    :data:`CLASS_COUNT_PENALTY` times, ``fewer``'s brighter mirror-lobe pixels left out as in
+    :func:`_without_highlights`; an image left with fewer than :data:`MIN_RESIDUALS` keeps
+    ``fewer_value`` and ``more_value`` (as found). A segment's free level absorbs what a second
     light does to it; how bright the segments of one paint are beside each other is part of what
     the light explains, and a model that explains it joins more segments into fewer classes.
     Measured over eight capture sets: 4 more two-light rooms counted, 2 one-light rooms' stray
@@ -406,7 +408,7 @@ def _judged_on_classes(sub: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: 
         every_pixel = albedo_free.observe(sub, tuning.albedo_free_scale, labels=labels, **_residuals(options))
         held_out = albedo_free.highlight_pixels(every_pixel, fewer, tuning.albedo_free_lobe_deg)
         labels = torch.where(held_out & diffuse_images(sub)[:, None, None], torch.full_like(labels, -1), labels)
-    values = []
+    values, kept = [], None
     for fit in (fewer, more):
         refined, observed = albedo_free.refine_on_classes(
             sub, labels, fit, tuning.albedo_free_scale, 1, level_tolerance=tuning.albedo_class_level,
@@ -414,7 +416,9 @@ def _judged_on_classes(sub: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: 
         classes = [int(torch.unique(c[p]).numel()) for c, p in zip(observed.segments, observed.pairs)]
         own = [k + 4 * fit.position.shape[1] * (CLASS_COUNT_PENALTY - 1) for k in classes]  # one level a class
         values.append(criterion(refined, own))
-    return values[0], values[1]
+        kept = (refined.pairs >= MIN_RESIDUALS).tolist()
+    return ([v if ok else f for v, ok, f in zip(values[0], kept, fewer_value)],
+            [v if ok else m for v, ok, m in zip(values[1], kept, more_value)])
 
 
 def _without_highlights(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
