@@ -28,7 +28,7 @@ VIGNETTING = ("auto", "none")
 HIGHLIGHTS = ("leave_out", "keep")
 ALBEDO_FREE_BOUNCE = ("auto", "never")
 ALBEDO_FREE_GLOSS = ("auto", "never")
-ALBEDO_FREE_COUNT = ("segments", "classes")
+ALBEDO_FREE_COUNT = ("segments", "classes", "either")
 REFINE_METHODS = ("lm", "adam", "gd")
 
 
@@ -148,7 +148,8 @@ class Tuning:
             albedo segment's level free) | ``classes`` (each model on its own segments
             merged into albedo classes, the classes counted as parameters: a light that
             explains how bright segments are beside each other pays for itself;
-            :data:`selfsup.estimation.reflectance.CLASS_COUNT_PENALTY`).
+            :data:`selfsup.estimation.reflectance.CLASS_COUNT_PENALTY`) | ``either`` (one
+            light more where it wins either comparison).
             ``unlit_evidence``: one more light is also taken where the capture's black
             pixels need it (:mod:`selfsup.estimation.unlit`: the fewer lights' shadows
             shown lit), judged under the criterion's cast shadows.
@@ -213,7 +214,7 @@ class Tuning:
     highlights: str = "leave_out"
     albedo_free_bounce: str = "never"
     albedo_free_gloss: str = "never"
-    albedo_free_count: str = "classes"
+    albedo_free_count: str = "segments"
     unlit_evidence: bool = True
     albedo_class_rounds: int = 1
     albedo_class_level: float = 0.1

@@ -262,14 +262,22 @@ def _judged(sub: FitProblem, before: albedo_free.AlbedoFreeFit, more: albedo_fre
     # criteria compared.
     shares = albedo_free.light_shares(sub, more).amin(1).tolist()
     more_value = criterion(more)
-    if labels is not None and options.tuning.albedo_free_count == "classes":
-        fewer_value, more_value = _judged_on_classes(sub, before, more, labels, geometry, options, criterion,
-                                                     fewer_value, more_value)
-    elif labels is not None and options.tuning.albedo_free_lobe_deg > 0:
+    count = options.tuning.albedo_free_count
+    on_classes = None
+    if labels is not None and count in ("classes", "either"):
+        on_classes = _judged_on_classes(sub, before, more, labels, geometry, options, criterion, fewer_value,
+                                        more_value)
+    if labels is not None and count in ("segments", "either") and options.tuning.albedo_free_lobe_deg > 0:
         fewer_there, more_there = _without_highlights(sub, before, more, labels, options)
         kept = (more_there.pairs >= MIN_RESIDUALS).tolist()
         fewer_value = [c if ok else v for c, ok, v in zip(criterion(fewer_there), kept, fewer_value)]
         more_value = [c if ok else v for c, ok, v in zip(criterion(more_there), kept, more_value)]
+    if on_classes is not None:
+        # either: the pair of values of whichever comparison the light wins (the classes' where both or neither)
+        pick = [count == "classes" or c < f or not m < v
+                for f, c, v, m in zip(*on_classes, fewer_value, more_value)]
+        fewer_value = [a if p else b for p, a, b in zip(pick, on_classes[0], fewer_value)]
+        more_value = [a if p else b for p, a, b in zip(pick, on_classes[1], more_value)]
     taken = [c < f and share >= options.tuning.min_light_share for c, f, share in zip(more_value, fewer_value, shares)]
     if options.tuning.unlit_evidence:
         taken = _or_black_pixels_need(sub, options, before, more, taken)
@@ -401,8 +409,9 @@ def _judged_on_classes(sub: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: 
     light does to it; how bright the segments of one paint are beside each other is part of what
     the light explains, and a model that explains it joins more segments into fewer classes.
     Measured over eight capture sets: 4 more two-light rooms counted, 2 one-light rooms' stray
-    pairs gone; the true pair as found from the truth still pays in only 6-20 of 24 two-light
-    rooms a set (15-20 on segments: benchmarks/results/count_classes_cpu2_2026-12-06.md)."""
+    pairs gone, but a capture sequence's second light lost in 8 frames (the pair's margin 6.6 on
+    segments, -4.2 here); the true pair as found from the truth still pays in only 6-20 of 24
+    two-light rooms a set (7-20 on segments: benchmarks/results/count_classes_cpu2_2026-12-06.md)."""
     tuning = options.tuning
     if tuning.albedo_free_lobe_deg > 0:
         every_pixel = albedo_free.observe(sub, tuning.albedo_free_scale, labels=labels, **_residuals(options))

@@ -425,15 +425,15 @@ def test_a_highlight_is_not_taken_for_a_second_light():
     # on every pixel; outside the light's mirror lobes it does not pay for itself. (Seed 18
     # until the second light's search pruned its starts, 2026-11-26, seed 35 until the
     # regions were joined across shading, 2026-12-01: their spurious pairs are no longer
-    # found at all.) Judged on segments, whose free levels leave the highlight's excess as the
-    # only thing a second light explains; on albedo classes (the default) the pair does not pay
+    # found at all.) Judged on segments (the default), whose free levels leave the highlight's
+    # excess as the only thing a second light explains; on albedo classes the pair does not pay
     # on every pixel either.
     config = dataclasses.replace(MEDIUM, specular_prob=1.0)
     scene = _unknown_albedo(_scene(2, config=config))
-    everywhere = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_lobe_deg=0.0,
-                                                                     albedo_free_count="segments")))
+    everywhere = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_lobe_deg=0.0)))
     assert len(everywhere["lights"]) == 2
-    on_classes = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_lobe_deg=0.0)))
+    on_classes = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_lobe_deg=0.0,
+                                                                     albedo_free_count="classes")))
     assert len(on_classes["lights"]) == 1
     record = estimate_scene(scene, EstimateOptions())
     assert len(record["lights"]) == 1

@@ -1,4 +1,4 @@
-"""The albedo-free count judged on albedo classes (estimate.tuning.albedo_free_count).
+"""The albedo-free count judged on albedo classes (estimate.tuning.albedo_free_count=classes).
 
 Two frames of the procedural capture set of ``benchmarks.captures`` (our generator, 160x120,
 8-bit sRGB at the recipe's exposure, millimetre depth; no albedo given), where the count on
@@ -45,7 +45,15 @@ def _success(record, scene) -> bool:
 def test_a_count_on_albedo_classes_is_right_where_the_segments_levels_hide_it(tmp_path, seed, n_lights, sensor,
                                                                              frame_id):
     scene, capture = _capture(tmp_path, seed, n_lights, sensor, frame_id)
-    on_segments = estimate_scene(capture, EstimateOptions(tuning=Tuning(albedo_free_count="segments")))
+    on_segments = estimate_scene(capture, EstimateOptions())  # the default
     assert len(on_segments["lights"]) != n_lights
-    record = estimate_scene(capture, EstimateOptions())
+    record = estimate_scene(capture, EstimateOptions(tuning=Tuning(albedo_free_count="classes")))
     assert len(record["lights"]) == n_lights and _success(record, scene)
+
+
+def test_either_count_takes_the_light_that_wins_on_classes_alone(tmp_path):
+    # albedo_free_count=either: one light more where it wins on segments or on classes; the
+    # noisy two-light frame above wins on classes only.
+    scene, capture = _capture(tmp_path, 7031, 2, True, "capture_procedural_noisy_scene_031")
+    record = estimate_scene(capture, EstimateOptions(tuning=Tuning(albedo_free_count="either")))
+    assert len(record["lights"]) == 2 and _success(record, scene)
