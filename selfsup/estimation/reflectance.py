@@ -257,9 +257,9 @@ def _judged(sub: FitProblem, before: albedo_free.AlbedoFreeFit, more: albedo_fre
             fewer_value: list[float], labels: Tensor | None, options: EstimateOptions, criterion,
             geometry: Tensor | None = None) -> tuple[list[bool], list[float], list[float]]:
     # Whether each image takes the fit of one light more: its criterion lower (judged without the
-    # highlights where enough residuals are left; on albedo classes with albedo_free_count=classes)
-    # and each light carrying min_light_share, or the black pixels asking for it; and the two
-    # criteria compared.
+    # highlights where enough residuals are left; on albedo classes with albedo_free_count=classes;
+    # on either with either) and each light carrying min_light_share, or the black pixels asking
+    # for it; and the two criteria compared.
     shares = albedo_free.light_shares(sub, more).amin(1).tolist()
     more_value = criterion(more)
     count = options.tuning.albedo_free_count
