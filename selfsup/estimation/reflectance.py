@@ -262,22 +262,26 @@ def _judged(sub: FitProblem, before: albedo_free.AlbedoFreeFit, more: albedo_fre
     # for it; and the two criteria compared.
     shares = albedo_free.light_shares(sub, more).amin(1).tolist()
     more_value = criterion(more)
-    count = options.tuning.albedo_free_count
+    count, lobe_deg = options.tuning.albedo_free_count, options.tuning.albedo_free_lobe_deg
+    if labels is not None and lobe_deg > 0:
+        labels = _highlight_free_labels(sub, before, labels, options)  # found once for both comparisons
     on_classes = None
-    if labels is not None and count in ("classes", "either"):
+    if labels is not None and count != "segments":
         on_classes = _judged_on_classes(sub, before, more, labels, geometry, options, criterion, fewer_value,
                                         more_value)
-    if labels is not None and count in ("segments", "either") and options.tuning.albedo_free_lobe_deg > 0:
+    if labels is not None and count != "classes" and lobe_deg > 0:
         fewer_there, more_there = _without_highlights(sub, before, more, labels, options)
         kept = (more_there.pairs >= MIN_RESIDUALS).tolist()
         fewer_value = [c if ok else v for c, ok, v in zip(criterion(fewer_there), kept, fewer_value)]
         more_value = [c if ok else v for c, ok, v in zip(criterion(more_there), kept, more_value)]
     if on_classes is not None:
-        # either: the pair of values of whichever comparison the light wins (the classes' where both or neither)
-        pick = [count == "classes" or c < f or not m < v
-                for f, c, v, m in zip(*on_classes, fewer_value, more_value)]
-        fewer_value = [a if p else b for p, a, b in zip(pick, on_classes[0], fewer_value)]
-        more_value = [a if p else b for p, a, b in zip(pick, on_classes[1], more_value)]
+        # classes: the classes' values. either: the values of whichever comparison the light wins
+        # (the classes' where both or neither do).
+        wins_on_segments = [m < f for f, m in zip(fewer_value, more_value)]
+        keep_segments = [count == "either" and on_segments and not c < f
+                         for on_segments, f, c in zip(wins_on_segments, *on_classes)]
+        fewer_value = [b if k else a for k, a, b in zip(keep_segments, on_classes[0], fewer_value)]
+        more_value = [b if k else a for k, a, b in zip(keep_segments, on_classes[1], more_value)]
     taken = [c < f and share >= options.tuning.min_light_share for c, f, share in zip(more_value, fewer_value, shares)]
     if options.tuning.unlit_evidence:
         taken = _or_black_pixels_need(sub, options, before, more, taken)
@@ -403,8 +407,8 @@ def _judged_on_classes(sub: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: 
     """The criteria of ``fewer`` and ``more`` (fits of n - 1 and n lights), each refined on its
     own segments ``labels`` merged into albedo classes (:func:`albedo_free.refine_on_classes`),
     the classes counted as parameters (each one level) and each light's
-    :data:`CLASS_COUNT_PENALTY` times, ``fewer``'s brighter mirror-lobe pixels left out as in
-    :func:`_without_highlights`; an image left with fewer than :data:`MIN_RESIDUALS` keeps
+    :data:`CLASS_COUNT_PENALTY` times, on the pixels of ``labels`` (the highlights already left
+    out: :func:`_highlight_free_labels`); an image left with fewer than :data:`MIN_RESIDUALS` keeps
     ``fewer_value`` and ``more_value`` (as found). A segment's free level absorbs what a second
     light does to it; how bright the segments of one paint are beside each other is part of what
     the light explains, and a model that explains it joins more segments into fewer classes.
@@ -413,11 +417,7 @@ def _judged_on_classes(sub: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: 
     segments, -4.2 here); the true pair as found from the truth still pays in only 6-20 of 24
     two-light rooms a set (7-20 on segments: benchmarks/results/count_classes_cpu2_2026-12-06.md)."""
     tuning = options.tuning
-    if tuning.albedo_free_lobe_deg > 0:
-        every_pixel = albedo_free.observe(sub, tuning.albedo_free_scale, labels=labels, **_residuals(options))
-        held_out = albedo_free.highlight_pixels(every_pixel, fewer, tuning.albedo_free_lobe_deg)
-        labels = torch.where(held_out & diffuse_images(sub)[:, None, None], torch.full_like(labels, -1), labels)
-    values, kept = [], None
+    values = []
     for fit in (fewer, more):
         refined, observed = albedo_free.refine_on_classes(
             sub, labels, fit, tuning.albedo_free_scale, 1, level_tolerance=tuning.albedo_class_level,
@@ -425,25 +425,34 @@ def _judged_on_classes(sub: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: 
         classes = [int(torch.unique(c[p]).numel()) for c, p in zip(observed.segments, observed.pairs)]
         own = [k + 4 * fit.position.shape[1] * (CLASS_COUNT_PENALTY - 1) for k in classes]  # one level a class
         values.append(criterion(refined, own))
-        kept = (refined.pairs >= MIN_RESIDUALS).tolist()
+    kept = (refined.pairs >= MIN_RESIDUALS).tolist()  # both fits count the same pixels
     return ([v if ok else f for v, ok, f in zip(values[0], kept, fewer_value)],
             [v if ok else m for v, ok, m in zip(values[1], kept, more_value)])
 
 
+def _highlight_free_labels(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, labels: Tensor,
+                           options: EstimateOptions) -> Tensor:
+    """The segments ``labels (B, H, W)`` less the pixels of ``fewer``'s mirror lobes that are
+    brighter than its model (:func:`albedo_free.highlight_pixels`; -1 there), in the images
+    whose model has no specular lobe (where it has one, the highlight is the model's)."""
+    every_pixel = albedo_free.observe(problem, options.tuning.albedo_free_scale, labels=labels, **_residuals(options))
+    held_out = albedo_free.highlight_pixels(every_pixel, fewer, options.tuning.albedo_free_lobe_deg)
+    held_out &= diffuse_images(problem)[:, None, None]
+    return torch.where(held_out, torch.full_like(labels, -1), labels)
+
+
 def _without_highlights(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
-                        labels: Tensor, options: EstimateOptions) -> tuple[albedo_free.AlbedoFreeFit, albedo_free.AlbedoFreeFit]:
+                        outside_labels: Tensor, options: EstimateOptions
+                        ) -> tuple[albedo_free.AlbedoFreeFit, albedo_free.AlbedoFreeFit]:
     """``fewer`` and ``more`` (fits of n - 1 and n lights, as found on every pixel) with
-    their losses on the segments' pixels less those of ``fewer``'s mirror lobes that are
-    brighter than its model (:func:`albedo_free.highlight_pixels`). A glossy surface
+    their losses on the segments' pixels less those of ``fewer``'s brighter mirror lobes
+    (``outside_labels``: :func:`_highlight_free_labels`). A glossy surface
     beside a light shows a highlight the diffuse-only fit cannot explain; a second light
     next to the first widens the modelled peak towards it and lowers the loss (one-light
     capture sequences with a glossy wall 0.05 of the scene from the light took such a pair
     on almost every frame). Without the highlight the pair has nothing to explain."""
-    every_pixel = albedo_free.observe(problem, options.tuning.albedo_free_scale, labels=labels, **_residuals(options))
-    held_out = albedo_free.highlight_pixels(every_pixel, fewer, options.tuning.albedo_free_lobe_deg)
-    held_out &= diffuse_images(problem)[:, None, None]  # a lobe in the model: its highlight is the model's
-    outside = albedo_free.observe(problem, options.tuning.albedo_free_scale,
-                                  labels=torch.where(held_out, torch.full_like(labels, -1), labels), **_residuals(options))
+    outside = albedo_free.observe(problem, options.tuning.albedo_free_scale, labels=outside_labels,
+                                  **_residuals(options))
     # No iterations: the loss of each fit at its positions and log weights, on these pixels.
     return (albedo_free.refine_positions(outside, fewer.position, fewer.log_weight, 0, log_bounce=fewer.log_bounce),
             albedo_free.refine_positions(outside, more.position, more.log_weight, 0, log_bounce=more.log_bounce))
