@@ -47,8 +47,8 @@ and residual view), :mod:`.fit` (the model, its loss and Levenberg-Marquardt),
 from selfsup.estimation.albedo_free.classes import CLASS_ITERATIONS, albedo_classes, refine_on_classes
 from selfsup.estimation.albedo_free.regions import group_medians
 from selfsup.estimation.albedo_free.covariance import block_scores_of, position_covariance
-from selfsup.estimation.albedo_free.fit import (bounce_maps, highlight_pixels, light_shares, mirror_lobes, refine_positions,
-                                                shading_loss)
+from selfsup.estimation.albedo_free.fit import (FINAL_TOLERANCE, LM_TOLERANCE, bounce_maps, highlight_pixels, light_shares,
+                                                mirror_lobes, refine_positions, shading_loss)
 from selfsup.estimation.albedo_free.observation import (MIN_SEGMENT_PIXELS, AlbedoFreeFit, LogShading, albedo_segments,
                                                         observe, pair_differences, tuned_segments)
 from selfsup.estimation.albedo_free.gloss import GLOSS_PARAMETERS, choose_gloss
@@ -58,4 +58,5 @@ from selfsup.estimation.albedo_free.light_search import (AMBIENT_STEPS, RATIO_ST
 __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "albedo_segments", "tuned_segments", "shading_loss", "search",
            "search_each", "split_starts", "anchor_pairs", "refine_positions", "bounce_maps", "light_shares", "mirror_lobes",
            "highlight_pixels", "position_covariance", "block_scores_of", "group_medians", "albedo_classes",
-           "refine_on_classes", "refine_from", "choose_gloss", "GLOSS_PARAMETERS", "AMBIENT_STEPS", "RATIO_STEPS", "CLASS_ITERATIONS", "MIN_SEGMENT_PIXELS"]
+           "refine_on_classes", "refine_from", "choose_gloss", "GLOSS_PARAMETERS", "AMBIENT_STEPS", "RATIO_STEPS", "CLASS_ITERATIONS", "MIN_SEGMENT_PIXELS",
+           "LM_TOLERANCE", "FINAL_TOLERANCE"]

@@ -17,7 +17,21 @@ from selfsup.estimation.albedo_free.observation import AlbedoFreeFit, LogShading
 from selfsup.estimation.problem import FitProblem, gbuffer_centre_and_size
 from selfsup.estimation.solvers import RUNAWAY_SIZES
 
-__all__ = ["shading_loss", "refine_positions", "bounce_maps", "light_shares", "mirror_lobes", "highlight_pixels"]
+__all__ = ["shading_loss", "refine_positions", "bounce_maps", "light_shares", "mirror_lobes", "highlight_pixels",
+           "LM_TOLERANCE", "FINAL_TOLERANCE"]
+
+# Levenberg-Marquardt stops an image once a step lowers its loss by less than this share
+# (:func:`refine_positions`' default): where starts are compared, a slow slide (an ambient
+# weight sinking towards nil) must go on, or the starts' ranking changes (a test frame lost its
+# second light at 1e-4 everywhere).
+LM_TOLERANCE = 1e-6
+# The same for the last, full-resolution steps from a start already chosen (the searches' ends,
+# the lens's chosen strength): 1e-4 against 1e-6 took 0.89 of the time on 258 capture frames with
+# every count the same and one success more (ad hoc, 2026-12-06, the two alternated frame by frame
+# in one process: benchmarks/results/lm_tolerance_cpu2_2026-12-06.md); 1e-3 (everywhere) lost three
+# successes. At 1e-4 a criterion of ~280 effective samples moves by 0.03 a step, far below the
+# penalty of a light's four parameters (~22).
+FINAL_TOLERANCE = 1e-4
 
 
 def _transport(obs: LogShading, position: Tensor) -> Tensor:
@@ -172,7 +186,7 @@ def _unpack(step: Tensor, L: int) -> tuple[Tensor, Tensor]:
 
 
 def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iterations: int = 20,
-                     tol: float = 1e-6, log_bounce: Tensor | None = None) -> AlbedoFreeFit:
+                     tol: float = LM_TOLERANCE, log_bounce: Tensor | None = None) -> AlbedoFreeFit:
     """Damped Gauss-Newton (Levenberg-Marquardt) with Cauchy IRLS weights from
     ``position (B, L, 3)`` and ``log_weight (B, L + 1)`` (and the bounce's log strength
     ``log_bounce (B,)``, refined too where finite; :func:`bounce_maps`); each image stops on

@@ -10,7 +10,8 @@ import math
 import torch
 from torch import Tensor
 
-from selfsup.estimation.albedo_free.fit import _floored_log, _residual, _transport, refine_positions, shading_loss
+from selfsup.estimation.albedo_free.fit import (FINAL_TOLERANCE, _floored_log, _residual, _transport, refine_positions,
+                                                shading_loss)
 from selfsup.estimation.albedo_free.observation import AlbedoFreeFit, LogShading, _tiled, albedo_segments, observe
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
 from selfsup.estimation.solvers import grid_candidates, spread_best
@@ -162,7 +163,7 @@ def search(problem: FitProblem, n_lights: int = 1, fixed: AlbedoFreeFit | None =
     best = fit.loss.reshape(B, S).argmin(1)
     pick = torch.arange(B, device=best.device) * S + best
     full = observe(problem, robust_scale, residuals=residuals, labels=at(1))
-    return refine_positions(full, fit.position[pick], fit.log_weight[pick], iterations[1])
+    return refine_positions(full, fit.position[pick], fit.log_weight[pick], iterations[1], FINAL_TOLERANCE)
 
 
 def anchor_pairs(ranked: LogShading, coarse: FitProblem, size: Tensor, count: int) -> tuple[Tensor, Tensor]:
@@ -257,4 +258,4 @@ def refine_from(problem: FitProblem, position: Tensor, robust_scale: float = 0.0
     log_weight = torch.cat([first[:, 0], others], 1)
     fit = refine_positions(started, position, log_weight, iterations[0])
     full = observe(problem, robust_scale, residuals=residuals, labels=at(1))
-    return refine_positions(full, fit.position, fit.log_weight, iterations[1])
+    return refine_positions(full, fit.position, fit.log_weight, iterations[1], FINAL_TOLERANCE)
