@@ -58,6 +58,25 @@ def test_split_starts_replace_each_light_by_two_that_shade_as_it_does_when_not_m
         assert float((_shading_log(problem, split)[0] - reference)[mask].std()) < 1e-9
 
 
+def test_a_light_moved_back_in_place_leaves_the_model_as_it_was():
+    scene = _scene(11, n_lights=2, config=MEDIUM)
+    problem = problem_of(_unknown_albedo(scene), shadows="none", dtype=torch.float64)
+    three = torch.cat([scene.light_pos[None], scene.light_pos[None, :1] + 0.3], 1).double()  # (1, 3, 3)
+    fit = albedo_free.refine_positions(albedo_free.observe(problem), three,
+                                       torch.tensor([[-3.0, 0.0, -0.5, 0.4]], dtype=torch.float64), iterations=0)
+    reference = _shading_log(problem, fit)[0]
+    mask = problem.gbuffer.mask[0]
+    for light in range(3):
+        moved = fit.with_last_at(light)
+        assert torch.equal(moved.position[0, light], fit.position[0, 2])
+        assert torch.equal(moved.position[0, [i for i in range(3) if i != light]], fit.position[0, :2])
+        assert float(moved.log_weight[0, 1]) == 0.0  # the first light is the gauge
+        # the same shading up to the overall scale the gauge fixes (a constant in log)
+        assert float((_shading_log(problem, moved)[0] - reference)[mask].std()) < 1e-9
+    with pytest.raises(ValueError, match="index 3"):
+        fit.with_last_at(3)
+
+
 def test_searching_each_light_again_frees_a_light_held_between_two():
     # The first light fitted alone lands between the two; the second searched with it held
     # there cannot undo that. Searched again with the second held, it finds its place.

@@ -143,6 +143,17 @@ class AlbedoFreeFit:
         u = self.log_weight[:, [0] + [1 + i for i in keep]] - self.log_weight[:, 1 + keep[0] : 2 + keep[0]]
         return AlbedoFreeFit(self.position[:, keep], u, self.loss, self.pairs, self.log_bounce)
 
+    def with_last_at(self, light: int) -> "AlbedoFreeFit":
+        """The fit with its last light moved to index ``light`` (the others keep their order),
+        its weights relative to the new first light (the loss and pairs kept): a light searched
+        again beside :meth:`without` ``(light)`` put back in its place."""
+        L = self.position.shape[1]
+        if not 0 <= light < L:
+            raise ValueError(f"cannot move the last light to index {light} of a fit of {L} lights")
+        order = list(range(light)) + [L - 1] + list(range(light, L - 1))
+        u = self.log_weight[:, [0] + [1 + i for i in order]] - self.log_weight[:, 1 + order[0] : 2 + order[0]]
+        return AlbedoFreeFit(self.position[:, order], u, self.loss, self.pairs, self.log_bounce)
+
     def better(self, other: "AlbedoFreeFit") -> "AlbedoFreeFit":
         """Each image's row of whichever fit (of one light count) has the lower loss."""
         return self.chosen(other.loss < self.loss, other)
