@@ -106,11 +106,17 @@ def machine_reference(repeats: int = 7) -> dict:
 
 
 def write_results(name: str, device: torch.device, rows: list[dict], header: str, columns: list[str]) -> Path:
-    """Write ``rows`` as markdown and JSON to ``benchmarks/results/<name>_<device>_<date>.*``;
-    CPU results carry the :func:`machine_reference` timed as they are written."""
+    """Write ``rows`` as markdown and JSON to ``benchmarks/results/<name>_<device>_<date>.*``
+    (``..._<date>_2.*``, ``_3``, ... where a run of the same day wrote that name already: a
+    rerun never replaces the results an earlier one left); CPU results carry the
+    :func:`machine_reference` timed as they are written. Returns the markdown file's path."""
     RESULTS.mkdir(parents=True, exist_ok=True)
     date = _dt.date.today().isoformat()
-    stem = RESULTS / f"{name}_{device_slug(device)}_{date}"
+    base = f"{name}_{device_slug(device)}_{date}"
+    stem, run = RESULTS / base, 1
+    while stem.with_suffix(".md").exists() or stem.with_suffix(".json").exists():
+        run += 1
+        stem = RESULTS / f"{base}_{run}"
     meta = {"device": device_name(device), "date": date, "torch": torch.__version__}
     lines = [f"# {name}", "", f"Device: {meta['device']}; torch {meta['torch']}; date {date}.", ""]
     if device.type == "cpu":

@@ -17,6 +17,17 @@ def test_cpu_results_carry_the_machine_reference(tmp_path, monkeypatch):
     assert f"{reference['elementwise_ns']} ns per element" in text and "| 1 |" in text
 
 
+def test_a_rerun_of_the_same_day_keeps_the_earlier_results(tmp_path, monkeypatch):
+    monkeypatch.setattr(common, "RESULTS", tmp_path)
+    monkeypatch.setattr(common, "machine_reference", lambda: {"elementwise_ns": 1.0, "matmul_gflops": 1.0, "threads": 1})
+    first = common.write_results("probe", torch.device("cpu"), [{"a": 1}], "header", ["a"])
+    second = common.write_results("probe", torch.device("cpu"), [{"a": 2}], "header", ["a"])
+    third = common.write_results("probe", torch.device("cpu"), [{"a": 3}], "header", ["a"])
+    assert first != second != third and second.stem == f"{first.stem}_2" and third.stem == f"{first.stem}_3"
+    assert "| 1 |" in first.read_text() and "| 2 |" in second.read_text()
+    assert json.loads(first.with_suffix(".json").read_text())["rows"] == [{"a": 1}]
+
+
 def test_indirect_field_recovers_a_known_indirect_irradiance():
     # gi = direct + kd * E(x): E constant gives no variation; E a ramp across the image varies
     # between blocks, by the ramp's own relative spread.
