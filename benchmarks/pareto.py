@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.common import RESULTS, device_name, device_slug, write_results
+from benchmarks.common import device_name, write_results
 from selfsup.metrics import SUCCESS_THRESHOLD
 
 log = logging.getLogger(__name__)
@@ -138,13 +138,13 @@ def run(captures: list[str] | tuple[str, ...] = DEFAULT_CAPTURES, frames: int = 
                   "8-bit sRGB at an unknown exposure, millimetre depth, no albedo), each method on the same frames; "
                   f"success = the one light found, within {SUCCESS_THRESHOLD} of the scene size; median worst "
                   "position error of the scene size; median seconds per frame on this device (the frame in memory). "
-                  "Plot: pareto_<device>_<date>.png.")
+                  "Plot: the .png of this file's name.")
         path = write_results("pareto", torch.device("cpu"), rows, header, COLUMNS)
-        _plot(rows, torch.device("cpu"))
+        _plot(rows, torch.device("cpu"), path.with_suffix(".png"))
     return rows, path
 
 
-def _plot(rows: list[dict], device: torch.device) -> None:
+def _plot(rows: list[dict], device: torch.device, out: Path) -> None:
     try:
         import matplotlib
 
@@ -181,5 +181,5 @@ def _plot(rows: list[dict], device: torch.device) -> None:
     axes.grid(True, which="both", lw=0.3, alpha=0.5)
     axes.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5), frameon=False)
     figure.tight_layout()
-    figure.savefig(RESULTS / f"pareto_{device_slug(device)}_{date}.png", dpi=110)
+    figure.savefig(out, dpi=110)
     plt.close(figure)
