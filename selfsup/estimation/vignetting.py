@@ -106,5 +106,6 @@ def choose_vignetting(problem: FitProblem, labels: Tensor | None, criterion, sea
     chosen = devignetted(problem, shares)
     full = albedo_free.observe(chosen, search_kwargs.get("robust_scale", 0.02), labels=labels,
                                **{k: v for k, v in search_kwargs.items() if k in ("residuals", "segment_scale")})
-    return shares, albedo_free.refine_positions(full, picked.position, picked.log_weight, FULL_ITERATIONS,
-                                                       albedo_free.FINAL_TOLERANCE)
+    fit = albedo_free.refine_positions(full, picked.position, picked.log_weight, FULL_ITERATIONS,
+                                       albedo_free.FINAL_TOLERANCE)
+    return shares, fit

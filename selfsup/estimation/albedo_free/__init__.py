@@ -47,8 +47,8 @@ and residual view), :mod:`.fit` (the model, its loss and Levenberg-Marquardt),
 from selfsup.estimation.albedo_free.classes import CLASS_ITERATIONS, albedo_classes, refine_on_classes
 from selfsup.estimation.albedo_free.regions import group_medians
 from selfsup.estimation.albedo_free.covariance import block_scores_of, position_covariance
-from selfsup.estimation.albedo_free.fit import (FINAL_TOLERANCE, LM_TOLERANCE, bounce_maps, highlight_pixels, light_shares,
-                                                mirror_lobes, refine_positions, shading_loss)
+from selfsup.estimation.albedo_free.fit import (FINAL_TOLERANCE, LM_TOLERANCE, bounce_maps, highlight_pixels,
+                                                light_shares, mirror_lobes, refine_positions, shading_loss)
 from selfsup.estimation.albedo_free.observation import (MIN_SEGMENT_PIXELS, AlbedoFreeFit, LogShading, albedo_segments,
                                                         observe, pair_differences, tuned_segments)
 from selfsup.estimation.albedo_free.gloss import GLOSS_PARAMETERS, choose_gloss

@@ -26,11 +26,12 @@ __all__ = ["shading_loss", "refine_positions", "bounce_maps", "light_shares", "m
 # second light at 1e-4 everywhere).
 LM_TOLERANCE = 1e-6
 # The same for the last, full-resolution steps from a start already chosen (the searches' ends,
-# the lens's chosen strength): 1e-4 against 1e-6 took 0.89 of the time on 258 capture frames with
-# every count the same and one success more (ad hoc, 2026-12-06, the two alternated frame by frame
-# in one process: benchmarks/results/lm_tolerance_cpu2_2026-12-06.md); 1e-3 (everywhere) lost three
-# successes. At 1e-4 a criterion of ~280 effective samples moves by 0.03 a step, far below the
-# penalty of a light's four parameters (~22).
+# a network's lights refined, the lens's chosen strength): 1e-4 against 1e-6 took 0.89 of the
+# time on 258 capture frames with every count the same and one success more (ad hoc, 2026-12-06,
+# the two alternated frame by frame in one process:
+# benchmarks/results/lm_tolerance_cpu2_2026-12-06.md); 1e-3 (everywhere) lost three successes.
+# At 1e-4 a criterion of ~280 effective samples moves by 0.03 a step, far below the penalty of a
+# light's four parameters (~22).
 FINAL_TOLERANCE = 1e-4
 
 
