@@ -135,21 +135,29 @@ def make(scenes: Path, out: Path, sets=SETS) -> list[Path]:
 SENSOR = dict(depth_noise=0.003, depth_quantisation=0.001, edge_hole_jump=0.05, random_holes=0.01, image_noise=0.005)
 
 
-def procedural(out: Path, count: int = 48, seed: int = 7000) -> None:
-    """Scene files of our generator (160x120, 2x2 AA) in ``out/direct`` (exact) and
-    ``out/noisy`` (the sensor degradations): the first half of the scenes with one light,
-    the rest with two, as the Mitsuba sets."""
+def procedural_scenes(seeds: list[int], n_lights: int, sensor: bool) -> list:
+    """The scenes of ``seeds`` as :func:`procedural` writes them: our generator at 160x120
+    (2x2 AA), ``n_lights`` lights each, exact or under the :data:`SENSOR` degradations."""
     from selfsup.scenes.dataset import render_items
     from selfsup.scenes.degrade import Degradations
-    from selfsup.scenes.io import write_scene
     from selfsup.scenes.sampler import SamplerConfig
 
-    for set_name, degradations in (("direct", Degradations()), ("noisy", Degradations(**SENSOR))):
+    sampler = SamplerConfig(height=120, width=160, n_lights_probs=(1.0,) if n_lights == 1 else (0.0, 1.0))
+    degradations = Degradations(**SENSOR) if sensor else Degradations()
+    return [scene for _, scene in render_items(seeds, sampler, degradations, 2)]
+
+
+def procedural(out: Path, count: int = 48, seed: int = 7000) -> None:
+    """Scene files of our generator (:func:`procedural_scenes`) in ``out/direct`` (exact) and
+    ``out/noisy`` (the sensor degradations): the first half of the scenes with one light,
+    the rest with two, as the Mitsuba sets."""
+    from selfsup.scenes.io import write_scene
+
+    for set_name, sensor in (("direct", False), ("noisy", True)):
         (out / set_name).mkdir(parents=True, exist_ok=True)
         for lights, first in ((1, 0), (2, count // 2)):
-            sampler = SamplerConfig(height=120, width=160, n_lights_probs=(1.0,) if lights == 1 else (0.0, 1.0))
-            seeds = [seed + i for i in range(first, first + count // 2)]
-            for i, (_, scene) in zip(range(first, first + count // 2), render_items(seeds, sampler, degradations, 2)):
+            indices = range(first, first + count // 2)
+            for i, scene in zip(indices, procedural_scenes([seed + i for i in indices], lights, sensor)):
                 write_scene(out / set_name / f"scene_{i:03d}.npz", scene)
         print(f"{out / set_name}: {count} scene files", flush=True)
 

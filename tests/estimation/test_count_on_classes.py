@@ -7,32 +7,24 @@ each segment's free level is wrong and the count on each model's own albedo clas
 """
 
 import pytest
-import torch
 
-from benchmarks.captures import SENSOR, write_capture
+from benchmarks.captures import procedural_scenes, write_capture
+from benchmarks.common import score_record
 from selfsup.estimation.options import EstimateOptions, Tuning
 from selfsup.estimation.stages import estimate_scene
-from selfsup.metrics import light_errors
 from selfsup.scenes.capture import capture_frames, read_capture
-from selfsup.scenes.dataset import render_items
-from selfsup.scenes.degrade import Degradations
-from selfsup.scenes.sampler import SamplerConfig
 
 
 def _capture(tmp_path, seed: int, n_lights: int, sensor: bool, frame_id: str):
     # The capture set's frame: the scene of seed ``seed`` as benchmarks.captures procedural and
     # make write it (its exposure drawn from the frame's name), read back as a capture.
-    sampler = SamplerConfig(height=120, width=160, n_lights_probs=(1.0,) if n_lights == 1 else (0.0, 1.0))
-    degradations = Degradations(**SENSOR) if sensor else Degradations()
-    (_, scene), = render_items([seed], sampler, degradations, 2)
+    scene, = procedural_scenes([seed], n_lights, sensor)
     write_capture(scene, tmp_path, frame_id)
     return scene, read_capture(capture_frames(tmp_path)[0])
 
 
 def _success(record, scene) -> bool:
-    position = torch.tensor([light["position"] for light in record["lights"]]).reshape(-1, 3)
-    return light_errors(position, None, scene.light_pos, None, float(scene.scene_scale),
-                        scene.light_pos.mean(0)).success
+    return score_record(record, scene)[0].success
 
 
 @pytest.mark.parametrize("seed, n_lights, sensor, frame_id", [
