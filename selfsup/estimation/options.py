@@ -27,7 +27,7 @@ LIGHT_COLOUR = ("neutral", "shared", "free")
 VIGNETTING = ("auto", "none")
 HIGHLIGHTS = ("leave_out", "keep")
 ALBEDO_FREE_BOUNCE = ("auto", "never")
-ALBEDO_FREE_GLOSS = ("auto", "never")
+ALBEDO_FREE_GLOSS = ("auto", "instead", "never")
 ALBEDO_FREE_COUNT = ("segments", "classes", "either")
 REFINE_METHODS = ("lm", "adam", "gd")
 
@@ -143,7 +143,10 @@ class Tuning:
             ``albedo_free_gloss``: ``auto`` gives the fit a specular lobe beside the diffuse
             light (its ratio and shininess one pair a frame, from a grid at the first
             light), where the criterion prefers it: metal and broad paint gloss
-            (:mod:`selfsup.estimation.albedo_free.gloss`) | ``never``.
+            (:mod:`selfsup.estimation.albedo_free.gloss`) | ``instead``: a lobe with the first
+            light tried only where the diffuse fit takes more lights, kept where its criterion
+            is below theirs (a lobe and a second light beside the first explain the same
+            peak) | ``never``.
             ``albedo_free_count``: where one light more is judged: ``segments`` (each
             albedo segment's level free) | ``classes`` (each model on its own segments
             merged into albedo classes, the classes counted as parameters: a light that
@@ -213,7 +216,7 @@ class Tuning:
     albedo_free_lobe_deg: float = 20.0
     highlights: str = "leave_out"
     albedo_free_bounce: str = "never"
-    albedo_free_gloss: str = "never"
+    albedo_free_gloss: str = "instead"
     albedo_free_count: str = "segments"
     unlit_evidence: bool = True
     albedo_class_rounds: int = 1

@@ -227,6 +227,7 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
     best = [(found, i, c) for i, c in enumerate(criterion(found))]  # (fit, row, criterion) per image
     tried = [[(1, c)] for _, _, c in best]
     growing = list(range(B))
+    by_shadows = [False] * B  # each image's last light taken by its black pixels, not the criterion
     for n_lights in range(2, options.max_lights + 1):
         if not growing or (sure and n_lights > slots.shape[1]):
             break
@@ -248,9 +249,37 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
             tried[i].append((n_lights, c))
             if taken[j]:
                 best[i] = (more, j, c)
+                by_shadows[i] = not c < fewer_value[j]
                 still.append(i)
         growing = still
+    if options.tuning.albedo_free_gloss == "instead" and labels is not None:
+        problem, best = _lobe_instead(problem, found, labels, options, criterion, best, by_shadows)
     return _chosen_candidates(problem, labels, geometry, options, best, tried, corner_loss, with_bounce)
+
+
+def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels: Tensor, options: EstimateOptions,
+                  criterion, best: list, by_shadows: list[bool]) -> tuple[FitProblem, list]:
+    # Where the diffuse fit took more than one light, the first light with a specular lobe
+    # (:func:`albedo_free.choose_gloss` from its one-light fit ``found``) in their place, where
+    # its criterion on every residual is below theirs: a metal's or a gloss's broad lobe is a
+    # second peak that a light beside the first also makes. Not where the last light was taken
+    # by the capture's black pixels (``by_shadows``): a lobe casts no shadow.
+    more = [i for i in range(problem.batch) if best[i][0].position.shape[1] > 1 and not by_shadows[i]]
+    if not more:
+        return problem, best
+    at = torch.tensor(more, dtype=torch.long, device=problem.image.device)
+    several = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in more])
+    lobed_problem, lobed = albedo_free.choose_gloss(problem.select(at), albedo_free.AlbedoFreeFit.rows([(found, i) for i in more]), labels[at],
+                                                    options.tuning.albedo_free_scale, criterion,
+                                                    against=criterion(several))
+    if lobed_problem.gloss is None:
+        return problem, best
+    gloss = problem.image.new_zeros(problem.batch, 2).index_put((at,), lobed_problem.gloss)
+    best = list(best)
+    for j, (i, c) in enumerate(zip(more, criterion(lobed, [albedo_free.GLOSS_PARAMETERS] * len(more)))):
+        if float(lobed_problem.gloss[j, 0]) > 0:
+            best[i] = (lobed, j, c)
+    return problem.with_gloss(gloss), best
 
 
 def _judged(sub: FitProblem, before: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,

@@ -428,11 +428,17 @@ def test_a_highlight_is_not_taken_for_a_second_light():
     # found at all.) Judged on segments (the default), whose free levels leave the highlight's
     # excess as the only thing a second light explains; on albedo classes the pair does not pay
     # on every pixel either.
+    # With a specular lobe in the second light's place (albedo_free_gloss=instead, the default)
+    # the highlight is the lobe's even judged on every pixel.
     config = dataclasses.replace(MEDIUM, specular_prob=1.0)
     scene = _unknown_albedo(_scene(2, config=config))
-    everywhere = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_lobe_deg=0.0)))
+    everywhere = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_lobe_deg=0.0,
+                                                                     albedo_free_gloss="never")))
     assert len(everywhere["lights"]) == 2
-    on_classes = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_lobe_deg=0.0,
+    lobe = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_lobe_deg=0.0)))
+    assert len(lobe["lights"]) == 1 and lobe["gloss"] is not None
+    assert _rel_error(torch.tensor([lobe["lights"][0]["position"]]), scene) < 0.01
+    on_classes = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_lobe_deg=0.0, albedo_free_gloss="never",
                                                                      albedo_free_count="classes")))
     assert len(on_classes["lights"]) == 1
     record = estimate_scene(scene, EstimateOptions())

@@ -175,15 +175,17 @@ def test_the_studio_frames_benchmark_scores_a_frame_by_its_lamp_angle():
     assert rows[0]["light_found"] and rows[0]["angle_deg"] < 5.0 and rows[-1]["angle_deg"] == rows[0]["angle_deg"]
 
 
-def test_a_specular_lobe_in_the_albedo_free_fit_takes_rough_metal_with_one_light(tmp_path):
+@pytest.mark.parametrize("gloss", ["auto", "instead"])
+def test_a_specular_lobe_in_the_albedo_free_fit_takes_rough_metal_with_one_light(tmp_path, gloss):
     # Rough dark metal (diffuse 0.03, a broad lobe): the diffuse-only fit widens the lobe with a
-    # second light, 4.6 degrees off; with albedo_free_gloss=auto one light and its lobe, 0.1.
+    # second light, 4.6 degrees off; with a lobe (tried at the first light, auto, or in the
+    # second light's place, instead) one light and its lobe, 0.1.
     direction = (-0.6, -0.3, -0.74)
     spec = studio_spec(direction, others=False, albedo=(0.03, 0.03, 0.03), ks=0.9, shininess=12.0)
     scene = photograph(tmp_path, spec)
-    plain = estimate_scene(scene, EstimateOptions())
+    plain = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_gloss="never")))
     assert len(plain["lights"]) == 2 and plain["gloss"] is None
-    record = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_gloss="auto")))
+    record = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_gloss=gloss)))
     assert record["light_found"] is True and len(record["lights"]) == 1
     assert _angle_deg(record, spec, direction) < 2.0
     assert record["gloss"]["ratio"] > 1.0 and record["gloss"]["shininess"] > 0
