@@ -269,9 +269,9 @@ def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels:
         return problem, best
     at = torch.tensor(more, dtype=torch.long, device=problem.image.device)
     several = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in more])
-    lobed_problem, lobed = albedo_free.choose_gloss(problem.select(at), albedo_free.AlbedoFreeFit.rows([(found, i) for i in more]), labels[at],
-                                                    options.tuning.albedo_free_scale, criterion,
-                                                    against=criterion(several))
+    alone = albedo_free.AlbedoFreeFit.rows([(found, i) for i in more])  # their one-light fits
+    lobed_problem, lobed = albedo_free.choose_gloss(problem.select(at), alone, labels[at], options.tuning.albedo_free_scale,
+                                                    criterion, against=criterion(several))
     if lobed_problem.gloss is None:
         return problem, best
     gloss = problem.image.new_zeros(problem.batch, 2).index_put((at,), lobed_problem.gloss)
