@@ -253,17 +253,18 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
                 still.append(i)
         growing = still
     if options.tuning.albedo_free_gloss == "instead" and labels is not None:
-        problem, best = _lobe_instead(problem, found, labels, options, criterion, best, by_shadows)
+        problem, best = _lobe_instead(problem, found, labels, options, criterion, best, by_shadows, tried)
     return _chosen_candidates(problem, labels, geometry, options, best, tried, corner_loss, with_bounce)
 
 
 def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels: Tensor, options: EstimateOptions,
-                  criterion, best: list, by_shadows: list[bool]) -> tuple[FitProblem, list]:
+                  criterion, best: list, by_shadows: list[bool], tried: list[list[tuple]]) -> tuple[FitProblem, list]:
     # Where the diffuse fit took more than one light, the first light with a specular lobe
     # (:func:`albedo_free.choose_gloss` from its one-light fit ``found``) in their place, where
     # its criterion on every residual is below theirs: a metal's or a gloss's broad lobe is a
     # second peak that a light beside the first also makes. Not where the last light was taken
-    # by the capture's black pixels (``by_shadows``): a lobe casts no shadow.
+    # by the capture's black pixels (``by_shadows``): a lobe casts no shadow. The lobe's model
+    # joins the records' ``tried`` as ``(1, criterion, True)`` (specular).
     more = [i for i in range(problem.batch) if best[i][0].position.shape[1] > 1 and not by_shadows[i]]
     if not more:
         return problem, best
@@ -279,6 +280,7 @@ def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels:
     for j, (i, c) in enumerate(zip(more, criterion(lobed, [albedo_free.GLOSS_PARAMETERS] * len(more)))):
         if float(lobed_problem.gloss[j, 0]) > 0:
             best[i] = (lobed, j, c)
+            tried[i].append((1, c, True))
     return problem.with_gloss(gloss), best
 
 
@@ -371,7 +373,8 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
                                   bounce_share=round(float(bounce_share[j]), 4) if bounced[j] else None,
                                   gloss=lobe_of(sub, j))
             # The records keep the tried models' counts and criteria only.
-            others = [Candidate(candidate.fit, n, False, value, None, "albedo_free") for n, value in tried[i]]
+            # (n, value) of the diffuse models, (n, value, True) of one with a specular lobe.
+            others = [Candidate(candidate.fit, n, bool(lobe), value, None, "albedo_free") for n, value, *lobe in tried[i]]
             results[i] = (candidate, others)
     return results, whole
 

@@ -189,6 +189,9 @@ def test_a_specular_lobe_in_the_albedo_free_fit_takes_rough_metal_with_one_light
     assert record["light_found"] is True and len(record["lights"]) == 1
     assert _angle_deg(record, spec, direction) < 2.0
     assert record["gloss"]["ratio"] > 1.0 and record["gloss"]["shininess"] > 0
+    if gloss == "instead":  # the lobe's model is in the record beside the diffuse ones it beat
+        lobe = [c for c in record["candidates"] if c["specular"]]
+        assert len(lobe) == 1 and lobe[0]["criterion"] < min(c["criterion"] for c in record["candidates"] if not c["specular"])
 
 
 def test_the_lobes_jacobian_is_its_transports_derivative():
