@@ -241,56 +241,57 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         else:
             more = albedo_free.search_each(sub, albedo_free.search(sub, n_lights, fixed=before, **kwargs,
                                                                    **network_starts(at, n_lights)), **kwargs)
-        taken, fewer_value, more_value = _judged(sub, before, more, [best[i][2] for i in growing], kwargs["labels"],
-                                                 options, criterion, None if geometry is None else geometry[at])
+        taken, shadows, fewer_value, more_value = _judged(sub, before, more, [best[i][2] for i in growing],
+                                                          kwargs["labels"], options, criterion,
+                                                          None if geometry is None else geometry[at])
         still = []
         for j, (i, c) in enumerate(zip(growing, more_value)):
             tried[i][-1] = (n_lights - 1, fewer_value[j])  # the records keep the values compared
             tried[i].append((n_lights, c))
             if taken[j]:
                 best[i] = (more, j, c)
-                by_shadows[i] = not c < fewer_value[j]
+                by_shadows[i] = shadows[j]
                 still.append(i)
         growing = still
     if options.tuning.albedo_free_gloss == "instead" and labels is not None:
-        problem, best = _lobe_instead(problem, found, labels, options, criterion, best, by_shadows, tried)
+        problem = _lobe_instead(problem, found, labels, options, criterion, best, by_shadows, tried)
     return _chosen_candidates(problem, labels, geometry, options, best, tried, corner_loss, with_bounce)
 
 
 def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels: Tensor, options: EstimateOptions,
-                  criterion, best: list, by_shadows: list[bool], tried: list[list[tuple]]) -> tuple[FitProblem, list]:
+                  criterion, best: list, by_shadows: list[bool], tried: list[list[tuple]]) -> FitProblem:
     # Where the diffuse fit took more than one light, the first light with a specular lobe
     # (:func:`albedo_free.choose_gloss` from its one-light fit ``found``) in their place, where
     # its criterion on every residual is below theirs: a metal's or a gloss's broad lobe is a
     # second peak that a light beside the first also makes. Not where the last light was taken
-    # by the capture's black pixels (``by_shadows``): a lobe casts no shadow. The lobe's model
-    # joins the records' ``tried`` as ``(1, criterion, True)`` (specular).
+    # by the capture's black pixels (``by_shadows``): a lobe casts no shadow. ``best`` and
+    # ``tried`` are updated in place (the lobe's model joins ``tried`` as ``(1, criterion, True)``);
+    # returns the problem with each image's lobe.
     more = [i for i in range(problem.batch) if best[i][0].position.shape[1] > 1 and not by_shadows[i]]
     if not more:
-        return problem, best
+        return problem
     at = torch.tensor(more, dtype=torch.long, device=problem.image.device)
     several = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in more])
     alone = albedo_free.AlbedoFreeFit.rows([(found, i) for i in more])  # their one-light fits
     lobed_problem, lobed = albedo_free.choose_gloss(problem.select(at), alone, labels[at], options.tuning.albedo_free_scale,
                                                     criterion, against=criterion(several))
     if lobed_problem.gloss is None:
-        return problem, best
-    gloss = problem.image.new_zeros(problem.batch, 2).index_put((at,), lobed_problem.gloss)
-    best = list(best)
-    for j, (i, c) in enumerate(zip(more, criterion(lobed, [albedo_free.GLOSS_PARAMETERS] * len(more)))):
+        return problem
+    values = criterion(lobed, [albedo_free.GLOSS_PARAMETERS] * len(more))  # the lobe's rows' (others: unused)
+    for j, i in enumerate(more):
         if float(lobed_problem.gloss[j, 0]) > 0:
-            best[i] = (lobed, j, c)
-            tried[i].append((1, c, True))
-    return problem.with_gloss(gloss), best
+            best[i] = (lobed, j, values[j])
+            tried[i].append((1, values[j], True))
+    return problem.with_gloss(problem.image.new_zeros(problem.batch, 2).index_put((at,), lobed_problem.gloss))
 
 
 def _judged(sub: FitProblem, before: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
             fewer_value: list[float], labels: Tensor | None, options: EstimateOptions, criterion,
-            geometry: Tensor | None = None) -> tuple[list[bool], list[float], list[float]]:
+            geometry: Tensor | None = None) -> tuple[list[bool], list[bool], list[float], list[float]]:
     # Whether each image takes the fit of one light more: its criterion lower (judged without the
     # highlights where enough residuals are left; on albedo classes with albedo_free_count=classes;
     # on either with either) and each light carrying min_light_share, or the black pixels asking
-    # for it; and the two criteria compared.
+    # for it; whether the black pixels alone took it; and the two criteria compared.
     shares = albedo_free.light_shares(sub, more).amin(1).tolist()
     more_value = criterion(more)
     count, lobe_deg = options.tuning.albedo_free_count, options.tuning.albedo_free_lobe_deg
@@ -313,10 +314,12 @@ def _judged(sub: FitProblem, before: albedo_free.AlbedoFreeFit, more: albedo_fre
                          for on_segments, f, c in zip(wins_on_segments, *on_classes)]
         fewer_value = [b if k else a for k, a, b in zip(keep_segments, on_classes[0], fewer_value)]
         more_value = [b if k else a for k, a, b in zip(keep_segments, on_classes[1], more_value)]
-    taken = [c < f and share >= options.tuning.min_light_share for c, f, share in zip(more_value, fewer_value, shares)]
+    by_criterion = [c < f and share >= options.tuning.min_light_share
+                    for c, f, share in zip(more_value, fewer_value, shares)]
+    taken = by_criterion
     if options.tuning.unlit_evidence:
-        taken = _or_black_pixels_need(sub, options, before, more, taken)
-    return taken, fewer_value, more_value
+        taken = _or_black_pixels_need(sub, options, before, more, by_criterion)
+    return taken, [t and not c for t, c in zip(taken, by_criterion)], fewer_value, more_value
 
 
 def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Tensor | None, options: EstimateOptions,

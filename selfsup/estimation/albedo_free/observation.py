@@ -138,10 +138,7 @@ class AlbedoFreeFit:
         L = self.position.shape[1]
         if not 0 <= light < L or L < 2:
             raise ValueError(f"cannot leave light {light} out of a fit of {L} lights")
-        keep = [i for i in range(L) if i != light]
-        # Every log weight relative to the new first light's (which becomes 0).
-        u = self.log_weight[:, [0] + [1 + i for i in keep]] - self.log_weight[:, 1 + keep[0] : 2 + keep[0]]
-        return AlbedoFreeFit(self.position[:, keep], u, self.loss, self.pairs, self.log_bounce)
+        return self._in_order([i for i in range(L) if i != light])
 
     def with_last_at(self, light: int) -> "AlbedoFreeFit":
         """The fit with its last light moved to index ``light`` (the others keep their order),
@@ -150,7 +147,11 @@ class AlbedoFreeFit:
         L = self.position.shape[1]
         if not 0 <= light < L:
             raise ValueError(f"cannot move the last light to index {light} of a fit of {L} lights")
-        order = list(range(light)) + [L - 1] + list(range(light, L - 1))
+        return self._in_order(list(range(light)) + [L - 1] + list(range(light, L - 1)))
+
+    def _in_order(self, order: list[int]) -> "AlbedoFreeFit":
+        # The lights ``order`` (indices, in that order), every log weight relative to the new
+        # first light's (which becomes 0); the ambient's, loss, pairs and bounce kept.
         u = self.log_weight[:, [0] + [1 + i for i in order]] - self.log_weight[:, 1 + order[0] : 2 + order[0]]
         return AlbedoFreeFit(self.position[:, order], u, self.loss, self.pairs, self.log_bounce)
 
