@@ -15,6 +15,10 @@ from selfsup.estimation.stages import estimate_scene
 # MEDIUM: direct light alone (no ambient), matte, as a capture of direct light is.
 # A two-light room whose second light the albedo-free criterion misses (kd unknown).
 MISSED_SEED = 10
+# One whose second-light search ranks its best start 16% below the next at half resolution
+# (MISSED_SEED's within 4%: the vector kernels' rounding chose between them, AVX-512 against
+# AVX2), so the end-to-end test below does not hang on a tie.
+FOUND_SEED = 23
 
 
 def _capture_like(scene, ambient=0.0):
@@ -81,7 +85,7 @@ def test_a_one_light_room_needs_no_second_light_from_its_black_pixels():
 
 
 def test_a_second_light_the_criterion_misses_is_found_by_the_black_pixels():
-    scene = _capture_like(_scene(MISSED_SEED, 2))
+    scene = _capture_like(_scene(FOUND_SEED, 2))
     without = estimate_scene(scene, EstimateOptions(tuning=Tuning(unlit_evidence=False)))
     found = estimate_scene(scene, EstimateOptions())
     assert len(without["lights"]) == 1
