@@ -15,9 +15,9 @@ from selfsup.estimation.stages import estimate_scene
 # MEDIUM: direct light alone (no ambient), matte, as a capture of direct light is.
 # A two-light room whose second light the albedo-free criterion misses (kd unknown).
 MISSED_SEED = 10
-# One whose second-light search ranks its best start 16% below the next at half resolution
-# (MISSED_SEED's within 4%: the vector kernels' rounding chose between them, AVX-512 against
-# AVX2), so the end-to-end test below does not hang on a tie.
+# One whose second-light search ranks its next start 16% above its best at half resolution
+# (MISSED_SEED's are 0.1% apart on AVX2, 4% on AVX-512, and the vector kernels' rounding chose
+# between them), so the end-to-end test below does not hang on a tie.
 FOUND_SEED = 23
 
 
