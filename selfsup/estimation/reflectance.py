@@ -260,29 +260,37 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
 
 def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels: Tensor, options: EstimateOptions,
                   criterion, best: list, by_shadows: list[bool], tried: list[list[tuple]]) -> FitProblem:
-    # Where the diffuse fit took more than one light, the first light with a specular lobe
-    # (:func:`albedo_free.choose_gloss` from its one-light fit ``found``) in their place, where
-    # its criterion on every residual is below theirs: a metal's or a gloss's broad lobe is a
-    # second peak that a light beside the first also makes. Not where the last light was taken
-    # by the capture's black pixels (``by_shadows``): a lobe casts no shadow. ``best`` and
-    # ``tried`` are updated in place (the lobe's model joins ``tried`` as ``(1, criterion, True)``);
-    # returns the problem with each image's lobe.
-    more = [i for i in range(problem.batch) if best[i][0].position.shape[1] > 1 and not by_shadows[i]]
-    if not more:
+    # Where the diffuse fit took more than one light, one light with a specular lobe
+    # (:func:`albedo_free.choose_gloss`) in their place, where its criterion on every residual is
+    # below theirs: a metal's or a gloss's broad lobe is a second peak that a light beside the
+    # first also makes. Its light starts at the one-light fit ``found`` and at each of the more
+    # lights alone (beside other objects a metal's one diffuse light lands 20 degrees off, between
+    # its lamp and the lobe's peak; one of the pair's lights is near the lamp). Not where the last
+    # light was taken by the capture's black pixels (``by_shadows``): a lobe casts no shadow.
+    # ``best`` and ``tried`` are updated in place (the lobe's model joins ``tried`` as
+    # ``(1, criterion, True)``); returns the problem with each image's lobe.
+    gloss = problem.image.new_zeros(problem.batch, 2)
+    counts = [best[i][0].position.shape[1] for i in range(problem.batch)]
+    for n_lights in sorted({n for n, shadows in zip(counts, by_shadows) if n > 1 and not shadows}):
+        more = [i for i in range(problem.batch) if counts[i] == n_lights and not by_shadows[i]]
+        several = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in more])
+        alone = albedo_free.AlbedoFreeFit.rows([(found, i) for i in more])  # their one-light fits
+        at = torch.tensor(more, dtype=torch.long, device=problem.image.device)
+        lobed_problem, lobed = albedo_free.choose_gloss(problem.select(at), alone, labels[at],
+                                                        options.tuning.albedo_free_scale, criterion,
+                                                        against=criterion(several),
+                                                        starts=[several.only(k) for k in range(n_lights)])
+        if lobed_problem.gloss is None:
+            continue
+        values = criterion(lobed, [albedo_free.GLOSS_PARAMETERS] * len(more))  # the lobe's rows' (others: unused)
+        for j, i in enumerate(more):
+            if float(lobed_problem.gloss[j, 0]) > 0:
+                best[i] = (lobed, j, values[j])
+                tried[i].append((1, values[j], True))
+                gloss[i] = lobed_problem.gloss[j]
+    if not bool((gloss[:, 0] > 0).any()):
         return problem
-    at = torch.tensor(more, dtype=torch.long, device=problem.image.device)
-    several = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in more])
-    alone = albedo_free.AlbedoFreeFit.rows([(found, i) for i in more])  # their one-light fits
-    lobed_problem, lobed = albedo_free.choose_gloss(problem.select(at), alone, labels[at], options.tuning.albedo_free_scale,
-                                                    criterion, against=criterion(several))
-    if lobed_problem.gloss is None:
-        return problem
-    values = criterion(lobed, [albedo_free.GLOSS_PARAMETERS] * len(more))  # the lobe's rows' (others: unused)
-    for j, i in enumerate(more):
-        if float(lobed_problem.gloss[j, 0]) > 0:
-            best[i] = (lobed, j, values[j])
-            tried[i].append((1, values[j], True))
-    return problem.with_gloss(problem.image.new_zeros(problem.batch, 2).index_put((at,), lobed_problem.gloss))
+    return problem.with_gloss(gloss)
 
 
 def _judged(sub: FitProblem, before: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,

@@ -17,7 +17,7 @@ def _shading_log(problem, fit):
     return albedo_fit._log_model(albedo_fit._transport(obs, fit.position), fit.log_weight)[0]
 
 
-def test_a_fit_without_a_light_keeps_the_others_shading_up_to_its_scale():
+def test_a_fit_without_a_light_or_with_one_alone_keeps_their_shading_up_to_its_scale():
     problem = problem_of(_unknown_albedo(_scene(11, n_lights=2)), shadows="none", dtype=torch.float64)
     position = torch.tensor([[[0.3, -1.0, 2.0], [-0.5, -0.8, 2.5], [0.0, -1.2, 1.5]]], dtype=torch.float64)
     fit = albedo_free.AlbedoFreeFit(position, torch.tensor([[-2.0, 0.0, 0.7, -0.4]], dtype=torch.float64),
@@ -32,8 +32,14 @@ def test_a_fit_without_a_light_keeps_the_others_shading_up_to_its_scale():
         difference = _shading_log(problem, alone)[0] - expected
         mask = problem.gbuffer.mask[0]
         assert float(difference[mask].std()) < 1e-9  # one constant: the gauge's scale
+        only = fit.only(light)  # this light and the ambient alone
+        assert only.position.shape == (1, 1, 3) and float(only.log_weight[0, 1]) == 0.0
+        expected = (w[0] + w[1 + light] * transport[light]).log()
+        assert float((_shading_log(problem, only)[0] - expected)[mask].std()) < 1e-9
     with pytest.raises(ValueError, match="cannot leave light 3 out"):
         fit.without(3)
+    with pytest.raises(ValueError, match="no light 3"):
+        fit.only(3)
 
 
 @pytest.mark.parametrize("lights", [1, 2])

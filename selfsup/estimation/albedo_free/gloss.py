@@ -9,9 +9,11 @@ first to widen the peak. Independent renders of rough gold and aluminium (Mitsub
 conductors, path traced, through a camera) took two lights in every frame, the first
 up to 24.6 degrees off (``benchmarks/results/gloss_cpu2_2026-12-06.md``). A lobe and a light
 beside the first explain the same peak, so by default (``tuning.albedo_free_gloss=instead``)
-the lobe is tried only where the diffuse fit takes more lights, with the first light alone,
-and kept where its criterion is below theirs (not where the black pixels took the second
-light: a lobe casts no shadow). Rough gold and aluminium then take one light in 10 of 16
+the lobe is tried only where the diffuse fit takes more lights, with one light, and kept where
+its criterion is below theirs (not where the black pixels took the second light: a lobe casts
+no shadow). That light starts at the one-light fit and at each of the more lights alone: beside
+other objects a metal's one diffuse light lands between its lamp and the lobe's peak, where
+one of the pair's lights is near the lamp. Rough gold and aluminium then take one light in 10 of 16
 frames (``benchmarks/results/gloss_instead_cpu2_2026-12-06.md``), and a frame one light
 explains never takes a lobe (tried beside every first light, ``auto``, the matte DiLiGenT
 bear's faint sheen took one in 24 of 24 frames and lost 0.6 degrees).
@@ -31,13 +33,14 @@ where the criterion prefers it (two parameters more); every later fit of the ima
 from __future__ import annotations
 
 import itertools
+import math
 
 import torch
 from torch import Tensor
 
 from selfsup.estimation.albedo_free.fit import FINAL_TOLERANCE, refine_positions
 from selfsup.estimation.albedo_free.observation import AlbedoFreeFit, observe
-from selfsup.estimation.problem import FitProblem, subsample
+from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
 
 __all__ = ["choose_gloss", "GLOSS_RATIOS", "GLOSS_SHININESS", "GLOSS_PARAMETERS"]
 
@@ -52,35 +55,64 @@ GLOSS_STRIDE = 4  # the grid is tried at every fourth pixel (every second: the s
 # 24 Mitsuba metal frames, one frame fewer of sharp gold taking one, at 2.2 times the time)
 GLOSS_ITERATIONS = (8, 12)  # LM steps of every lobe of the grid, then of the best at full resolution
 GLOSS_PARAMETERS = 2  # the ratio and the shininess, counted by the criterion
+# Each start's best lobe of the grid is then refined on the 8 lobes about it, each round at half
+# the last step (in log; the grid's is a factor of about 3.2 in both): the grid alone is too
+# coarse for a lobe between its shininesses (our renderer's rough gold-like paint, Blinn-Phong 8
+# beside a box and a cylinder: two lights, 9.8 degrees off, on the grid; one and its lobe, 0.4, on
+# a grid of twice its density; refined, 1.0), 8 lobes a round against the grid's 20.
+GLOSS_REFINE_ROUNDS = 2
+# A start within this share of the scene size of an earlier one is the same start (a two-light
+# fit's brighter light is often where the one-light fit was): left out of the grid.
+SAME_START = 0.05
 
 
 def choose_gloss(problem: FitProblem, found: AlbedoFreeFit, labels: Tensor | None, robust_scale: float,
-                 criterion, residuals: str = "segments", against: list[float] | None = None
-                 ) -> tuple[FitProblem, AlbedoFreeFit]:
+                 criterion, residuals: str = "segments", against: list[float] | None = None,
+                 starts: list[AlbedoFreeFit] = ()) -> tuple[FitProblem, AlbedoFreeFit]:
     """Each image's specular lobe, or none: every lobe of :data:`GLOSS_RATIOS` x
-    :data:`GLOSS_SHININESS` refined from ``found`` (the first light's fit of ``problem``)
-    at :data:`GLOSS_STRIDE`, the best one at full resolution, kept where ``criterion(fit,
-    extra)`` (a list per image; lower is better) with :data:`GLOSS_PARAMETERS` more is below
-    the diffuse fit's, and below ``against`` (a criterion per image, e.g. of the diffuse
-    fit with more lights) where given. Returns the problem with its ``gloss (B, 2)`` (a
-    ratio of 0 where none was kept; None where no image kept one) and each image's fit, with
-    or without it. ``labels``, ``robust_scale``, ``residuals``: as :func:`observe`."""
+    :data:`GLOSS_SHININESS` refined from ``found`` (the first light's fit of ``problem``; and
+    from each one-light fit of ``starts``, other places its light may start, unless
+    :data:`SAME_START` of the scene size from an earlier one in every image) at
+    :data:`GLOSS_STRIDE`; each start's best lobe refined about it (:data:`GLOSS_REFINE_ROUNDS`)
+    and at full resolution, and the one of lowest ``criterion(fit, extra)`` (a list per image;
+    lower is better; :data:`GLOSS_PARAMETERS` more) kept where it is below the diffuse fit's
+    (``found``'s), and below ``against`` (a criterion per image, e.g. of the diffuse fit with
+    more lights) where given. Returns the problem with its ``gloss (B, 2)`` (a ratio of 0 where
+    none was kept; None where no image kept one) and each image's fit, with or without it.
+    ``labels``, ``robust_scale``, ``residuals``: as :func:`observe`."""
     B = problem.batch
     combos = torch.tensor(list(itertools.product(GLOSS_RATIOS, GLOSS_SHININESS)), dtype=problem.image.dtype,
                           device=problem.image.device)  # (G, 2)
+    fits = [found]
+    _, size = centre_and_size(problem)
+    for start in starts:  # each start unless every image has it already
+        apart = torch.stack([(start.position[:, 0] - f.position[:, 0]).norm(dim=-1) for f in fits]).amin(0)
+        if bool((apart > SAME_START * size).any()):
+            fits.append(start)
     G = combos.shape[0]
-    rows = torch.arange(B, device=problem.image.device).repeat_interleave(G)
-    tiled = subsample(problem.select(rows).with_gloss(combos.repeat(B, 1)), GLOSS_STRIDE)
+    S = len(fits)
+    tries = S * G  # each image's grid: every lobe from every start
+    rows = torch.arange(B, device=problem.image.device).repeat_interleave(tries)
+    position = torch.stack([f.position for f in fits], 1)[:, :, None].expand(-1, -1, G, -1, -1).reshape(B * tries, 1, 3)
+    log_weight = torch.stack([f.log_weight for f in fits], 1)[:, :, None].expand(-1, -1, G, -1).reshape(B * tries, -1)
+    tiled = subsample(problem.select(rows).with_gloss(combos.repeat(B * S, 1)), GLOSS_STRIDE)
     coarse_labels = None if labels is None else labels[rows][:, ::GLOSS_STRIDE, ::GLOSS_STRIDE]
     seen = observe(tiled, robust_scale, residuals=residuals, labels=coarse_labels)
-    tried = refine_positions(seen, found.position[rows], found.log_weight[rows], GLOSS_ITERATIONS[0])
-    best = tried.loss.view(B, G).argmin(1)  # (B,)
-    pick = torch.arange(B, device=best.device) * G + best
-    gloss = combos[best]  # (B, 2)
-    glossy = problem.with_gloss(gloss)
-    full = observe(glossy, robust_scale, residuals=residuals, labels=labels)
-    fitted = refine_positions(full, tried.position[pick], tried.log_weight[pick], GLOSS_ITERATIONS[1], FINAL_TOLERANCE)
-    plain, lobed = criterion(found), criterion(fitted, [GLOSS_PARAMETERS] * B)
+    tried = refine_positions(seen, position, log_weight, GLOSS_ITERATIONS[0])
+    # Each start's best lobe of the grid, refined about it and at full resolution; each image
+    # keeps the start whose lobe has the lowest criterion.
+    best = tried.loss.view(B * S, G).argmin(1)  # (B S,)
+    pick = torch.arange(B * S, device=best.device) * G + best
+    gloss, coarse = combos[best], AlbedoFreeFit.rows([(tried, int(r)) for r in pick])  # (B S, 2), the grid's best fits
+    each = torch.arange(B, device=best.device).repeat_interleave(S)
+    images, each_labels = problem.select(each), None if labels is None else labels[each]
+    gloss, coarse = _refined_lobes(images, gloss, coarse, each_labels, robust_scale, residuals)
+    full = observe(images.with_gloss(gloss), robust_scale, residuals=residuals, labels=each_labels)
+    fitted = refine_positions(full, coarse.position, coarse.log_weight, GLOSS_ITERATIONS[1], FINAL_TOLERANCE)
+    values = criterion(fitted, [GLOSS_PARAMETERS] * (B * S))
+    kept = [b * S + min(range(S), key=lambda k: values[b * S + k]) for b in range(B)]
+    gloss, fitted, lobed = gloss[kept], AlbedoFreeFit.rows([(fitted, r) for r in kept]), [values[r] for r in kept]
+    plain = criterion(found)
     if against is not None:
         plain = [min(p, a) for p, a in zip(plain, against)]
     take = torch.tensor([c < p for p, c in zip(plain, lobed)], device=problem.image.device)
@@ -88,3 +120,30 @@ def choose_gloss(problem: FitProblem, found: AlbedoFreeFit, labels: Tensor | Non
         return problem, found
     gloss = torch.where(take[:, None], gloss, torch.zeros_like(gloss))
     return problem.with_gloss(gloss), found.chosen(take, fitted)
+
+
+def _refined_lobes(problem: FitProblem, gloss: Tensor, fit: AlbedoFreeFit, labels: Tensor | None, robust_scale: float,
+                   residuals: str) -> tuple[Tensor, AlbedoFreeFit]:
+    # Each image's lobe ``gloss (B, 2)`` and its fit at GLOSS_STRIDE, refined for
+    # GLOSS_REFINE_ROUNDS rounds: the 8 lobes about it at the round's step (in log) refined as
+    # the grid's were, the lowest loss kept (the lobe itself where none is lower).
+    B = problem.batch
+    step = torch.tensor([math.log(GLOSS_RATIOS[-1] / GLOSS_RATIOS[0]) / (len(GLOSS_RATIOS) - 1),
+                         math.log(GLOSS_SHININESS[-1] / GLOSS_SHININESS[0]) / (len(GLOSS_SHININESS) - 1)],
+                        dtype=gloss.dtype, device=gloss.device)
+    around = torch.tensor([(a, b) for a in (-1.0, 0.0, 1.0) for b in (-1.0, 0.0, 1.0) if (a, b) != (0.0, 0.0)],
+                          dtype=gloss.dtype, device=gloss.device)  # (8, 2)
+    rows = torch.arange(B, device=gloss.device).repeat_interleave(len(around))
+    coarse_labels = None if labels is None else labels[rows][:, ::GLOSS_STRIDE, ::GLOSS_STRIDE]
+    for _ in range(GLOSS_REFINE_ROUNDS):
+        step = step / 2
+        lobes = gloss[:, None] * (around * step).exp()  # (B, 8, 2)
+        seen = observe(subsample(problem.select(rows).with_gloss(lobes.reshape(-1, 2)), GLOSS_STRIDE), robust_scale,
+                       residuals=residuals, labels=coarse_labels)
+        tried = refine_positions(seen, fit.position[rows], fit.log_weight[rows], GLOSS_ITERATIONS[0])
+        loss, best = tried.loss.view(B, len(around)).min(1)
+        better = loss < fit.loss
+        pick = torch.arange(B, device=best.device) * len(around) + best
+        gloss = torch.where(better[:, None], lobes[torch.arange(B, device=best.device), best], gloss)
+        fit = fit.chosen(better, AlbedoFreeFit.rows([(tried, int(r)) for r in pick]))
+    return gloss, fit

@@ -140,6 +140,13 @@ class AlbedoFreeFit:
             raise ValueError(f"cannot leave light {light} out of a fit of {L} lights")
         return self._in_order([i for i in range(L) if i != light])
 
+    def only(self, light: int) -> "AlbedoFreeFit":
+        """Light ``light`` alone, its weights relative to it (the loss and pairs kept as they were)."""
+        L = self.position.shape[1]
+        if not 0 <= light < L:
+            raise ValueError(f"there is no light {light} in a fit of {L} lights")
+        return self._in_order([light])
+
     def with_last_at(self, light: int) -> "AlbedoFreeFit":
         """The fit with its last light moved to index ``light`` (the others keep their order),
         its weights relative to the new first light (the loss and pairs kept): a light searched
