@@ -55,12 +55,15 @@ GLOSS_STRIDE = 4  # the grid is tried at every fourth pixel (every second: the s
 # 24 Mitsuba metal frames, one frame fewer of sharp gold taking one, at 2.2 times the time)
 GLOSS_ITERATIONS = (8, 12)  # LM steps of every lobe of the grid, then of the best at full resolution
 GLOSS_PARAMETERS = 2  # the ratio and the shininess, counted by the criterion
-# Each start's best lobe of the grid is then refined on the 8 lobes about it, each round at half
-# the last step (in log; the grid's is a factor of about 3.2 in both): the grid alone is too
+# Each start's best lobe of the grid can then be refined on the 8 lobes about it, each round at
+# half the last step (in log; the grid's is a factor of about 3.2 in both): the grid alone is too
 # coarse for a lobe between its shininesses (our renderer's rough gold-like paint, Blinn-Phong 8
-# beside a box and a cylinder: two lights, 9.8 degrees off, on the grid; one and its lobe, 0.4, on
-# a grid of twice its density; refined, 1.0), 8 lobes a round against the grid's 20.
-GLOSS_REFINE_ROUNDS = 2
+# beside a box and a cylinder: two lights, 9.8 degrees off, on the grid; one and its lobe, 1.0,
+# refined twice). Off: refined, the lobe also won in a glossy room lit by two lamps (the tracking
+# captures' two-light sequence, criterion -1588 against the pair's -1429) and took the second
+# lamp's place, since no second light is searched beside a lobe that replaced a pair
+# (benchmarks/results/gloss_starts_cpu2_2026-12-06.md).
+GLOSS_REFINE_ROUNDS = 0
 # A start within this share of the scene size of an earlier one is the same start (a two-light
 # fit's brighter light is often where the one-light fit was): left out of the grid.
 SAME_START = 0.05
