@@ -130,6 +130,8 @@ def _refined_lobes(problem: FitProblem, gloss: Tensor, fit: AlbedoFreeFit, label
     # Each image's lobe ``gloss (B, 2)`` and its fit at GLOSS_STRIDE, refined for
     # GLOSS_REFINE_ROUNDS rounds: the 8 lobes about it at the round's step (in log) refined as
     # the grid's were, the lowest loss kept (the lobe itself where none is lower).
+    if GLOSS_REFINE_ROUNDS == 0:  # off (see its comment): no 8-fold copies of the labels for nothing
+        return gloss, fit
     B = problem.batch
     step = torch.tensor([math.log(GLOSS_RATIOS[-1] / GLOSS_RATIOS[0]) / (len(GLOSS_RATIOS) - 1),
                          math.log(GLOSS_SHININESS[-1] / GLOSS_SHININESS[0]) / (len(GLOSS_SHININESS) - 1)],
