@@ -29,13 +29,14 @@ from torch import Tensor
 from render import Material
 from selfsup.estimation.criterion import (Candidate, by_model, candidates, fit_row, judged_problem, light_shares,
                                           shadow_gain, specular_images)
+from selfsup.estimation.gains import segment_gains
 from selfsup.estimation.network import network_candidates, network_slots
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.options import EstimateOptions, RefineOptions
 from selfsup.estimation.prepare import in_file_units, prepare, within_pixels, working_range
 from selfsup.estimation.problem import Fit, FitProblem
 from selfsup.estimation.records import records
-from selfsup.estimation.reflectance import albedo_free_images, estimate_albedo_free, segment_gains
+from selfsup.estimation.reflectance import albedo_free_images, estimate_albedo_free
 from selfsup.estimation.solvers import refine, search
 from selfsup.scenes.io import Scene
 

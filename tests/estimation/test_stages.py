@@ -75,7 +75,7 @@ def test_unknown_method_is_named():
 
 
 def test_segment_gains_recover_each_surfaces_albedo_factor():
-    from selfsup.estimation.reflectance import segment_gains
+    from selfsup.estimation.gains import segment_gains
 
     torch.manual_seed(0)
     model = torch.rand(1, 3, 10, 12) + 0.5
