@@ -5,8 +5,9 @@ Read it top down, each module one job, every import pointing down this list:
 - :mod:`~selfsup.estimation.files`: scene files in, JSON Lines out (``mode=estimate``), the worker pool;
 - :mod:`~selfsup.estimation.stages`: the driver, a list of stage calls (first light, coat, grow, drop, polish);
 - :mod:`~selfsup.estimation.records`: the JSON-ready records;
-- :mod:`~selfsup.estimation.network`, :mod:`~selfsup.estimation.reflectance`, :mod:`~selfsup.estimation.gains`: the network's
-  starts; unknown albedo; per-surface albedo gains;
+- :mod:`~selfsup.estimation.network`, :mod:`~selfsup.estimation.reflectance`: the network's starts; unknown albedo
+  (:mod:`~selfsup.estimation.intensities`: its lights' intensities; :mod:`~selfsup.estimation.gains`: per-surface
+  albedo gains);
 - :mod:`~selfsup.estimation.criterion`: model selection (how many lights, which terms);
 - :mod:`~selfsup.estimation.uncertainty`: covariances of the chosen lights;
 - :mod:`~selfsup.estimation.solvers`: LM, first-order (the paper's GD, Adam), grid search;

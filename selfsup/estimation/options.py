@@ -166,7 +166,7 @@ class Tuning:
         light_colour: the albedo-free fit's intensities, their ratios the fit's:
             ``neutral`` (the lights and the ambient the image's white) | ``shared`` (one
             colour for all, the image's mean) | ``free`` (each channel of each light and
-            of the ambient solved on its own) (:func:`selfsup.estimation.reflectance.intensities_of`);
+            of the ambient solved on its own) (:func:`selfsup.estimation.intensities.intensities_of`);
             ``neutral`` also makes ``method=cnn``'s lights white where the albedo is unknown
             (:func:`selfsup.estimation.reflectance.grey_where_unknown`).
         vignetting: ``auto``: the albedo-free fit takes out the lens's falloff towards the

@@ -13,17 +13,15 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
-from render import Material, light_transport
 from selfsup.estimation import albedo_free, unlit
 from selfsup.estimation.criterion import Candidate, bic, block_px, criterion_light, fit_row
 from selfsup.estimation.normals import surface_segments
+from selfsup.estimation.intensities import ambient_only_loss, intensities_of
 from selfsup.estimation.options import EstimateOptions
-from selfsup.estimation.problem import Fit, FitProblem, cauchy_scale, irls_weights
-from selfsup.estimation.solvers import refine
+from selfsup.estimation.problem import FitProblem, centre_and_size
 from selfsup.estimation.vignetting import choose_vignetting, devignetted
 
-__all__ = ["reflectance_unknown", "albedo_free_images", "estimate_albedo_free", "albedo_free_covariance",
-           "intensities_of", "ambient_only_loss"]
+__all__ = ["reflectance_unknown", "albedo_free_images", "estimate_albedo_free", "albedo_free_covariance"]
 
 MIN_RESIDUALS = 100  # the fewest residuals an albedo-free fit or count decision rests on
 # The bounce of the albedo-free fit (estimate.tuning.albedo_free_bounce): its strength's start
@@ -252,12 +250,13 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
                 still.append(i)
         growing = still
     if options.tuning.albedo_free_gloss == "instead" and labels is not None:
-        problem = _lobe_instead(problem, found, labels, options, criterion, best, by_shadows, tried)
+        problem = _lobe_instead(problem, found, labels, options, criterion, best, by_shadows, tried, geometry)
     return _chosen_candidates(problem, labels, geometry, options, best, tried, corner_loss, with_bounce)
 
 
 def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels: Tensor, options: EstimateOptions,
-                  criterion, best: list, by_shadows: list[bool], tried: list[list[tuple]]) -> FitProblem:
+                  criterion, best: list, by_shadows: list[bool], tried: list[list[tuple]],
+                  geometry: Tensor | None = None) -> FitProblem:
     # Where the diffuse fit took more than one light, one light with a specular lobe
     # (:func:`albedo_free.choose_gloss`) in their place, where its criterion on every residual is
     # below theirs: a metal's or a gloss's broad lobe is a second peak that a light beside the
@@ -265,8 +264,12 @@ def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels:
     # lights alone (beside other objects a metal's one diffuse light lands 20 degrees off, between
     # its lamp and the lobe's peak; one of the pair's lights is near the lamp). Not where the last
     # light was taken by the capture's black pixels (``by_shadows``): a lobe casts no shadow.
-    # ``best`` and ``tried`` are updated in place (the lobe's model joins ``tried`` as
-    # ``(1, criterion, True)``); returns the problem with each image's lobe.
+    # Beside a lobe that replaced lights, one light more is searched and judged as any second light
+    # (:func:`_light_beside_lobe`): a glossy room may have two lamps. Where one light and its lobe
+    # lose, the lobe is tried beside the lights the diffuse fit took (two lamps on a glossy object:
+    # the diffuse pair lands 16-21 degrees off both, each light between a lamp and a highlight).
+    # ``best`` and ``tried`` are updated in place (the lobe's models join ``tried`` as
+    # ``(n, criterion, True)``); returns the problem with each image's lobe.
     gloss = problem.image.new_zeros(problem.batch, 2)
     counts = [best[i][0].position.shape[1] for i in range(problem.batch)]
     for n_lights in sorted({n for n, shadows in zip(counts, by_shadows) if n > 1 and not shadows}):
@@ -274,21 +277,81 @@ def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels:
         several = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in more])
         alone = albedo_free.AlbedoFreeFit.rows([(found, i) for i in more])  # their one-light fits
         at = torch.tensor(more, dtype=torch.long, device=problem.image.device)
-        lobed_problem, lobed = albedo_free.choose_gloss(problem.select(at), alone, labels[at],
-                                                        options.tuning.albedo_free_scale, criterion,
-                                                        against=criterion(several),
-                                                        starts=[several.only(k) for k in range(n_lights)])
-        if lobed_problem.gloss is None:
-            continue
+        shapes, fitted, fitted_values = albedo_free.fit_lobes(problem.select(at), alone, labels[at],
+                                                              options.tuning.albedo_free_scale, criterion,
+                                                              starts=[several.only(k) for k in range(n_lights)])
+        lobed_problem, lobed = albedo_free.keep_lobes(problem.select(at), alone, shapes, fitted, fitted_values,
+                                                      criterion, against=criterion(several))
+        lobes = [0.0] * len(more) if lobed_problem.gloss is None else lobed_problem.gloss[:, 0].tolist()
+        took = [j for j, ratio in enumerate(lobes) if ratio > 0]
         values = criterion(lobed, [albedo_free.GLOSS_PARAMETERS] * len(more))  # the lobe's rows' (others: unused)
-        for j, i in enumerate(more):
-            if float(lobed_problem.gloss[j, 0]) > 0:
-                best[i] = (lobed, j, values[j])
-                tried[i].append((1, values[j], True))
-                gloss[i] = lobed_problem.gloss[j]
+        for j in took:
+            best[more[j]] = (lobed, j, values[j])
+            tried[more[j]].append((1, values[j], True))
+            gloss[more[j]] = lobed_problem.gloss[j]
+        if took:
+            _light_beside_lobe(lobed_problem, lobed, several, took, [more[j] for j in took], labels[at], options,
+                               criterion, best, tried, None if geometry is None else geometry[at])
+        rest = [j for j in range(len(more)) if j not in took]
+        if rest:  # the lobe beside the lights they have (two lamps on a glossy object); the one light's shape too
+            beside = torch.tensor(rest, dtype=torch.long, device=problem.image.device)
+            lobed_problem, lobed = albedo_free.choose_gloss(
+                problem.select(at[beside]), albedo_free.AlbedoFreeFit.rows([(several, j) for j in rest]),
+                labels[at[beside]], options.tuning.albedo_free_scale, criterion, shapes=shapes[beside, None])
+            if lobed_problem.gloss is None:
+                continue
+            values = criterion(lobed, [albedo_free.GLOSS_PARAMETERS] * len(rest))
+            for k, j in enumerate(rest):
+                if float(lobed_problem.gloss[k, 0]) > 0:
+                    best[more[j]] = (lobed, k, values[k])
+                    tried[more[j]].append((n_lights, values[k], True))
+                    gloss[more[j]] = lobed_problem.gloss[k]
     if not bool((gloss[:, 0] > 0).any()):
         return problem
     return problem.with_gloss(gloss)
+
+
+def _light_beside_lobe(problem: FitProblem, lobed: albedo_free.AlbedoFreeFit, several: albedo_free.AlbedoFreeFit,
+                       rows: list[int], images: list[int], labels: Tensor, options: EstimateOptions, criterion,
+                       best: list, tried: list[list[tuple]], geometry: Tensor | None) -> None:
+    # Rows ``rows`` of ``problem`` (with its lobes; images ``images`` of ``best``) took one light
+    # and its lobe (``lobed``) in the place of the lights of ``several``: one light more searched
+    # beside it (the lobe on both), also from the lobe's light beside each light it replaced (and
+    # the replaced pair itself), taken where :func:`_judged` takes it and the two lights are
+    # resolved (:func:`_resolved_beside_lobe`). The two models differ by a light only, so they are
+    # judged without the lobe's parameters; the records keep them with.
+    at = torch.tensor(rows, dtype=torch.long, device=problem.image.device)
+    sub, replaced = problem.select(at), several.position[at]  # replaced (R, n, 3)
+    before = albedo_free.AlbedoFreeFit.rows([(lobed, j) for j in rows])
+    starts = [torch.stack([before.position[:, 0], replaced[:, k]], 1) for k in range(replaced.shape[1])]
+    starts += [replaced] if replaced.shape[1] == 2 else []
+    kwargs = dict(robust_scale=options.tuning.albedo_free_scale, labels=labels[at], **_residuals(options))
+    more = albedo_free.search(sub, 2, fixed=before, starts=4 + len(starts), extra_starts=torch.stack(starts, 1),
+                              **kwargs)
+    more = albedo_free.search_each(sub, more, **kwargs)
+    taken, _, _, _ = _judged(sub, before, more, criterion(before), kwargs["labels"], options, criterion,
+                             None if geometry is None else geometry[at])
+    apart = _resolved_beside_lobe(sub, more).tolist()
+    taken = [t and a for t, a in zip(taken, apart)]
+    values = criterion(more, [albedo_free.GLOSS_PARAMETERS] * len(rows))
+    for j, i in enumerate(images):
+        tried[i].append((2, values[j], True))
+        if taken[j]:
+            best[i] = (more, j, values[j])
+
+
+def _resolved_beside_lobe(problem: FitProblem, fit: albedo_free.AlbedoFreeFit) -> Tensor:
+    """``(B,)`` bool: whether the two lights of ``fit`` lie farther apart, seen from the
+    scene's centre, than the half-width at half maximum of ``problem``'s lobe (Blinn-Phong
+    ``s``: ``acos(2 ** (-1 / s))`` in the half vector's angle; a light moved by twice that
+    moves the peak by it). Closer, the pair is one lamp whose lobe has another shape than
+    Blinn-Phong's (Mitsuba's GGX gold and aluminium took a second light 6-9 degrees from the
+    first, beside a lobe 17-23 degrees wide), not two lamps."""
+    centre, _ = centre_and_size(problem)
+    seen = torch.nn.functional.normalize(fit.position - centre[:, None], dim=-1)  # (B, 2, 3)
+    cosine = (seen[:, 0] * seen[:, 1]).sum(-1).clamp(-1.0, 1.0)
+    half_width = torch.acos(torch.exp2(-1.0 / problem.gloss[:, 1].clamp_min(1e-3)))
+    return torch.acos(cosine) > half_width
 
 
 def _judged(sub: FitProblem, before: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
@@ -497,70 +560,3 @@ def _without_highlights(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, m
     # No iterations: the loss of each fit at its positions and log weights, on these pixels.
     return (albedo_free.refine_positions(outside, fewer.position, fewer.log_weight, 0, log_bounce=fewer.log_bounce),
             albedo_free.refine_positions(outside, more.position, more.log_weight, 0, log_bounce=more.log_bounce))
-
-
-# An ambient log weight this far above the first light's: its shading is the ambient's alone.
-AMBIENT_ONLY_LOG_WEIGHT = 60.0
-
-
-def ambient_only_loss(obs: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFit) -> Tensor:
-    """``(B,)`` loss of the model without lights (the ambient alone: the log shading one
-    constant, each segment's offset free) on the residuals of ``obs``: the fit's positions
-    held, its ambient's weight so far above theirs that they add nothing."""
-    log_weight = fit.log_weight.clone()
-    log_weight[:, 0] = AMBIENT_ONLY_LOG_WEIGHT
-    return albedo_free.refine_positions(obs, fit.position, log_weight, 0).loss
-
-
-def intensities_of(problem: FitProblem, fit: albedo_free.AlbedoFreeFit, options: EstimateOptions,
-                   observed: albedo_free.LogShading | None = None) -> tuple[Fit, Tensor]:
-    """The albedo-free fit's lights and ambient as intensities in the image's units: the
-    fit's own ratios (its log weights, which its covariance and shares rest on) times one
-    scale per channel, the Cauchy-reweighted least-squares factor of the model shading
-    (no cast shadows, as the fit; with the fit's bounce, :func:`albedo_free.bounce_maps`
-    of ``observed``, its log shading) times kd against each channel of the image; and each
-    image's share ``(B,)`` of the model's light that is the bounce (0 without it).
-
-    With the albedo unknown, a light's colour is the surfaces' colour too: a channel solved
-    on its own makes colour a free knob (a red wall took a red-only light, a blue ambient
-    painted shadows blue). ``tuning.light_colour``: ``neutral`` (the default): every light
-    and the ambient the image's white, equal channels, as a camera's white balance makes
-    the light it sees; ``shared``: one colour for all, each channel's own factor (the
-    image's mean colour, surfaces and light together); ``free``: each light and the
-    ambient solved per channel at the positions, as before
-    (:func:`selfsup.estimation.solvers.refine` without steps).
-
-    Returns: a :class:`Fit` (``intensity (B, L, 3)``, ``ambient (B, 3)``, ``model (B, 3, H, W)``)
-    and the bounce's share ``(B,)``.
-    """
-    solve = replace(options.tuning.refine, specular=False, max_iters=(0,), strides=(1,))
-    weight = fit.log_weight.exp()  # (B, L + 1): the ambient's, then each light's, relative
-    diffuse = light_transport(problem.gbuffer, Material(kd=problem.material.kd), fit.position, falloff=problem.falloff,
-                              shadows="none", specular=False).diffuse  # (B, L, H, W): the fit's transport
-    direct = (weight[:, 1:, None, None] * diffuse).sum(1)  # (B, H, W)
-    bounce = torch.zeros_like(direct)
-    if fit.log_bounce is not None and observed is not None and bool(fit.bounced().any()):
-        maps = albedo_free.bounce_maps(observed, diffuse, fit.log_weight)
-        strength = torch.where(fit.bounced(), fit.log_bounce, torch.full_like(fit.log_bounce, -math.inf)).exp()
-        bounce = strength[:, None, None] * (weight[:, 1:, None, None] * maps).sum(1)
-    shading = weight[:, :1, None] + direct + bounce  # (B, H, W)
-    mask = problem.gbuffer.mask[:, None].to(problem.image.dtype)  # (B, 1, H, W)
-    share = (bounce * mask[:, 0]).flatten(1).sum(1) / (shading * mask[:, 0]).flatten(1).sum(1).clamp_min(1e-30)
-    if options.tuning.light_colour == "free":
-        return refine(problem, fit.position, solve), share
-    unit = problem.material.kd.permute(0, 3, 1, 2) * shading[:, None] * mask  # (B, 3, H, W) at scale 1
-    image = problem.image * mask
-    scale = cauchy_scale(problem, solve)
-    weights = irls_weights(problem, None, solve)
-    for _ in range(solve.irls_passes + 1):
-        # (B, 3): each channel's factor; guarded where a channel has no model light.
-        product, square = (weights * image * unit).flatten(2).sum(2), (weights * unit * unit).flatten(2).sum(2)
-        if options.tuning.light_colour == "neutral":  # one factor for the three channels
-            product, square = product.sum(1, keepdim=True), square.sum(1, keepdim=True)
-        factor = (product / square.clamp_min(1e-30)).expand(-1, 3)
-        model = factor[..., None, None] * unit
-        weights = irls_weights(problem, model - problem.image, solve, scale)
-    residual = (model - image) * mask
-    cost = (weights * residual**2).flatten(1).sum(1)
-    return Fit(fit.position, weight[:, 1:, None] * factor[:, None], weight[:, :1] * factor, cost, model,
-               torch.zeros_like(cost), residual.pow(2).flatten(1).sum(1), mask.expand_as(image).flatten(1).sum(1)), share

@@ -33,7 +33,8 @@ from selfsup.estimation.prepare import full_scales, prepare, saturated_pixels, w
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
 from selfsup.estimation.records import records
-from selfsup.estimation.reflectance import albedo_free_covariance, intensities_of
+from selfsup.estimation.intensities import intensities_of
+from selfsup.estimation.reflectance import albedo_free_covariance
 from selfsup.estimation.solvers import refine
 from selfsup.estimation.stages import estimate_batch, with_coat
 from selfsup.estimation.uncertainty import position_covariance
