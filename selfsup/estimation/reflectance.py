@@ -15,8 +15,8 @@ from torch import Tensor
 
 from selfsup.estimation import albedo_free, unlit
 from selfsup.estimation.criterion import Candidate, bic, block_px, criterion_light, fit_row
-from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.intensities import ambient_only_loss, intensities_of
+from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import FitProblem, centre_and_size
 from selfsup.estimation.vignetting import choose_vignetting, devignetted
