@@ -10,7 +10,6 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
-from render import Material, light_transport
 from selfsup.estimation import albedo_free
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import Fit, FitProblem, cauchy_scale, irls_weights
@@ -37,7 +36,7 @@ def intensities_of(problem: FitProblem, fit: albedo_free.AlbedoFreeFit, options:
     """The albedo-free fit's lights and ambient as intensities in the image's units: the
     fit's own ratios (its log weights, which its covariance and shares rest on) times one
     scale per channel, the Cauchy-reweighted least-squares factor of the model shading
-    (no cast shadows, as the fit; with the fit's bounce, :func:`albedo_free.bounce_maps`
+    (no cast shadows, as the fit; its specular lobe where the fit has one; with the fit's bounce, :func:`albedo_free.bounce_maps`
     of ``observed``, its log shading) times kd against each channel of the image; and each
     image's share ``(B,)`` of the model's light that is the bounce (0 without it).
 
@@ -55,8 +54,8 @@ def intensities_of(problem: FitProblem, fit: albedo_free.AlbedoFreeFit, options:
     """
     solve = replace(options.tuning.refine, specular=False, max_iters=(0,), strides=(1,))
     weight = fit.log_weight.exp()  # (B, L + 1): the ambient's, then each light's, relative
-    diffuse = light_transport(problem.gbuffer, Material(kd=problem.material.kd), fit.position, falloff=problem.falloff,
-                              shadows="none", specular=False).diffuse  # (B, L, H, W): the fit's transport
+    material = albedo_free.glossy_material(problem.material.kd, problem.gloss)  # with the fit's lobe, if any
+    diffuse = albedo_free.model_transport(problem.gbuffer, material, problem.falloff, fit.position)  # (B, L, H, W)
     direct = (weight[:, 1:, None, None] * diffuse).sum(1)  # (B, H, W)
     bounce = torch.zeros_like(direct)
     if fit.log_bounce is not None and observed is not None and bool(fit.bounced().any()):

@@ -293,3 +293,28 @@ def test_the_lobes_jacobian_is_its_transports_derivative():
         moved[1][0, 0, k] -= step
         numeric = (_evaluate(obs64, moved[0], log_weight)[1] - _evaluate(obs64, moved[1], log_weight)[1]) / (2 * step)
         assert torch.allclose(jac[0, k], numeric[0], rtol=1e-4, atol=1e-6 * float(numeric.abs().max()))
+
+
+def test_a_lobed_fits_intensities_are_solved_with_its_lobe(tmp_path):
+    # An image that is exactly the glossy model (a rough metal's lobe, ratio 5, Blinn-Phong 12):
+    # its light and ambient in the image's units come back as made; solved on the diffuse
+    # shading alone (the lobe left out) they would not.
+    from selfsup.estimation.albedo_free import AlbedoFreeFit, glossy_material, model_transport
+    from selfsup.estimation.intensities import intensities_of
+
+    problem = problem_of(photograph(tmp_path, studio_spec((-0.6, -0.3, -0.74), others=False)), "none",
+                         dtype=torch.float64)
+    problem = problem.with_gloss(problem.image.new_tensor([[5.0, 12.0]]))
+    centre = problem.gbuffer.extent()[0]
+    position = (centre + problem.image.new_tensor([[-0.6, -0.3, -0.74]]) * 5.0)[:, None]  # (1, 1, 3)
+    transport = model_transport(problem.gbuffer, glossy_material(problem.material.kd, problem.gloss),
+                                problem.falloff, position)[:, 0]  # (1, H, W)
+    ambient, light, scale = 0.05, 1.0, 0.3
+    shading = (ambient + light * transport) * problem.gbuffer.mask
+    image = scale * problem.material.kd.permute(0, 3, 1, 2) * shading[:, None]
+    problem = dataclasses.replace(problem, image=image)
+    log_weight = problem.image.new_tensor([[math.log(ambient / light), 0.0]])
+    zero = problem.image.new_zeros(1)
+    solved, _ = intensities_of(problem, AlbedoFreeFit(position, log_weight, zero, zero), EstimateOptions())
+    assert torch.allclose(solved.intensity[0, 0], torch.full((3,), scale * light, dtype=torch.float64), rtol=1e-4)
+    assert torch.allclose(solved.ambient[0], torch.full((3,), scale * ambient, dtype=torch.float64), rtol=1e-4)

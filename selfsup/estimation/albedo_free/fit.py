@@ -13,11 +13,11 @@ from render import GBuffer, Material
 from render.functional import light_transport, light_transport_jacobian
 from render.indirect import PATCHES_ACROSS, one_bounce
 from render.shading import blinn_phong_lobe, light_geometry
-from selfsup.estimation.albedo_free.observation import AlbedoFreeFit, LogShading
+from selfsup.estimation.albedo_free.observation import AlbedoFreeFit, LogShading, glossy_material
 from selfsup.estimation.problem import FitProblem, gbuffer_centre_and_size
 from selfsup.estimation.solvers import RUNAWAY_SIZES
 
-__all__ = ["shading_loss", "refine_positions", "bounce_maps", "light_shares", "mirror_lobes", "highlight_pixels",
+__all__ = ["shading_loss", "refine_positions", "bounce_maps", "light_shares", "model_transport", "mirror_lobes", "highlight_pixels",
            "LM_TOLERANCE", "FINAL_TOLERANCE"]
 
 # Levenberg-Marquardt stops an image once a step lowers its loss by less than this share
@@ -36,18 +36,24 @@ FINAL_TOLERANCE = 1e-4
 
 
 def _transport(obs: LogShading, position: Tensor) -> Tensor:
-    # Unit transport (B, L, H, W), shading alone: diffuse, plus the image's specular lobe at its
-    # ratio where the observation has one (glossy_material), on the lit side only.
-    t = light_transport(obs.gbuffer, obs.material, position, falloff=obs.falloff, shadows="none",
-                        specular=obs.material.ks is not None)
+    # Unit transport (B, L, H, W), shading alone: model_transport of the observation's material.
+    return model_transport(obs.gbuffer, obs.material, obs.falloff, position)
+
+
+def model_transport(gbuffer: GBuffer, material: Material, falloff: str, position: Tensor) -> Tensor:
+    """The albedo-free model's unit transport ``(B, L, H, W)`` of lights at ``position
+    (B, L, 3)``, shading alone (no cast shadows): diffuse, plus the lobe of ``material``
+    where it has one (:func:`.observation.glossy_material`: ``ks`` the lobe's ratio to the
+    diffuse light), on the lit side only."""
+    t = light_transport(gbuffer, material, position, falloff=falloff, shadows="none", specular=material.ks is not None)
     if t.specular is None:
         return t.diffuse
-    return t.diffuse + _gloss_ratio(obs)[..., None] * torch.where(t.diffuse > 0, t.specular, 0.0)
+    return t.diffuse + _gloss_ratio(material)[..., None] * torch.where(t.diffuse > 0, t.specular, 0.0)
 
 
-def _gloss_ratio(obs: LogShading) -> Tensor:
+def _gloss_ratio(material: Material) -> Tensor:
     # Each image's lobe ratio, (B, 1, 1) (broadcast against (B, L, H, W) with one more axis).
-    return obs.material.ks[:, :1, :1, 0]
+    return material.ks[:, :1, :1, 0]
 
 
 def _log_model(diffuse: Tensor, log_weight: Tensor) -> tuple[Tensor, Tensor]:
@@ -149,7 +155,7 @@ def _jacobian(obs: LogShading, position: Tensor, log_weight: Tensor, robust: boo
     unit, d_unit = jac.transport.diffuse, jac.diffuse
     if jac.specular is not None:  # the lobe at its ratio, on the lit side only (as _transport)
         lit = unit > 0
-        ratio = _gloss_ratio(obs)[..., None]
+        ratio = _gloss_ratio(obs.material)[..., None]
         unit = unit + ratio * torch.where(lit, jac.transport.specular, 0.0)
         d_unit = d_unit + ratio[..., None] * torch.where(lit[..., None], jac.specular, 0.0)
     diffuse, bounce = _effective(obs, unit, log_weight, log_bounce)  # (B, L, H, W)
@@ -240,10 +246,11 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
 
 
 def light_shares(problem: FitProblem, fit: AlbedoFreeFit) -> Tensor:
-    """Each light's share ``(B, L)`` of the fitted direct shading over the valid pixels."""
-    diffuse = light_transport(problem.gbuffer, Material(kd=problem.material.kd), fit.position,
-                              falloff=problem.falloff, shadows="none", specular=False).diffuse
-    direct = (fit.log_weight[:, 1:].exp()[..., None, None] * diffuse * problem.gbuffer.mask[:, None]).flatten(2).sum(2)
+    """Each light's share ``(B, L)`` of the fitted direct shading over the valid pixels (its
+    lobe's with it where ``problem`` has one, :attr:`FitProblem.gloss`)."""
+    transport = model_transport(problem.gbuffer, glossy_material(problem.material.kd, problem.gloss), problem.falloff,
+                                fit.position)
+    direct = (fit.log_weight[:, 1:].exp()[..., None, None] * transport * problem.gbuffer.mask[:, None]).flatten(2).sum(2)
     return direct / direct.sum(1, keepdim=True).clamp_min(1e-30)
 
 
