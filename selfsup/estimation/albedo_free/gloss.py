@@ -14,7 +14,8 @@ its criterion is below theirs (not where the black pixels took the second light:
 no shadow). That light starts at the one-light fit and at each of the more lights alone: beside
 other objects a metal's one diffuse light lands between its lamp and the lobe's peak, where
 one of the pair's lights is near the lamp. Rough gold and aluminium then take one light in 10 of 16
-frames (``benchmarks/results/gloss_instead_cpu2_2026-12-06.md``), and a frame one light
+frames (``benchmarks/results/gloss_instead_cpu2_2026-12-06.md``; 14 of 16 with the lobe's shape
+refined, ``benchmarks/results/gloss_beside_cpu2_2026-12-06.md``), and a frame one light
 explains never takes a lobe (tried beside every first light, ``auto``, the matte DiLiGenT
 bear's faint sheen took one in 24 of 24 frames and lost 0.6 degrees). Where one light and its
 lobe lose, the lobe is tried beside the lights the diffuse fit took (two lamps on a glossy
@@ -157,7 +158,7 @@ def _refined_lobes(problem: FitProblem, gloss: Tensor, fit: AlbedoFreeFit, label
     # Each image's lobe ``gloss (B, 2)`` and its fit at GLOSS_STRIDE, refined for
     # GLOSS_REFINE_ROUNDS rounds: the 8 lobes about it at the round's step (in log) refined as
     # the grid's were, the lowest loss kept (the lobe itself where none is lower).
-    if GLOSS_REFINE_ROUNDS == 0:  # off (see its comment): no 8-fold copies of the labels for nothing
+    if GLOSS_REFINE_ROUNDS == 0:  # off: no 8-fold copies of the labels for nothing
         return gloss, fit
     B = problem.batch
     step = torch.tensor([math.log(GLOSS_RATIOS[-1] / GLOSS_RATIOS[0]) / (len(GLOSS_RATIOS) - 1),
