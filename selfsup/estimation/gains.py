@@ -1,5 +1,5 @@
 """Per-surface albedo gains: each smooth surface's albedo rescaled by what a fit says it is
-(``tuning.reflectance_gains``, :func:`selfsup.estimation.stages`)."""
+(``tuning.reflectance_gains``, used by :mod:`selfsup.estimation.stages`)."""
 
 from __future__ import annotations
 

@@ -277,18 +277,13 @@ def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels:
         several = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in more])
         alone = albedo_free.AlbedoFreeFit.rows([(found, i) for i in more])  # their one-light fits
         at = torch.tensor(more, dtype=torch.long, device=problem.image.device)
-        shapes, fitted, fitted_values = albedo_free.fit_lobes(problem.select(at), alone, labels[at],
-                                                              options.tuning.albedo_free_scale, criterion,
+        sub = problem.select(at)
+        shapes, fitted, fitted_values = albedo_free.fit_lobes(sub, alone, labels[at], options.tuning.albedo_free_scale,
+                                                              criterion,
                                                               starts=[several.only(k) for k in range(n_lights)])
-        lobed_problem, lobed = albedo_free.keep_lobes(problem.select(at), alone, shapes, fitted, fitted_values,
-                                                      criterion, against=criterion(several))
-        lobes = [0.0] * len(more) if lobed_problem.gloss is None else lobed_problem.gloss[:, 0].tolist()
-        took = [j for j, ratio in enumerate(lobes) if ratio > 0]
-        values = criterion(lobed, [albedo_free.GLOSS_PARAMETERS] * len(more))  # the lobe's rows' (others: unused)
-        for j in took:
-            best[more[j]] = (lobed, j, values[j])
-            tried[more[j]].append((1, values[j], True))
-            gloss[more[j]] = lobed_problem.gloss[j]
+        lobed_problem, lobed = albedo_free.keep_lobes(sub, alone, shapes, fitted, fitted_values, criterion,
+                                                      against=criterion(several))
+        took = _taken_lobes(lobed_problem, lobed, more, 1, criterion, best, tried, gloss)
         if took:
             _light_beside_lobe(lobed_problem, lobed, several, took, [more[j] for j in took], labels[at], options,
                                criterion, best, tried, None if geometry is None else geometry[at])
@@ -296,19 +291,28 @@ def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels:
         if rest:  # the lobe beside the lights they have (two lamps on a glossy object); the one light's shape too
             beside = torch.tensor(rest, dtype=torch.long, device=problem.image.device)
             lobed_problem, lobed = albedo_free.choose_gloss(
-                problem.select(at[beside]), albedo_free.AlbedoFreeFit.rows([(several, j) for j in rest]),
+                sub.select(beside), albedo_free.AlbedoFreeFit.rows([(several, j) for j in rest]),
                 labels[at[beside]], options.tuning.albedo_free_scale, criterion, shapes=shapes[beside, None])
-            if lobed_problem.gloss is None:
-                continue
-            values = criterion(lobed, [albedo_free.GLOSS_PARAMETERS] * len(rest))
-            for k, j in enumerate(rest):
-                if float(lobed_problem.gloss[k, 0]) > 0:
-                    best[more[j]] = (lobed, k, values[k])
-                    tried[more[j]].append((n_lights, values[k], True))
-                    gloss[more[j]] = lobed_problem.gloss[k]
+            _taken_lobes(lobed_problem, lobed, [more[j] for j in rest], n_lights, criterion, best, tried, gloss)
     if not bool((gloss[:, 0] > 0).any()):
         return problem
     return problem.with_gloss(gloss)
+
+
+def _taken_lobes(lobed_problem: FitProblem, lobed: albedo_free.AlbedoFreeFit, images: list[int], n_lights: int,
+                 criterion, best: list, tried: list[list[tuple]], gloss: Tensor) -> list[int]:
+    # The rows of ``lobed_problem`` (images ``images``) that kept a lobe (ratio > 0): each
+    # image's ``best`` becomes its row of ``lobed`` (n_lights lights and the lobe), ``tried``
+    # gains it and ``gloss (B, 2)`` its lobe, in place. Returns those rows.
+    if lobed_problem.gloss is None:
+        return []
+    took = [j for j, ratio in enumerate(lobed_problem.gloss[:, 0].tolist()) if ratio > 0]
+    values = criterion(lobed, [albedo_free.GLOSS_PARAMETERS] * len(images))
+    for j in took:
+        best[images[j]] = (lobed, j, values[j])
+        tried[images[j]].append((n_lights, values[j], True))
+        gloss[images[j]] = lobed_problem.gloss[j]
+    return took
 
 
 def _light_beside_lobe(problem: FitProblem, lobed: albedo_free.AlbedoFreeFit, several: albedo_free.AlbedoFreeFit,

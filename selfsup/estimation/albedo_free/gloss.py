@@ -117,7 +117,7 @@ def fit_lobes(problem: FitProblem, found: AlbedoFreeFit, labels: Tensor | None, 
     L = found.position.shape[1]
     position = torch.stack([f.position for f in fits], 1)[:, :, None].expand(-1, -1, G, -1, -1).reshape(B * tries, L, 3)
     log_weight = torch.stack([f.log_weight for f in fits], 1)[:, :, None].expand(-1, -1, G, -1).reshape(B * tries, -1)
-    combos = shapes.to(problem.image)[:, None].expand(-1, S, -1, -1).reshape(B * S, G, 2)  # each start's lobes
+    combos = shapes[:, None].expand(-1, S, -1, -1).reshape(B * S, G, 2)  # each start's lobes
     tiled = subsample(problem.select(rows).with_gloss(combos.reshape(-1, 2)), GLOSS_STRIDE)
     coarse_labels = None if labels is None else labels[rows][:, ::GLOSS_STRIDE, ::GLOSS_STRIDE]
     seen = observe(tiled, robust_scale, residuals=residuals, labels=coarse_labels)
