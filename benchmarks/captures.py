@@ -45,6 +45,7 @@ from selfsup.scenes.io import read_scene
 SETS = ("direct", "gi", "noisy")
 EXPOSURE_RANGE = (0.5, 2.0)  # the 99th percentile of the valid values lands in this share of full scale
 COLUMNS = ["root", "set", "scenes", "success", "one_light_success", "two_light_right_count", "median_worst_error",
+           "one_light_median_angle",
            "two_sigma_coverage", "placed_two_sigma_coverage", "seconds_per_frame", "command_seconds_per_frame"]
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -255,6 +256,7 @@ def score(folder: Path, estimates: Path) -> list[dict]:
         placed = [inside for distance, inside in paired if distance < SUCCESS_THRESHOLD * float(truth.scene_scale)]
         rows.append({"id": record["id"], "found": len(record["lights"]), "true": truth.light_pos.shape[0],
                      "worst": max(errors.position), "success": errors.success, "seconds": record["seconds"],
+                     "angle": errors.angular[0] if errors.angular else None,
                      "inside": sum(inside for _, inside in paired), "placed": len(placed),
                      "placed_inside": sum(placed)})
     return rows
@@ -273,6 +275,8 @@ def summary(root: str, set_name: str, rows: list[dict], frames: int, wall: float
             "one_light_success": share(sum(r["success"] for r in one), len(one)),
             "two_light_right_count": share(sum(r["found"] == 2 for r in two), len(two)),
             "median_worst_error": round(statistics.median([r["worst"] for r in rows]), 4) if rows else "",
+            "one_light_median_angle": round(statistics.median([180.0 if r["angle"] is None else r["angle"] for r in one]), 2)
+            if one else "",
             "two_sigma_coverage": share(sum(r["inside"] for r in rows), sum(r["true"] for r in rows)),
             "placed_two_sigma_coverage": share(sum(r["placed_inside"] for r in rows), sum(r["placed"] for r in rows)),
             "seconds_per_frame": round(wall / max(frames, 1), 3)}
@@ -308,7 +312,7 @@ def run(roots: list[Path], sets=SETS, write: bool = True, options=None, name: st
                   "files, estimated by `mode=estimate` with the default settings (batch 4, workers auto) and scored "
                   "against truth/: success = every light within 0.05 of the scene size; one-light success; two-light "
                   "right count = two lights found in the two-light scenes; median worst position error (of the scene "
-                  "size); two-sigma coverage = true lights inside the 2-sigma ellipsoid (95.4%) of the estimate paired with "
+                  "size); one-light median angle = degrees between the true and the found light seen from the centroid of the frame's points (one-light rooms; none found: 180); two-sigma coverage = true lights inside the 2-sigma ellipsoid (95.4%) of the estimate paired with "
                   "them (`position_cov`; an unpaired light is outside), of all true lights; placed two-sigma coverage = "
                   "the same of the true lights placed within 0.05; seconds per frame = estimate_files' wall time over the frames (the network's load included, "
                   "Python's start not); command seconds per frame (with --command-time) = `python train.py "

@@ -38,10 +38,11 @@ def build_network(model_config: dict):
 
 LIGHTNET_CHECKPOINT = Path(__file__).parent / "checkpoints" / "lightnet.pt"  # the cost-volume network; mode=adapt's start
 # The iterative network (selfsup.network), `python train.py experiment=iterative`'s run (stopped at its
-# 85-minute cap, step 2503): it places one-light rooms' lamps far more often alone, but counts no second
-# light and, as cnn+refine's start, lost a frame in two capture sets: not the default yet (docs/training.md).
+# 85-minute cap, step 2503): estimate.method=cnn's network (its slots settled on the frame place a
+# one-light room's lamp in 88-92% of capture frames, docs/training.md); as cnn+refine's start it lost a
+# frame in two capture sets, so that start stays the cost-volume network.
 ITERATIVE_CHECKPOINT = Path(__file__).parent / "checkpoints" / "iterative.pt"
-DEFAULT_CHECKPOINT = LIGHTNET_CHECKPOINT  # what estimation's cnn methods and mode=eval load when none is named
+DEFAULT_CHECKPOINT = LIGHTNET_CHECKPOINT  # what cnn+refine and mode=eval load when none is named
 # 2: the network of colour and depth alone (no albedo channel), counting its lights (issue 62).
 CHECKPOINT_FORMAT = 2
 

@@ -97,6 +97,9 @@ class Tuning:
         cnn_sure: ``cnn+refine`` searches nothing where the network's calibrated confidence
             (an iterative network's, :attr:`selfsup.network.IterativePrediction.confidence`)
             reaches this: its lights are refined instead (above 1: search everywhere).
+        cnn_settle, cnn_settle_stride: ``cnn`` settles the network's counted slots by this many
+            LM steps on every that-many-th pixel (albedo-free on the frame's albedo segments
+            where the albedo is unknown; 0: the slots as they are), no search.
         min_light_share: an added light must carry this share of the rendered direct
             light, or, weaker but at least ``weak_light_min_share``, show its own cast
             shadows (``weak_light_shadow_gain``, 0: off) or pay for its parameters
@@ -189,6 +192,8 @@ class Tuning:
     cnn_grid: tuple[int, int, int] = (7, 6, 7)
     cnn_starts: int = 4
     cnn_sure: float = 0.8
+    cnn_settle: int = 5
+    cnn_settle_stride: int = 2
     block_width: float = 0.1
     min_light_share: float = 0.1
     weak_light_shadow_gain: float = 0.01
@@ -260,6 +265,8 @@ def _check_tuning(t: Tuning) -> None:
     need(len(t.cnn_grid) == 3 and min(t.cnn_grid) >= 2, "cnn_grid", "3 grid sizes >= 2")
     need(t.cnn_starts >= 1, "cnn_starts", ">= 1")
     need(t.cnn_sure > 0, "cnn_sure", "> 0 (above 1: search everywhere)")
+    need(t.cnn_settle >= 0, "cnn_settle", ">= 0 (0: the network's slots as they are)")
+    need(t.cnn_settle_stride >= 1, "cnn_settle_stride", ">= 1")
     need(t.weak_light_shadow_gain >= 0, "weak_light_shadow_gain", ">= 0")
     need(t.weak_light_penalty == 0 or t.weak_light_penalty >= 1, "weak_light_penalty", "0 (off) or >= 1")
     need(t.weak_light_min_share >= 0, "weak_light_min_share", ">= 0")

@@ -65,14 +65,23 @@ def grey_where_unknown(problem: FitProblem, options: EstimateOptions) -> FitProb
 
 
 def albedo_free_images(problem: FitProblem, options: EstimateOptions) -> list[bool]:
-    if options.method == "cnn" or options.tuning.reflectance == "given":
+    # The images estimate_albedo_free fits (method=cnn fits none: the network's slots, settled).
+    if options.method == "cnn":
+        return [False] * problem.batch
+    return albedo_unknown_images(problem, options)
+
+
+def albedo_unknown_images(problem: FitProblem, options: EstimateOptions) -> list[bool]:
+    """Each image's lights are fitted albedo-free (``tuning.reflectance``; with ``auto``, where
+    :func:`reflectance_unknown`)."""
+    if options.tuning.reflectance == "given":
         return [False] * problem.batch
     if options.tuning.reflectance == "albedo_free":
         return [True] * problem.batch
     return reflectance_unknown(problem).tolist()
 
 
-def _residuals(options: EstimateOptions) -> dict:
+def residual_options(options: EstimateOptions) -> dict:
     # The albedo-free fit's residuals, as the tuning says.
     return dict(residuals=options.tuning.albedo_free_residuals, segment_scale=options.tuning.albedo_segment_scale)
 
@@ -193,7 +202,7 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         take = torch.tensor([b < a for a, b in zip(criterion(plain), criterion(bounced))], device=fit.loss.device)
         return plain.chosen(take, bounced)
 
-    search_kwargs = dict(robust_scale=options.tuning.albedo_free_scale, **_residuals(options))
+    search_kwargs = dict(robust_scale=options.tuning.albedo_free_scale, **residual_options(options))
 
     def network_starts(rows: Tensor | None, n_lights: int) -> dict:
         # The network's first n lights as one more start of a search of n (None: no network).
@@ -231,7 +240,7 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         before = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in growing])
         sub = problem.select(at)
         kwargs = dict(robust_scale=options.tuning.albedo_free_scale, labels=None if labels is None else labels[at],
-                      **_residuals(options))
+                      **residual_options(options))
         if sure:  # one light more searched beside the network's first, its first n lights one of the starts
             more = albedo_free.search(sub, n_lights, fixed=before, **kwargs, **network_starts(at, n_lights))
         else:
@@ -329,7 +338,7 @@ def _light_beside_lobe(problem: FitProblem, lobed: albedo_free.AlbedoFreeFit, se
     before = albedo_free.AlbedoFreeFit.rows([(lobed, j) for j in rows])
     starts = [torch.stack([before.position[:, 0], replaced[:, k]], 1) for k in range(replaced.shape[1])]
     starts += [replaced] if replaced.shape[1] == 2 else []
-    kwargs = dict(robust_scale=options.tuning.albedo_free_scale, labels=labels[at], **_residuals(options))
+    kwargs = dict(robust_scale=options.tuning.albedo_free_scale, labels=labels[at], **residual_options(options))
     more = albedo_free.search(sub, 2, fixed=before, starts=4 + len(starts), extra_starts=torch.stack(starts, 1),
                               **kwargs)
     more = albedo_free.search_each(sub, more, **kwargs)
@@ -414,7 +423,7 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
         segments = None if labels is None else labels[rows]
         # The chosen model against the model without lights on every residual: how much its lights explain.
         # (The chosen fit's own loss is its loss on every residual: the searches end on this observation.)
-        every = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=segments, **_residuals(options))
+        every = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=segments, **residual_options(options))
         if with_bounce is not None:
             chosen = with_bounce(every, chosen)
         losses, counted = chosen.loss.tolist(), chosen.pairs.tolist()
@@ -543,7 +552,7 @@ def _highlight_free_labels(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit
     """The segments ``labels (B, H, W)`` less the pixels of ``fewer``'s mirror lobes that are
     brighter than its model (:func:`albedo_free.highlight_pixels`; -1 there), in the images
     whose model has no specular lobe (where it has one, the highlight is the model's)."""
-    every_pixel = albedo_free.observe(problem, options.tuning.albedo_free_scale, labels=labels, **_residuals(options))
+    every_pixel = albedo_free.observe(problem, options.tuning.albedo_free_scale, labels=labels, **residual_options(options))
     held_out = albedo_free.highlight_pixels(every_pixel, fewer, options.tuning.albedo_free_lobe_deg)
     held_out &= diffuse_images(problem)[:, None, None]
     return torch.where(held_out, torch.full_like(labels, -1), labels)
@@ -560,7 +569,7 @@ def _without_highlights(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, m
     capture sequences with a glossy wall 0.05 of the scene from the light took such a pair
     on almost every frame). Without the highlight the pair has nothing to explain."""
     outside = albedo_free.observe(problem, options.tuning.albedo_free_scale, labels=outside_labels,
-                                  **_residuals(options))
+                                  **residual_options(options))
     # No iterations: the loss of each fit at its positions and log weights, on these pixels.
     return (albedo_free.refine_positions(outside, fewer.position, fewer.log_weight, 0, log_bounce=fewer.log_bounce),
             albedo_free.refine_positions(outside, more.position, more.log_weight, 0, log_bounce=more.log_bounce))
