@@ -38,10 +38,12 @@ def build_network(model_config: dict):
 
 LIGHTNET_CHECKPOINT = Path(__file__).parent / "checkpoints" / "lightnet.pt"  # the cost-volume network; mode=adapt's start
 # The iterative network (selfsup.network), `python train.py experiment=iterative`'s run (stopped at its
-# 85-minute cap, step 2503): estimate.method=cnn's network (its slots settled on the frame place a
-# one-light room's lamp in 88-92% of capture frames, docs/training.md); as cnn+refine's start it lost a
-# frame in two capture sets, so that start stays the cost-volume network.
+# 85-minute cap, step 2503): one of estimate.method=cnn's two networks (docs/training.md); as
+# cnn+refine's start it lost a frame in two capture sets, so that start stays the cost-volume network.
 ITERATIVE_CHECKPOINT = Path(__file__).parent / "checkpoints" / "iterative.pt"
+# The same network fine-tuned with objects photographed in the dark (`experiment=iterative_studio`):
+# beside the rooms' one in estimate.method=cnn, each frame taking whichever settles to the lower loss.
+STUDIO_CHECKPOINT = Path(__file__).parent / "checkpoints" / "iterative_studio.pt"
 DEFAULT_CHECKPOINT = LIGHTNET_CHECKPOINT  # what cnn+refine and mode=eval load when none is named
 # 2: the network of colour and depth alone (no albedo channel), counting its lights (issue 62).
 CHECKPOINT_FORMAT = 2

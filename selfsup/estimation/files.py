@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from selfsup.estimation.network import cached_network, checkpoint_of
+from selfsup.estimation.network import cached_network, checkpoints_of
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.prepare import in_file_units, prepare, within_pixels, working_range
 from selfsup.estimation.records import records
@@ -262,7 +262,8 @@ def estimate_items(items: list[Input], options: EstimateOptions, device: str = "
     batch = batch_size(batch, where)
     workers = min(worker_count(workers, len(items), where), max(1, -(-len(items) // batch)))
     if options.method in ("cnn", "cnn+refine"):
-        cached_network(checkpoint_of(options), str(where))  # loaded before the workers fork
+        for path in checkpoints_of(options):
+            cached_network(path, str(where))  # loaded before the workers fork
     for chunk, done, reasons in _chunk_results(_batches(iter(items), batch), options, where, workers):
         for item in chunk:
             yield item, done.get(item), reasons.get(item)
@@ -364,7 +365,8 @@ def estimate_files(input: str | Path, output: str | Path, options: EstimateOptio
     frames = dict(input=input, depth=depth, depth_scale=depth_scale, intrinsics=intrinsics, nested=True)
     total = len(range(index, count_inputs(**frames), count))
     if options.method in ("cnn", "cnn+refine"):
-        cached_network(checkpoint_of(options), str(where))  # a missing or bad checkpoint stops here, before any file
+        for path in checkpoints_of(options):
+            cached_network(path, str(where))  # a missing or bad checkpoint stops here, before any file
     output = Path(output)
     target = output if ranks is None else part_path(output, ranks)
     if ranks is None and not overwrite and parts_folder(output).exists():

@@ -4,32 +4,34 @@ its counted slots settled on the frame by a few LM steps)."""
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import replace
 
 import torch
 from torch import Tensor
 
 from selfsup.estimation import albedo_free
-from selfsup.estimation.criterion import Candidate, candidates
+from selfsup.estimation.criterion import Candidate, bic, block_px, candidates
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import FitProblem
 from selfsup.estimation.reflectance import albedo_unknown_images, grey_where_unknown, reflectance_unknown, residual_options
 from selfsup.estimation.solvers import refine
 
-__all__ = ["checkpoint_of", "cached_network", "network_slots", "network_candidates", "settled_slots"]
+__all__ = ["checkpoints_of", "cached_network", "network_slots", "network_answer", "network_candidates", "settled_slots", "counted", "network_segments"]
 
 
-def checkpoint_of(options: EstimateOptions) -> str | None:
-    """The network ``options`` loads: ``options.checkpoint``, or where it is None the shipped one of
-    its method: the iterative network for ``cnn`` (:data:`selfsup.checkpoint.ITERATIVE_CHECKPOINT`:
-    settled, it places one-light rooms' lamps in 88-92% of capture frames where the cost-volume
-    network placed 71-88%), the cost-volume network as ``cnn+refine``'s start (None)."""
+def checkpoints_of(options: EstimateOptions) -> tuple[str | None, ...]:
+    """The networks ``options`` loads: ``options.checkpoint``, or where it is None the shipped ones
+    of its method: for ``cnn`` the iterative network of rooms and the one trained with objects in
+    the dark (:data:`selfsup.checkpoint.ITERATIVE_CHECKPOINT`, :data:`~selfsup.checkpoint.STUDIO_CHECKPOINT`;
+    each frame takes the one whose first light settles to the lower loss, :func:`network_answer`),
+    for ``cnn+refine`` the cost-volume network (None) as the search's start."""
     if options.checkpoint is not None or options.method != "cnn":
-        return options.checkpoint
-    from selfsup.checkpoint import ITERATIVE_CHECKPOINT
+        return (options.checkpoint,)
+    from selfsup.checkpoint import ITERATIVE_CHECKPOINT, STUDIO_CHECKPOINT
 
-    return str(ITERATIVE_CHECKPOINT)
+    return (str(ITERATIVE_CHECKPOINT), str(STUDIO_CHECKPOINT))
 
 
 @functools.lru_cache(maxsize=4)
@@ -64,7 +66,33 @@ def network_slots(problem: FitProblem, checkpoint: str | None = None, with_confi
     return position.to(problem.image.dtype), present
 
 
-def settled_slots(problem: FitProblem, slots: Tensor, keep: list[int], options: EstimateOptions) -> Tensor:
+def network_answer(problem: FitProblem, options: EstimateOptions, labels: Tensor | None = None
+                   ) -> tuple[Tensor, Tensor]:
+    """``method=cnn``'s slots ``(B, K, 3)`` and which it counts ``(B, K)`` bool: of its one network,
+    or of several (:func:`checkpoints_of`) each image's whose first slot, settled as one light
+    (:func:`settled_slots`), explains the frame with the lower loss. On the DiLiGenT ball, bear and
+    cat the network trained in the dark was taken in every frame (1.9, 1.7, 10.8 degrees, where the
+    rooms' network alone gave 3.4, 2.5, 26.5); on one-light Mitsuba and procedural captures the choice
+    placed as many lamps as the rooms' network alone, within one frame a set (docs/decisions.md,
+    2026-12-07). ``labels``: the images' albedo segments (:func:`network_segments`), where known."""
+    answers = [network_slots(problem, path) for path in checkpoints_of(options)]
+    if len(answers) == 1:
+        return answers[0]
+    if len({slots.shape[1] for slots, _ in answers}) != 1:
+        raise ValueError(f"the networks of estimate.method=cnn must have as many slots, got "
+                         f"{[slots.shape[1] for slots, _ in answers]}")
+    if labels is None:
+        labels = network_segments(problem, options)
+    losses = torch.stack([_settled(problem, slots[:, :1], [1] * problem.batch, options, labels)[1]
+                          for slots, _ in answers], 1)
+    pick = losses.nan_to_num(nan=math.inf).argmin(1)
+    rows = torch.arange(problem.batch, device=pick.device)
+    return (torch.stack([slots for slots, _ in answers], 1)[rows, pick],
+            torch.stack([present for _, present in answers], 1)[rows, pick])
+
+
+def settled_slots(problem: FitProblem, slots: Tensor, keep: list[int], options: EstimateOptions,
+                  labels: Tensor | None = None) -> Tensor:
     """``slots (B, K, 3)`` with each image's first ``keep[i]`` settled on the frame by
     ``tuning.cnn_settle`` LM steps at every ``tuning.cnn_settle_stride``-th pixel, no search:
     where the albedo is unknown (:func:`albedo_unknown_images`) albedo-free on the frame's albedo
@@ -73,12 +101,26 @@ def settled_slots(problem: FitProblem, slots: Tensor, keep: list[int], options: 
     nearly every one-light capture, but its 64-cell steps stop a few centimetres short: settled by 5
     steps at half resolution, one-light Mitsuba and procedural captures went from 11-20 to 21-24 of
     24 placed within 0.05 of the scene, for about 25 ms and the segments' 50 ms a frame
-    (docs/decisions.md, 2026-12-07)."""
+    (docs/decisions.md, 2026-12-07). ``labels``: as :func:`network_answer`."""
+    return _settled(problem, slots, keep, options, labels)[0]
+
+
+def _settled(problem: FitProblem, slots: Tensor, keep: list[int], options: EstimateOptions,
+             labels: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    # settled_slots, and each image's loss (B,) there, the residuals it sums (B,) (the albedo-free
+    # fit's, or the robust cost and valid values with the file's reflectance; NaN with cnn_settle=0)
+    # and its weakest light's share of the fitted shading (B,) (albedo-free only; 1 elsewhere).
+    # ``labels``: the albedo segments of every image, where known.
     steps, stride = options.tuning.cnn_settle, options.tuning.cnn_settle_stride
+    loss = torch.full((problem.batch,), math.nan, dtype=problem.image.dtype, device=problem.image.device)
+    pairs = torch.zeros(problem.batch, dtype=torch.long, device=problem.image.device)
+    share = torch.ones_like(loss)
     if steps == 0:
-        return slots
+        return slots, loss, pairs, share
     settled = slots.clone()
     unknown = albedo_unknown_images(problem, options)
+    if labels is None:
+        labels = network_segments(problem, options)
     for n_lights in sorted(set(keep)):
         for free in (True, False):
             group = [i for i, (k, u) in enumerate(zip(keep, unknown)) if k == n_lights and u == free]
@@ -87,25 +129,62 @@ def settled_slots(problem: FitProblem, slots: Tensor, keep: list[int], options: 
             at = torch.tensor(group, dtype=torch.long, device=slots.device)
             sub, start = problem.select(at), slots[at, :n_lights]
             if free:
-                labels = None
-                if options.tuning.albedo_free_residuals == "segments":
-                    g = sub.gbuffer
-                    labels = albedo_free.tuned_segments(sub, options.tuning, surface_segments(g.points, g.normals, g.mask))
-                fit = albedo_free.refine_from(sub, start, robust_scale=options.tuning.albedo_free_scale, labels=labels,
-                                              iterations=(steps, 0), start_stride=stride, **residual_options(options))
+                fit = albedo_free.refine_from(sub, start, robust_scale=options.tuning.albedo_free_scale,
+                                              labels=None if labels is None else labels[at], iterations=(steps, 0),
+                                              start_stride=stride, **residual_options(options))
+                loss[at], pairs[at] = fit.loss.to(loss), fit.pairs.to(pairs)
+                share[at] = albedo_free.light_shares(sub, fit).amin(1).to(share)
             else:
                 fit = refine(sub, start, replace(options.tuning.refine, specular=False, max_iters=(steps,),
                                                  strides=(stride,)))
+                loss[at], pairs[at] = fit.cost.to(loss), fit.n.to(pairs)
             settled[at, :n_lights] = fit.position.to(settled)
-    return settled
+    return settled, loss, pairs, share
+
+
+def network_segments(problem: FitProblem, options: EstimateOptions) -> Tensor | None:
+    """Every image's albedo segments ``(B, H, W)`` as the albedo-free fit finds them, for the
+    settle; None where no image's albedo is unknown or the fit uses pairs."""
+    if options.tuning.albedo_free_residuals != "segments" or not any(albedo_unknown_images(problem, options)):
+        return None
+    g = problem.gbuffer
+    return albedo_free.tuned_segments(problem, options.tuning, surface_segments(g.points, g.normals, g.mask))
+
+
+def counted(problem: FitProblem, slots: Tensor, present: Tensor, options: EstimateOptions,
+            labels: Tensor | None = None) -> list[int]:
+    """How many of each image's slots ``method=cnn`` keeps: with ``tuning.cnn_count=criterion``, where
+    the albedo is unknown, the ``n`` (1 .. K, at most ``max_lights``) whose first ``n`` slots, settled
+    (:func:`settled_slots`), give the albedo-free fit's lowest :func:`bic` (four parameters a light,
+    the estimator's blocks) with each light carrying ``tuning.min_light_share`` of the fitted shading:
+    the frame's evidence in place of the network's presences (which told one-light rooms from
+    two-light ones no better than chance, docs/training.md); elsewhere, and
+    with ``network``, its presences' count (:attr:`selfsup.network.IterativePrediction.count`).
+    ``labels``: as :func:`network_answer`."""
+    keep = present.sum(1).clamp(1, options.max_lights).tolist()
+    top = min(slots.shape[1], options.max_lights)
+    unknown = albedo_unknown_images(problem, options)
+    if options.tuning.cnn_count != "criterion" or options.tuning.cnn_settle == 0 or top < 2 or not any(unknown):
+        return keep
+    if labels is None:
+        labels = network_segments(problem, options)
+    block = block_px(options, problem.image.shape[-1], albedo_free=True)
+    values = []
+    for n in range(1, top + 1):
+        _, loss, pairs, share = _settled(problem, slots, [n] * problem.batch, options, labels)
+        values.append([bic(l, int(p), 4 * n, block) if p >= 1 and (n == 1 or w >= options.tuning.min_light_share)
+                       else math.inf for l, p, w in zip(loss.tolist(), pairs.tolist(), share.tolist())])
+    return [min(range(top), key=lambda n: values[n][i]) + 1 if u else k for i, (k, u) in enumerate(zip(keep, unknown))]
 
 
 def network_candidates(problem: FitProblem, slots: Tensor, present: Tensor, specular_of: list[bool],
-                        options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
+                        options: EstimateOptions, labels: Tensor | None = None) -> list[tuple[Candidate, list[Candidate]]]:
     # The network's counted slots (at least one), settled (settled_slots); refine with no
     # iterations solves their intensities and ambient and evaluates the fit.
-    keep = present.sum(1).clamp(1, options.max_lights).tolist()
-    slots = settled_slots(problem, slots, keep, options)
+    if labels is None:
+        labels = network_segments(problem, options)
+    keep = counted(problem, slots, present, options, labels)
+    slots = settled_slots(problem, slots, keep, options, labels)
     problem = grey_where_unknown(problem, options)  # the lights the image's white where the albedo is unknown
     chosen: list[Candidate | None] = [None] * problem.batch
     for n_lights in sorted(set(keep)):

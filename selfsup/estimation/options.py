@@ -29,6 +29,7 @@ HIGHLIGHTS = ("leave_out", "keep")
 ALBEDO_FREE_BOUNCE = ("auto", "never")
 ALBEDO_FREE_GLOSS = ("auto", "instead", "never")
 ALBEDO_FREE_COUNT = ("segments", "classes", "either")
+CNN_COUNT = ("criterion", "network")
 REFINE_METHODS = ("lm", "adam", "gd")
 
 
@@ -100,6 +101,8 @@ class Tuning:
         cnn_settle, cnn_settle_stride: ``cnn`` settles the network's counted slots by this many
             LM steps on every that-many-th pixel (albedo-free on the frame's albedo segments
             where the albedo is unknown; 0: the slots as they are), no search.
+        cnn_count: ``cnn``'s count where the albedo is unknown: ``criterion`` (the settled slots'
+            albedo-free BIC, :func:`selfsup.estimation.network.counted`) or ``network`` (its presences).
         min_light_share: an added light must carry this share of the rendered direct
             light, or, weaker but at least ``weak_light_min_share``, show its own cast
             shadows (``weak_light_shadow_gain``, 0: off) or pay for its parameters
@@ -193,6 +196,7 @@ class Tuning:
     cnn_starts: int = 4
     cnn_sure: float = 0.8
     cnn_settle: int = 5
+    cnn_count: str = "criterion"
     cnn_settle_stride: int = 2
     block_width: float = 0.1
     min_light_share: float = 0.1
@@ -301,7 +305,7 @@ def _check_tuning(t: Tuning) -> None:
     need(t.criterion_stride >= 1, "criterion_stride", ">= 1 pixel")
     for name, choices in (("reflectance", REFLECTANCE), ("albedo_free_residuals", ALBEDO_FREE_RESIDUALS),
                           ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT), ("light_colour", LIGHT_COLOUR), ("vignetting", VIGNETTING), ("highlights", HIGHLIGHTS), ("albedo_free_bounce", ALBEDO_FREE_BOUNCE), ("albedo_free_gloss", ALBEDO_FREE_GLOSS),
-                          ("albedo_free_count", ALBEDO_FREE_COUNT),
+                          ("albedo_free_count", ALBEDO_FREE_COUNT), ("cnn_count", CNN_COUNT),
                           ("indirect", INDIRECT), ("search_shadows", SHADOW_METHODS),
                           ("criterion_shadows", SHADOW_METHODS)):
         _check_choice(f"tuning.{name}", getattr(t, name), choices)

@@ -17,7 +17,7 @@ from pathlib import Path
 from selfsup.estimation.files import failure_reason, progress_bar, record_line, resolve_device
 from selfsup.estimation.inputs import estimate_inputs, item_id
 from selfsup.estimation.jobs import locked, resume_track
-from selfsup.estimation.network import cached_network, checkpoint_of
+from selfsup.estimation.network import cached_network, checkpoints_of
 from selfsup.estimation.options import EstimateOptions
 from selfsup.scenes.capture import is_capture_folder
 from selfsup.scenes.io import SceneFileError
@@ -76,7 +76,8 @@ def track_files(input: str | Path, output: str | Path, options: EstimateOptions 
     frames = natural_order(list(poses) if poses else estimate_inputs(input, None, depth_scale, intrinsics,
                                                                      key="track.input"))
     if options.method in ("cnn", "cnn+refine"):
-        cached_network(checkpoint_of(options), str(where))  # a missing or bad checkpoint stops here, before any frame
+        for path in checkpoints_of(options):
+            cached_network(path, str(where))  # a missing or bad checkpoint stops here, before any frame
     output = Path(output)
     with locked(output) as out:  # one run at a time on an output
         if overwrite:
