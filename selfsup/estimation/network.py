@@ -66,29 +66,53 @@ def network_slots(problem: FitProblem, checkpoint: str | None = None, with_confi
     return position.to(problem.image.dtype), present
 
 
+class _Settles:
+    """The settles of one set of slots ``(B, K, 3)``, each light count once: ``of(n)`` is
+    :func:`_settled` of every image's first ``n`` (settled slots, loss, residuals, weakest share)."""
+
+    def __init__(self, problem: FitProblem, slots: Tensor, options: EstimateOptions, labels: Tensor | None):
+        self.problem, self.slots, self.options, self.labels = problem, slots, options, labels
+        self.done: dict[int, tuple[Tensor, Tensor, Tensor, Tensor]] = {}
+
+    def of(self, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        if n not in self.done:
+            self.done[n] = _settled(self.problem, self.slots, [n] * self.problem.batch, self.options, self.labels)
+        return self.done[n]
+
+
 def network_answer(problem: FitProblem, options: EstimateOptions, labels: Tensor | None = None
-                   ) -> tuple[Tensor, Tensor]:
-    """``method=cnn``'s slots ``(B, K, 3)`` and which it counts ``(B, K)`` bool: of its one network,
-    or of several (:func:`checkpoints_of`) each image's whose first slot, settled as one light
-    (:func:`settled_slots`), explains the frame with the lower loss. On the DiLiGenT ball, bear and
-    cat the network trained in the dark was taken in every frame (1.9, 1.7, 10.8 degrees, where the
-    rooms' network alone gave 3.4, 2.5, 26.5); on one-light Mitsuba and procedural captures the choice
-    placed as many lamps as the rooms' network alone, within one frame a set (docs/decisions.md,
-    2026-12-07). ``labels``: the images' albedo segments (:func:`network_segments`), where known."""
+                   ) -> tuple[Tensor, list[int]]:
+    """``method=cnn``'s lights: slots ``(B, K, 3)``, each image's first ``count[i]`` settled on the
+    frame (:func:`settled_slots`), and that count (:func:`counted`). The slots are its one network's,
+    or of several (:func:`checkpoints_of`) each image's whose first slot, settled as one light,
+    explains the frame with the lower loss. On the DiLiGenT ball, bear and cat the network trained
+    in the dark was taken in every frame (1.9, 1.7, 10.8 degrees, where the rooms' network alone gave
+    3.4, 2.5, 26.5); on one-light Mitsuba and procedural captures the choice placed as many lamps as
+    the rooms' network alone, within one frame a set (docs/decisions.md, 2026-12-07). ``labels``:
+    the images' albedo segments (:func:`network_segments`), where known."""
+    if labels is None:
+        labels = network_segments(problem, options)
     answers = [network_slots(problem, path) for path in checkpoints_of(options)]
-    if len(answers) == 1:
-        return answers[0]
     if len({slots.shape[1] for slots, _ in answers}) != 1:
         raise ValueError(f"the networks of estimate.method=cnn must have as many slots, got "
                          f"{[slots.shape[1] for slots, _ in answers]}")
-    if labels is None:
-        labels = network_segments(problem, options)
-    losses = torch.stack([_settled(problem, slots[:, :1], [1] * problem.batch, options, labels)[1]
-                          for slots, _ in answers], 1)
-    pick = losses.nan_to_num(nan=math.inf).argmin(1)
-    rows = torch.arange(problem.batch, device=pick.device)
-    return (torch.stack([slots for slots, _ in answers], 1)[rows, pick],
-            torch.stack([present for _, present in answers], 1)[rows, pick])
+    settles = [_Settles(problem, slots, options, labels) for slots, _ in answers]
+    if len(answers) == 1:
+        (slots, present), chosen = answers[0], settles[0]
+    else:
+        losses = torch.stack([each.of(1)[1] for each in settles], 1)
+        pick = losses.nan_to_num(nan=math.inf).argmin(1)
+        rows = torch.arange(problem.batch, device=pick.device)
+        slots = torch.stack([slots for slots, _ in answers], 1)[rows, pick]
+        present = torch.stack([present for _, present in answers], 1)[rows, pick]
+        chosen = _Settles(problem, slots, options, labels)
+        chosen.done[1] = tuple(torch.stack([each.of(1)[j] for each in settles], 1)[rows, pick] for j in range(4))
+    count = counted(problem, slots, present, options, labels, chosen)
+    settled = slots.clone()
+    for n in sorted(set(count)):
+        at = torch.tensor([i for i, k in enumerate(count) if k == n], dtype=torch.long, device=slots.device)
+        settled[at] = chosen.of(n)[0][at]
+    return settled, count
 
 
 def settled_slots(problem: FitProblem, slots: Tensor, keep: list[int], options: EstimateOptions,
@@ -152,43 +176,38 @@ def network_segments(problem: FitProblem, options: EstimateOptions) -> Tensor | 
 
 
 def counted(problem: FitProblem, slots: Tensor, present: Tensor, options: EstimateOptions,
-            labels: Tensor | None = None) -> list[int]:
+            labels: Tensor | None = None, settles: _Settles | None = None) -> list[int]:
     """How many of each image's slots ``method=cnn`` keeps: with ``tuning.cnn_count=criterion``, where
     the albedo is unknown, the ``n`` (1 .. K, at most ``max_lights``) whose first ``n`` slots, settled
     (:func:`settled_slots`), give the albedo-free fit's lowest :func:`bic` (four parameters a light,
     the estimator's blocks) with each light carrying ``tuning.min_light_share`` of the fitted shading:
     the frame's evidence in place of the network's presences (which told one-light rooms from
-    two-light ones no better than chance, docs/training.md); elsewhere, and
-    with ``network``, its presences' count (:attr:`selfsup.network.IterativePrediction.count`).
-    ``labels``: as :func:`network_answer`."""
+    two-light ones no better than chance, docs/training.md); elsewhere, and with ``network``, its
+    presences' count (:attr:`selfsup.network.IterativePrediction.count`). ``labels``: as
+    :func:`network_answer`; ``settles``: these slots' settles done so far."""
     keep = present.sum(1).clamp(1, options.max_lights).tolist()
     top = min(slots.shape[1], options.max_lights)
     unknown = albedo_unknown_images(problem, options)
     if options.tuning.cnn_count != "criterion" or options.tuning.cnn_settle == 0 or top < 2 or not any(unknown):
         return keep
-    if labels is None:
-        labels = network_segments(problem, options)
+    settles = settles or _Settles(problem, slots, options, labels)
     block = block_px(options, problem.image.shape[-1], albedo_free=True)
     values = []
     for n in range(1, top + 1):
-        _, loss, pairs, share = _settled(problem, slots, [n] * problem.batch, options, labels)
+        _, loss, pairs, share = settles.of(n)
         values.append([bic(l, int(p), 4 * n, block) if p >= 1 and (n == 1 or w >= options.tuning.min_light_share)
                        else math.inf for l, p, w in zip(loss.tolist(), pairs.tolist(), share.tolist())])
     return [min(range(top), key=lambda n: values[n][i]) + 1 if u else k for i, (k, u) in enumerate(zip(keep, unknown))]
 
 
-def network_candidates(problem: FitProblem, slots: Tensor, present: Tensor, specular_of: list[bool],
-                        options: EstimateOptions, labels: Tensor | None = None) -> list[tuple[Candidate, list[Candidate]]]:
-    # The network's counted slots (at least one), settled (settled_slots); refine with no
-    # iterations solves their intensities and ambient and evaluates the fit.
-    if labels is None:
-        labels = network_segments(problem, options)
-    keep = counted(problem, slots, present, options, labels)
-    slots = settled_slots(problem, slots, keep, options, labels)
+def network_candidates(problem: FitProblem, slots: Tensor, count: list[int], specular_of: list[bool],
+                       options: EstimateOptions) -> list[tuple[Candidate, list[Candidate]]]:
+    # The first count[i] of each image's slots (network_answer's); refine with no iterations solves
+    # their intensities and ambient and evaluates the fit.
     problem = grey_where_unknown(problem, options)  # the lights the image's white where the albedo is unknown
     chosen: list[Candidate | None] = [None] * problem.batch
-    for n_lights in sorted(set(keep)):
-        group = [i for i, k in enumerate(keep) if k == n_lights]
+    for n_lights in sorted(set(count)):
+        group = [i for i, k in enumerate(count) if k == n_lights]
         at = torch.tensor(group, dtype=torch.long, device=slots.device)
         labels = [specular_of[i] for i in group]
         sub = problem.select(at)

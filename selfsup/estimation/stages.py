@@ -30,7 +30,7 @@ from render import Material
 from selfsup.estimation.criterion import (Candidate, by_model, candidates, fit_row, judged_problem, light_shares,
                                           shadow_gain, specular_images)
 from selfsup.estimation.gains import segment_gains
-from selfsup.estimation.network import checkpoints_of, network_answer, network_candidates, network_segments, network_slots
+from selfsup.estimation.network import checkpoints_of, network_answer, network_candidates, network_slots
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.options import EstimateOptions, RefineOptions
 from selfsup.estimation.prepare import in_file_units, prepare, within_pixels, working_range
@@ -292,11 +292,10 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[Result
     # The image fit with the problem's reflectance: the stages in turn, or the network alone.
     run = _start(problem, options)
     if options.method == "cnn":
-        labels = network_segments(problem, options)  # found once for the settles
-        run.slots, present = network_answer(problem, options, labels)
+        run.slots, count = network_answer(problem, options)
         return [(replace(best, coat=run.coat_of[i]), [replace(c, coat=run.coat_of[i]) for c in tried])
-                for i, (best, tried) in enumerate(network_candidates(problem, run.slots, present,
-                                                                     run.specular_of, options, labels))]
+                for i, (best, tried) in enumerate(network_candidates(problem, run.slots, count,
+                                                                     run.specular_of, options))]
     if options.method != "refine":
         run.slots, _ = network_slots(problem, checkpoints_of(options)[0])
     for stage in STAGES:
