@@ -316,9 +316,9 @@ class EstimateOptions:
     """What ``mode=estimate`` estimates, as the user chooses it.
 
     ``method``: ``cnn+refine`` (the network's light slots start the refinement),
-    ``cnn`` (the network alone, intensities solved at its positions) or ``refine``
+    ``cnn`` (the networks alone, their lights settled and counted on the frame, no search) or ``refine``
     (a grid search starts it). ``checkpoint``: the network of the ``cnn`` methods
-    (None: the shipped one). ``max_lights``: model selection tries 1 .. this many
+    (None: the shipped ones, :func:`selfsup.estimation.network.checkpoints_of`). ``max_lights``: model selection tries 1 .. this many
     lights. ``shadows``: the shadow model of the final refinement (``none`` |
     ``epipolar`` | ``paper``; the criterion judges every model with cast shadows
     whatever this says, :attr:`Tuning.criterion_shadows`). ``tuning``: the tuned

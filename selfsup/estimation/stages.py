@@ -369,8 +369,9 @@ def estimate_scene(scene: Scene, options: EstimateOptions, device: str | torch.d
     ``min_light_share`` of the rendered direct light. Searches run with
     ``search_shadows``; each model found is refined with ``shadows`` before it is
     judged. With ``cnn+refine`` the network's slots join the grid's best
-    candidates as starts of every search; ``cnn`` keeps the slots as they are (no
-    refinement). :func:`estimate_batch` does the work; batches of scenes go there.
+    candidates as starts of every search; ``cnn`` searches nothing: the networks' slots are settled
+    and counted on the frame (:func:`selfsup.estimation.network.network_answer`).
+    :func:`estimate_batch` does the work; batches of scenes go there.
     """
     scene, factor = working_range(within_pixels(scene, options))
     problem = prepare([scene], options, torch.device(device))
