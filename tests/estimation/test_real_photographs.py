@@ -74,8 +74,12 @@ def test_a_matte_object_leaves_no_highlight_out(tmp_path):
 
 def test_the_same_objects_under_diffuse_light_alone_find_no_light(tmp_path):
     spec = studio_spec(None, others=True, ambient=0.3)
-    record = estimate_scene(photograph(tmp_path, spec), EstimateOptions())
+    scene = photograph(tmp_path, spec)
+    record = estimate_scene(scene, EstimateOptions())
     assert record["light_found"] is False and record["lights"] == [] and record["evidence"] < 0
+    # The networks alone, settled and counted on the frame, say so too (their light's share is nil).
+    alone = estimate_scene(scene, EstimateOptions(method="cnn"))
+    assert alone["light_found"] is False and alone["lights"] == [] and alone["unsupported_lights"]
 
 
 def test_a_smooth_surface_of_one_albedo_is_one_region_and_shading_does_not_cut_it(tmp_path):
