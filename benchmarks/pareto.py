@@ -173,7 +173,7 @@ def _plot(rows: list[dict], device: torch.device, out: Path) -> None:
                      label=f"set: {set_name}")
     axes.set_xscale("log")
     # Plain numbers at a few round seconds (the log axis's own minor labels overlap).
-    ticks = [t for t in (0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10, 20) if min(r["median_seconds"] for r in rows) / 1.5 <= t
+    ticks = [t for t in (0.05, 0.1, 0.2, 0.3, 0.5, 1, 2, 3, 5, 10, 20) if min(r["median_seconds"] for r in rows) / 1.5 <= t
              <= max(r["median_seconds"] for r in rows) * 1.5]
     axes.set_xticks(ticks, [f"{t:g}" for t in ticks])
     axes.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
