@@ -1,5 +1,6 @@
-"""The network's part in an estimate: its light slots as starts, or as the answer (``method=cnn``,
-its counted slots settled on the frame by a few LM steps)."""
+"""The network's part in an estimate: its light slots as starts (``cnn+refine``), or as the answer
+(``method=cnn``, :func:`network_answer`: the shipped networks' slots settled on the frame by a few LM
+steps, the frame's criterion choosing the network and the count)."""
 
 from __future__ import annotations
 
