@@ -41,6 +41,13 @@ def test_docs_pages_are_read_in_one_sitting():
     assert not over, over
 
 
+def test_readme_results_rows_are_one_short_line():
+    # A results row is what was measured in a few words and a link; its numbers live in the results file.
+    readme = (ROOT / "README.md").read_text().split("## Results", 1)[1].split("\n## ", 1)[0]
+    long_rows = [row[:60] for row in readme.split("\n") if row.startswith("|") and len(row) > 240]
+    assert not long_rows, long_rows
+
+
 # Tables that hold no measurement: the data contract's keys and the settings' defaults.
 SETTINGS_HEADERS = ("| key |", "| constant |")
 

@@ -16,10 +16,12 @@ from selfsup.estimation.criterion import Candidate, bic, block_px, candidates
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import FitProblem
-from selfsup.estimation.reflectance import albedo_unknown_images, grey_where_unknown, reflectance_unknown, residual_options
+from selfsup.estimation.reflectance import (albedo_unknown_images, grey_where_unknown, reflectance_unknown,
+                                            residual_options)
 from selfsup.estimation.solvers import refine
 
-__all__ = ["checkpoints_of", "cached_network", "network_slots", "network_answer", "network_candidates", "settled_slots", "counted", "network_segments"]
+__all__ = ["checkpoints_of", "cached_network", "network_slots", "network_answer", "network_candidates", "settled_slots",
+           "counted", "network_segments"]
 
 
 def checkpoints_of(options: EstimateOptions) -> tuple[str | None, ...]:
@@ -127,15 +129,15 @@ def settled_slots(problem: FitProblem, slots: Tensor, keep: list[int], options: 
     steps at half resolution, one-light Mitsuba and procedural captures went from 11-20 to 21-24 of
     24 placed within 0.05 of the scene, for about 25 ms and the segments' 50 ms a frame
     (docs/decisions.md, 2026-12-07). ``labels``: as :func:`network_answer`."""
-    return _settled(problem, slots, keep, options, labels)[0]
+    return _settled(problem, slots, keep, options, network_segments(problem, options) if labels is None else labels)[0]
 
 
 def _settled(problem: FitProblem, slots: Tensor, keep: list[int], options: EstimateOptions,
-             labels: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+             labels: Tensor | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     # settled_slots, and each image's loss (B,) there, the residuals it sums (B,) (the albedo-free
     # fit's, or the robust cost and valid values with the file's reflectance; NaN with cnn_settle=0)
     # and its weakest light's share of the fitted shading (B,) (albedo-free only; 1 elsewhere).
-    # ``labels``: the albedo segments of every image, where known.
+    # ``labels``: :func:`network_segments` of every image (None: the fit uses no segments).
     steps, stride = options.tuning.cnn_settle, options.tuning.cnn_settle_stride
     loss = torch.full((problem.batch,), math.nan, dtype=problem.image.dtype, device=problem.image.device)
     pairs = torch.zeros(problem.batch, dtype=torch.long, device=problem.image.device)
@@ -144,8 +146,6 @@ def _settled(problem: FitProblem, slots: Tensor, keep: list[int], options: Estim
         return slots, loss, pairs, share
     settled = slots.clone()
     unknown = albedo_unknown_images(problem, options)
-    if labels is None:
-        labels = network_segments(problem, options)
     for n_lights in sorted(set(keep)):
         for free in (True, False):
             group = [i for i, (k, u) in enumerate(zip(keep, unknown)) if k == n_lights and u == free]
@@ -191,7 +191,8 @@ def counted(problem: FitProblem, slots: Tensor, present: Tensor, options: Estima
     unknown = albedo_unknown_images(problem, options)
     if options.tuning.cnn_count != "criterion" or options.tuning.cnn_settle == 0 or top < 2 or not any(unknown):
         return keep
-    settles = settles or _Settles(problem, slots, options, labels)
+    if settles is None:
+        settles = _Settles(problem, slots, options, network_segments(problem, options) if labels is None else labels)
     block = block_px(options, problem.image.shape[-1], albedo_free=True)
     values = []
     for n in range(1, top + 1):
