@@ -20,21 +20,41 @@ from selfsup.estimation.reflectance import (albedo_unknown_images, grey_where_un
                                             residual_options)
 from selfsup.estimation.solvers import refine
 
-__all__ = ["checkpoints_of", "cached_network", "network_slots", "network_answer", "network_candidates", "settled_slots",
-           "counted", "network_segments"]
+__all__ = ["checkpoints_of", "answer_checkpoints", "start_checkpoint", "cached_network", "network_slots",
+           "network_answer", "network_candidates", "settled_slots", "counted", "network_segments"]
 
 
 def checkpoints_of(options: EstimateOptions) -> tuple[str | None, ...]:
-    """The networks ``options`` loads: ``options.checkpoint``, or where it is None the shipped ones
-    of its method: for ``cnn`` the iterative network of rooms and the one trained with objects in
-    the dark (:data:`selfsup.checkpoint.ITERATIVE_CHECKPOINT`, :data:`~selfsup.checkpoint.STUDIO_CHECKPOINT`;
-    each frame takes the one whose first light settles to the lower loss, :func:`network_answer`),
-    for ``cnn+refine`` the cost-volume network (None) as the search's start."""
-    if options.checkpoint is not None or options.method != "cnn":
+    """Every network ``options`` may load (to load them before any frame): those of
+    :func:`answer_checkpoints`, then :func:`start_checkpoint`'s (None: the cost-volume network)."""
+    answer = answer_checkpoints(options)
+    if options.method == "cnn":
+        return answer
+    return answer + (start_checkpoint(options),)
+
+
+def answer_checkpoints(options: EstimateOptions) -> tuple[str | None, ...]:
+    """The networks of :func:`network_answer` under ``options``: ``options.checkpoint`` with
+    ``method=cnn``, or where it is None the shipped iterative networks, the rooms' and the one
+    trained with objects in the dark (:data:`selfsup.checkpoint.ITERATIVE_CHECKPOINT`,
+    :data:`~selfsup.checkpoint.STUDIO_CHECKPOINT`; each frame takes the one whose first light settles
+    to the lower loss), for ``cnn`` and for ``cnn+refine`` with ``tuning.cnn_start=settled`` (its
+    first light where the albedo is unknown); none otherwise."""
+    if options.method == "cnn" and options.checkpoint is not None:
         return (options.checkpoint,)
+    shipped = options.method == "cnn" or (options.method == "cnn+refine" and options.checkpoint is None
+                                          and options.tuning.cnn_start == "settled")
+    if not shipped:
+        return ()
     from selfsup.checkpoint import ITERATIVE_CHECKPOINT, STUDIO_CHECKPOINT
 
     return (str(ITERATIVE_CHECKPOINT), str(STUDIO_CHECKPOINT))
+
+
+def start_checkpoint(options: EstimateOptions) -> str | None:
+    """The network whose lights join ``cnn+refine``'s searches (with a file's reflectance, and with
+    ``tuning.cnn_start=search``): ``options.checkpoint``, None being the shipped cost-volume network."""
+    return options.checkpoint
 
 
 @functools.lru_cache(maxsize=4)
@@ -87,7 +107,7 @@ def network_answer(problem: FitProblem, options: EstimateOptions, labels: Tensor
                    ) -> tuple[Tensor, list[int]]:
     """``method=cnn``'s lights: slots ``(B, K, 3)``, each image's first ``count[i]`` settled on the
     frame (:func:`settled_slots`), and that count (:func:`counted`). The slots are its one network's,
-    or of several (:func:`checkpoints_of`) each image's whose first slot, settled as one light,
+    or of several (:func:`answer_checkpoints`) each image's whose first slot, settled as one light,
     explains the frame with the lower loss. On the DiLiGenT ball, bear and cat the network trained
     in the dark was taken in every frame (1.9, 1.7, 10.8 degrees, where the rooms' network alone gave
     3.4, 2.5, 26.5); on one-light Mitsuba and procedural captures the choice placed as many lamps as
@@ -95,7 +115,7 @@ def network_answer(problem: FitProblem, options: EstimateOptions, labels: Tensor
     the images' albedo segments (:func:`network_segments`), where known."""
     if labels is None:
         labels = network_segments(problem, options)
-    answers = [network_slots(problem, path) for path in checkpoints_of(options)]
+    answers = [network_slots(problem, path) for path in answer_checkpoints(options)]
     if len({slots.shape[1] for slots, _ in answers}) != 1:
         raise ValueError(f"the networks of estimate.method=cnn must have as many slots, got "
                          f"{[slots.shape[1] for slots, _ in answers]}")

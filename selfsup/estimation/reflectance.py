@@ -21,7 +21,8 @@ from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import FitProblem, centre_and_size
 from selfsup.estimation.vignetting import choose_vignetting, devignetted
 
-__all__ = ["reflectance_unknown", "albedo_free_images", "estimate_albedo_free", "albedo_free_covariance"]
+__all__ = ["reflectance_unknown", "albedo_free_images", "albedo_free_segments", "estimate_albedo_free",
+           "albedo_free_covariance"]
 
 MIN_RESIDUALS = 100  # the fewest residuals an albedo-free fit or count decision rests on
 # The bounce of the albedo-free fit (estimate.tuning.albedo_free_bounce): its strength's start
@@ -86,8 +87,20 @@ def residual_options(options: EstimateOptions) -> dict:
     return dict(residuals=options.tuning.albedo_free_residuals, segment_scale=options.tuning.albedo_segment_scale)
 
 
+def albedo_free_segments(problem: FitProblem, options: EstimateOptions) -> tuple[Tensor | None, Tensor | None]:
+    """Every image's albedo segments ``(B, H, W)`` and smooth surfaces ``(B, H, W)`` as the
+    albedo-free fit finds them (:func:`selfsup.estimation.albedo_free.tuned_segments`,
+    :func:`selfsup.estimation.normals.surface_segments`); both None where its residuals are pairs."""
+    if options.tuning.albedo_free_residuals != "segments":
+        return None, None
+    g = problem.gbuffer
+    geometry = surface_segments(g.points, g.normals, g.mask)
+    return albedo_free.tuned_segments(problem, options.tuning, geometry), geometry
+
+
 def estimate_albedo_free(problem: FitProblem, options: EstimateOptions, slots: Tensor | None = None,
-                         sure: Tensor | None = None) -> list[tuple[Candidate, list[Candidate]]]:
+                         sure: Tensor | None = None, segments: tuple[Tensor | None, Tensor | None] | None = None
+                         ) -> list[tuple[Candidate, list[Candidate]]]:
     """Lights fitted to the log shading with each albedo segment's mean taken out (or its
     neighbour differences; :mod:`selfsup.estimation.albedo_free`), 1 .. ``max_lights`` while
     :func:`bic` of their Cauchy loss falls (with segments, judged without the highlights
@@ -110,15 +123,16 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions, slots: T
 
     ``slots (B, K, 3)``: a network's lights in its order (:func:`selfsup.estimation.network.network_slots`);
     the search of ``n`` lights also starts from its first ``n``. ``sure (B,)`` bool: the images
-    whose network is sure of its lights (its calibrated confidence, ``tuning.cnn_sure``): its
+    whose network is sure of its lights (its calibrated confidence, ``tuning.cnn_sure``; every image
+    with ``tuning.cnn_start=settled``, the networks' settled answer): its
     first light refined from where it put it (:func:`selfsup.estimation.albedo_free.refine_from`:
     no grid, no lens's falloff looked for), then one light more searched as elsewhere (its
-    first lights one of the starts) but not each light again, the criterion choosing."""
-    labels = geometry = None  # every image's albedo segments (and smooth surfaces), found once
-    if options.tuning.albedo_free_residuals == "segments":
-        g = problem.gbuffer
-        geometry = surface_segments(g.points, g.normals, g.mask)
-        labels = albedo_free.tuned_segments(problem, options.tuning, geometry)
+    first lights one of the starts) but not each light again, the criterion choosing; that search is
+    lean (:data:`selfsup.estimation.albedo_free.LEAN_SEARCH`: the network's pair and the split
+    starts carry it). ``segments``: :func:`albedo_free_segments` of ``problem`` where a caller found
+    them already."""
+    # every image's albedo segments (and smooth surfaces), found once
+    labels, geometry = albedo_free_segments(problem, options) if segments is None else segments
     results: list = [None] * problem.batch
     sure = torch.zeros(problem.batch, dtype=torch.bool) if sure is None else sure.cpu()
     for flag in (True, False):  # the images whose network is sure: its lights refined; the others searched
@@ -242,7 +256,8 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         kwargs = dict(robust_scale=options.tuning.albedo_free_scale, labels=None if labels is None else labels[at],
                       **residual_options(options))
         if sure:  # one light more searched beside the network's first, its first n lights one of the starts
-            more = albedo_free.search(sub, n_lights, fixed=before, **kwargs, **network_starts(at, n_lights))
+            more = albedo_free.search(sub, n_lights, fixed=before, **kwargs, **network_starts(at, n_lights),
+                                      **albedo_free.LEAN_SEARCH)
         else:
             more = albedo_free.search_each(sub, albedo_free.search(sub, n_lights, fixed=before, **kwargs,
                                                                    **network_starts(at, n_lights)), **kwargs)

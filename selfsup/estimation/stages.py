@@ -30,13 +30,14 @@ from render import Material
 from selfsup.estimation.criterion import (Candidate, by_model, candidates, fit_row, judged_problem, light_shares,
                                           shadow_gain, specular_images)
 from selfsup.estimation.gains import segment_gains
-from selfsup.estimation.network import checkpoints_of, network_answer, network_candidates, network_slots
+from selfsup.estimation.network import (answer_checkpoints, network_answer, network_candidates, network_slots,
+                                        start_checkpoint)
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.options import EstimateOptions, RefineOptions
 from selfsup.estimation.prepare import in_file_units, prepare, within_pixels, working_range
 from selfsup.estimation.problem import Fit, FitProblem
 from selfsup.estimation.records import records
-from selfsup.estimation.reflectance import albedo_free_images, estimate_albedo_free
+from selfsup.estimation.reflectance import albedo_free_images, albedo_free_segments, estimate_albedo_free
 from selfsup.estimation.solvers import refine, search
 from selfsup.scenes.io import Scene
 
@@ -297,7 +298,7 @@ def _estimate_once(problem: FitProblem, options: EstimateOptions) -> list[Result
                 for i, (best, tried) in enumerate(network_candidates(problem, run.slots, count,
                                                                      run.specular_of, options))]
     if options.method != "refine":
-        run.slots, _ = network_slots(problem, checkpoints_of(options)[0])
+        run.slots, _ = network_slots(problem, start_checkpoint(options))
     for stage in STAGES:
         stage(run)
     return [(run.best[i], run.tried[i]) for i in run.everyone]
@@ -309,7 +310,8 @@ def estimate_batch(problem: FitProblem, options: EstimateOptions) -> list[Result
 
     Every step runs on the whole batch (the searches over ``B x candidates``
     images), so a GPU is filled; each image is judged on its own and gets the
-    answer it would get alone.
+    answer it would get alone (with ``tuning.cnn_start=settled`` up to the networks' float32 batch
+    noise, about 1e-5 m, which moved where the LM stops by a fifth of the answer's uncertainty).
 
     With ``options.tuning.reflectance_gains`` rounds, each round rescales the albedo of every
     smooth surface (:func:`selfsup.estimation.normals.surface_segments`) by :func:`segment_gains`
@@ -338,11 +340,19 @@ def estimate_batch(problem: FitProblem, options: EstimateOptions) -> list[Result
 
 
 def _albedo_free_with_network(problem: FitProblem, options: EstimateOptions) -> list[Result]:
-    # The albedo-free fit; with cnn+refine the network's lights join its searches' starts, or
-    # where it is sure (its confidence reaches tuning.cnn_sure) are refined without a search.
+    # The albedo-free fit. With cnn+refine and tuning.cnn_start=settled, method=cnn's answer (the
+    # shipped networks' lights settled and picked on the frame) is every image's sure start: its
+    # first light refined with no grid, one light more searched beside it. Otherwise the network's
+    # lights join the searches' starts, or where it is sure (its confidence reaches tuning.cnn_sure)
+    # are refined without a search.
     if options.method != "cnn+refine":
         return estimate_albedo_free(problem, options)
-    slots, _, confidence = network_slots(problem, checkpoints_of(options)[0], with_confidence=True)
+    if answer_checkpoints(options):
+        segments = albedo_free_segments(problem, options)
+        slots, _ = network_answer(problem, options, segments[0])
+        sure = torch.ones(problem.batch, dtype=torch.bool, device=problem.image.device)
+        return estimate_albedo_free(problem, options, slots, sure, segments)
+    slots, _, confidence = network_slots(problem, start_checkpoint(options), with_confidence=True)
     return estimate_albedo_free(problem, options, slots, confidence >= options.tuning.cnn_sure)
 
 

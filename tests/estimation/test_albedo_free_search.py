@@ -156,7 +156,7 @@ def test_a_networks_lights_start_the_search_where_the_grid_alone_does_not_reach(
 
 
 def test_cnn_refine_gives_the_networks_lights_to_the_albedo_free_searches(monkeypatch):
-    # A capture-like file (kd one constant) under cnn+refine: the first search of one light
+    # A capture-like file (kd one constant) under cnn+refine with cnn_start=search: the first search of one light
     # and of two gets the network's first one and two slots (searching each light again,
     # the others held, needs none); method=refine gives none.
     seen = []
@@ -168,7 +168,7 @@ def test_cnn_refine_gives_the_networks_lights_to_the_albedo_free_searches(monkey
 
     monkeypatch.setattr(albedo_free, "search", recording)
     scene = _unknown_albedo(_scene(3))
-    estimate_scene(scene, EstimateOptions(method="cnn+refine", max_lights=2))
+    estimate_scene(scene, EstimateOptions.from_settings(method="cnn+refine", max_lights=2, cnn_start="search"))
     given = [shape for shape in seen if shape is not None]
     assert {shape[2] for shape in given} == {1, 2} and all(shape[1] == 1 and shape[-1] == 3 for shape in given), seen
     seen.clear()
@@ -202,10 +202,82 @@ def test_where_the_network_is_sure_its_first_light_is_refined_not_searched(monke
     monkeypatch.setattr(stages, "network_slots", sure_slots)
     monkeypatch.setattr(albedo_free, "search", no_search)
     monkeypatch.setattr(network_module, "network_slots", sure_slots)
-    record = estimate_scene(scene, EstimateOptions(method="cnn+refine", max_lights=2))
+    record = estimate_scene(scene, EstimateOptions.from_settings(method="cnn+refine", max_lights=2, cnn_start="search"))
     found = torch.tensor([light["position"] for light in record["lights"]])
     assert len(found) == n_lights
     assert float(torch.cdist(found, scene.light_pos).amin(0).max() / scene.scene_scale) < 0.01
     # Unsure (tuning.cnn_sure above its confidence): the search runs.
     with pytest.raises(AssertionError, match="searched"):
-        estimate_scene(scene, EstimateOptions.from_settings(method="cnn+refine", max_lights=2, cnn_sure=1.5))
+        estimate_scene(scene, EstimateOptions.from_settings(method="cnn+refine", max_lights=2, cnn_start="search",
+                                                            cnn_sure=1.5))
+
+
+@pytest.mark.parametrize("n_lights", [1, 2])
+def test_the_settled_start_refines_the_networks_answer_with_no_first_light_search(monkeypatch, n_lights):
+    # cnn+refine with tuning.cnn_start=settled: the networks' lights, settled and picked on
+    # the frame (method=cnn's answer), are every frame's sure start, whatever a confidence says: the
+    # first light refined where they put it, one light more searched beside it (the lean search).
+    from selfsup.estimation import network as network_module
+
+    scene = _unknown_albedo(_scene(3 if n_lights == 1 else 4, n_lights=n_lights, config=MEDIUM))
+    offset = torch.tensor([0.03, -0.02, 0.02]) * scene.scene_scale
+    slots = scene.light_pos[None, :2] + offset if n_lights == 2 else torch.stack(
+        [scene.light_pos[0], scene.light_pos[0] + torch.tensor([1.0, -0.5, 0.5])])[None] + offset
+    asked = []
+
+    def networks(problem, checkpoint=None, with_confidence=False):
+        asked.append(checkpoint)
+        assert not with_confidence, "the settled start needs no confidence"
+        return slots.to(problem.image), torch.tensor([[True, n_lights == 2]])
+
+    search = albedo_free.search
+
+    def lean_only(problem, n_lights=1, *args, fixed=None, **kwargs):
+        if fixed is None:
+            raise AssertionError("the first light was searched")
+        assert kwargs.get("anchors") is False and kwargs.get("per_axis") == (5, 5, 5), "not the lean search"
+        return search(problem, n_lights, *args, fixed=fixed, **kwargs)
+
+    monkeypatch.setattr(network_module, "network_slots", networks)
+    monkeypatch.setattr(albedo_free, "search", lean_only)
+    record = estimate_scene(scene, EstimateOptions.from_settings(max_lights=2, cnn_start="settled"))
+    found = torch.tensor([light["position"] for light in record["lights"]])
+    assert len(found) == n_lights
+    assert float(torch.cdist(found, scene.light_pos).amin(0).max() / scene.scene_scale) < 0.01
+    assert len(asked) == 2 and all(str(path).endswith((".pt")) for path in asked)  # both shipped iterative networks
+
+
+def test_which_networks_each_method_loads():
+    from selfsup.checkpoint import ITERATIVE_CHECKPOINT, STUDIO_CHECKPOINT
+    from selfsup.estimation.network import answer_checkpoints, checkpoints_of, start_checkpoint
+
+    shipped = (str(ITERATIVE_CHECKPOINT), str(STUDIO_CHECKPOINT))
+    default = EstimateOptions()
+    assert answer_checkpoints(default) == () and start_checkpoint(default) is None
+    assert checkpoints_of(default) == (None,)  # the cost-volume network
+    settled = EstimateOptions.from_settings(cnn_start="settled")
+    assert answer_checkpoints(settled) == shipped
+    assert checkpoints_of(settled) == shipped + (None,)  # the cost-volume network: files with their albedo
+    named = EstimateOptions(checkpoint="mine.pt")
+    assert answer_checkpoints(named) == () and checkpoints_of(named) == ("mine.pt",)
+    assert checkpoints_of(EstimateOptions(method="cnn")) == shipped
+    assert checkpoints_of(EstimateOptions(method="cnn", checkpoint="mine.pt")) == ("mine.pt",)
+    assert answer_checkpoints(EstimateOptions(method="refine")) == ()
+    with pytest.raises(ValueError, match="cnn_start"):
+        EstimateOptions.from_settings(cnn_start="grid")
+
+
+def test_the_settled_start_finds_the_light_where_the_networks_are_far_off(monkeypatch):
+    # The settled start is only a start: networks whose lights lie two scene sizes from the lamp
+    # (a frame unlike any they were trained on) still leave it the lamp, placed.
+    from selfsup.estimation import network as network_module
+
+    scene = _unknown_albedo(_scene(3, config=MEDIUM))
+    size = scene.scene_scale
+    slots = torch.stack([scene.light_pos[0] + torch.tensor([2.0, 2.0, -2.0]) * size,
+                         scene.light_pos[0] + torch.tensor([2.3, 2.0, -2.0]) * size])[None]
+    monkeypatch.setattr(network_module, "network_slots", lambda problem, checkpoint=None, with_confidence=False:
+                        (slots.to(problem.image), torch.tensor([[True, False]])))
+    record = estimate_scene(scene, EstimateOptions.from_settings(max_lights=2, cnn_start="settled"))
+    found = torch.tensor([light["position"] for light in record["lights"]])
+    assert len(found) == 1 and float((found[0] - scene.light_pos[0]).norm() / size) < 0.01

@@ -53,13 +53,13 @@ from selfsup.estimation.albedo_free.fit import (FINAL_TOLERANCE, LM_TOLERANCE, b
 from selfsup.estimation.albedo_free.observation import (MIN_SEGMENT_PIXELS, AlbedoFreeFit, LogShading, albedo_segments,
                                                         glossy_material, observe, pair_differences, tuned_segments)
 from selfsup.estimation.albedo_free.gloss import GLOSS_PARAMETERS, choose_gloss, fit_lobes, keep_lobes
-from selfsup.estimation.albedo_free.light_search import (AMBIENT_STEPS, RATIO_STEPS, anchor_pairs, refine_from, search,
-                                                         search_each, split_starts)
+from selfsup.estimation.albedo_free.light_search import (AMBIENT_STEPS, LEAN_SEARCH, RATIO_STEPS, anchor_pairs,
+                                                         refine_from, search, search_each, split_starts)
 
 __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "albedo_segments", "tuned_segments", "shading_loss", "search",
            "search_each", "split_starts", "anchor_pairs", "refine_positions", "bounce_maps", "light_shares", "model_transport",
            "glossy_material", "mirror_lobes",
            "highlight_pixels", "position_covariance", "block_scores_of", "group_medians", "albedo_classes",
            "refine_on_classes", "refine_from", "choose_gloss", "fit_lobes", "keep_lobes",
-           "GLOSS_PARAMETERS", "AMBIENT_STEPS", "RATIO_STEPS", "CLASS_ITERATIONS", "MIN_SEGMENT_PIXELS",
+           "GLOSS_PARAMETERS", "AMBIENT_STEPS", "LEAN_SEARCH", "RATIO_STEPS", "CLASS_ITERATIONS", "MIN_SEGMENT_PIXELS",
            "LM_TOLERANCE", "FINAL_TOLERANCE"]

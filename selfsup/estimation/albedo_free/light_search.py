@@ -46,6 +46,13 @@ PAIR_GRID = (5, 5, 5)
 PAIR_RATIOS = (0.3, 1.0, 3.0)
 ANCHOR_STARTS = 4
 PAIR_PIXELS = 1200  # the pairs are ranked on about this many pixels (a 160x120 image's every 4th)
+# One light more searched beside a network's settled lights (``cnn+refine``'s sure images): the
+# network's pair and the split starts are its best starts, so a coarser grid, two starts, fewer LM
+# steps and no anchor pairs. Ad hoc, 2026-12-07, 234 capture frames (Mitsuba and procedural, one
+# thread): beside the same first light as the full search, the same one-light successes (113),
+# two-light rooms placed 45 against 43 and counted 57 against 58, at 0.64-0.98 s a frame against
+# 0.93-1.23 (docs/decisions.md; benchmarks/results/cnn_start_settled_cpu2_2026-12-07.md).
+LEAN_SEARCH = dict(per_axis=(5, 5, 5), starts=2, iterations=(10, 5), anchors=False)
 # Where a search has more starts than its ``starts`` (the second light's: grid, split and
 # anchor-pair starts), every start runs this many LM steps at ``start_stride`` and the best
 # ``starts`` of them the rest. Ad hoc, 2026-11-27: 0.05-0.1 s a frame less on 2 cores; on 306
