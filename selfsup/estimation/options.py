@@ -101,8 +101,7 @@ class Tuning:
             starts) or ``settled`` (``cnn``'s answer, the shipped iterative networks settled and
             picked on the frame, refined with no grid; one light more searched leanly beside it:
             1.5-2.2x faster on capture folders, as many successes, but no lens falloff looked
-            for and seven hard test cases lost, lobes and the "no light" verdict among them;
-            not the default).
+            for and seven hard test cases fail, glossy lobes among them; not the default).
         cnn_sure: with ``cnn_start=search`` or a named checkpoint, ``cnn+refine`` searches nothing
             where the network's calibrated confidence (an iterative network's,
             :attr:`selfsup.network.IterativePrediction.confidence`) reaches this: its lights are
