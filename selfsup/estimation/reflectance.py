@@ -126,7 +126,8 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions, slots: T
     whose network is sure of its lights (its calibrated confidence, ``tuning.cnn_sure``; every image
     with ``tuning.cnn_start=settled``, the networks' settled answer): its
     first light refined from where it put it (:func:`selfsup.estimation.albedo_free.refine_from`:
-    no grid, no lens's falloff looked for), then one light more searched as elsewhere (its
+    no grid; with ``vignetting=auto`` refined under each lens falloff and the falloff chosen as
+    after a search), then one light more searched as elsewhere (its
     first lights one of the starts) but not each light again, the criterion choosing; that search is
     lean (:data:`selfsup.estimation.albedo_free.LEAN_SEARCH`: the network's pair and the split
     starts carry it). ``segments``: :func:`albedo_free_segments` of ``problem`` where a caller found
@@ -168,16 +169,14 @@ def _estimate_rows(problem: FitProblem, options: EstimateOptions, labels: Tensor
 def _estimate_split(problem: FitProblem, options: EstimateOptions, labels: Tensor | None, geometry: Tensor | None,
                     slots: Tensor | None, sure: bool) -> list[tuple[Candidate, list[Candidate]]]:
     # estimate_albedo_free of images whose network is sure (its lights refined) or not (searched).
-    if sure:
-        return _fit_albedo_free(problem, options, labels, geometry, False, slots, sure=True)[0]
     auto = options.tuning.vignetting == "auto"
-    results, whole = _fit_albedo_free(problem, options, labels, geometry, auto, slots)
+    results, whole = _fit_albedo_free(problem, options, labels, geometry, auto, slots, sure=sure)
     again = [i for i, (best, _) in enumerate(results) if best.vignetting]
     if again:
         at = torch.tensor(again, dtype=torch.long, device=problem.image.device)
         plain, plain_whole = _fit_albedo_free(problem.select(at), options, None if labels is None else labels[at],
                                               None if geometry is None else geometry[at], False,
-                                              None if slots is None else slots[at])
+                                              None if slots is None else slots[at], sure=sure)
         for j, i in enumerate(again):
             if plain_whole[j] <= whole[i]:
                 results[i] = plain[j]
@@ -225,7 +224,10 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         chosen = slots if rows is None else slots[rows]
         return dict(extra_starts=chosen[:, None, :n_lights])
 
-    if sure:  # the network's first light refined, no grid, no lens
+    if sure and vignetting:  # the network's first light refined under each lens falloff, no grid
+        corner_loss, found = choose_vignetting(problem, labels, criterion, search_kwargs, position=slots[:, :1])
+        problem = devignetted(problem, corner_loss)
+    elif sure:  # the network's first light refined, no grid
         corner_loss = problem.image.new_zeros(B)
         found = albedo_free.refine_from(problem, slots[:, :1], labels=labels, **search_kwargs)
     elif vignetting:

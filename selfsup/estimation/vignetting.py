@@ -68,7 +68,8 @@ def _interpolated(values: Tensor, choice: Tensor) -> Tensor:
 
 
 def choose_vignetting(problem: FitProblem, labels: Tensor | None, criterion, search_kwargs: dict,
-                      starts: dict | None = None) -> tuple[Tensor, albedo_free.AlbedoFreeFit]:
+                      starts: dict | None = None, position: Tensor | None = None
+                      ) -> tuple[Tensor, albedo_free.AlbedoFreeFit]:
     """Each image's corner loss ``(B,)`` of :data:`SHARES` and its first light's fit.
 
     The first light is searched through every strength at once (the images side by side);
@@ -77,13 +78,22 @@ def choose_vignetting(problem: FitProblem, labels: Tensor | None, criterion, sea
     keeps none, and so does a crop of its frame (``problem.cropped``: an object in the dark,
     the frame's corners out of view, where the falloff's strength was a free knob chosen at
     its limit in half the DiLiGenT ball's frames). ``starts``:
-    :func:`selfsup.estimation.albedo_free.search`'s ``extra_starts`` (a network's first light), or none."""
+    :func:`selfsup.estimation.albedo_free.search`'s ``extra_starts`` (a network's first light), or none.
+    ``position (B, 1, 3)``: a sure network's first light, refined under each strength
+    (:func:`selfsup.estimation.albedo_free.refine_from`) in place of the search."""
+
+    def first_light(p: FitProblem, at: Tensor | None, **kwargs) -> albedo_free.AlbedoFreeFit:
+        if position is None:
+            return albedo_free.search(p, 1, labels=at, **kwargs, **search_kwargs)
+        kept = {k: v for k, v in kwargs.items() if k == "iterations"}
+        return albedo_free.refine_from(p, position.repeat(p.batch // B, 1, 1), labels=at, **kept, **search_kwargs)
+
     B = problem.batch
     problem.median_observed(), problem.noise_level()  # the scales, found once on the image as given
     cropped = torch.zeros(B, dtype=torch.bool, device=problem.image.device) if problem.cropped is None else problem.cropped
     if problem.gbuffer.intrinsics is None or bool(cropped.all()):
         shares = problem.image.new_zeros(B)
-        return shares, albedo_free.search(problem, 1, labels=labels, **search_kwargs, **(starts or {}))
+        return shares, first_light(problem, labels, **(starts or {}))
     # Each strength's first light on every pixel (the scales of the image as given: the loss of
     # each strength on one scale; every 2nd pixel lost 3 of 67 successes on the 108 camera-
     # realities frames, ad hoc, 2026-11-28), without the search's last steps, which only the
@@ -95,8 +105,8 @@ def choose_vignetting(problem: FitProblem, labels: Tensor | None, criterion, sea
     together._noise = torch.cat([problem._noise] * len(SHARES))
     at = None if labels is None else labels.repeat(len(SHARES), 1, 1)
     extra = {k: v.repeat(len(SHARES), *[1] * (v.dim() - 1)) for k, v in (starts or {}).items()}
-    fit = albedo_free.search(together, 1, labels=at, starts=CHOICE_STARTS, iterations=(CHOICE_ITERATIONS, 0),
-                             rank_stride=CHOICE_RANK_STRIDE, **search_kwargs, **extra)
+    fit = first_light(together, at, starts=CHOICE_STARTS, iterations=(CHOICE_ITERATIONS, 0),
+                      rank_stride=CHOICE_RANK_STRIDE, **extra)
     values = torch.tensor([criterion(fit, [0 if share == 0 else 1 for share in SHARES for _ in range(B)])],
                           dtype=torch.float64).view(len(SHARES), B)
     values[1:, cropped.cpu()] = math.inf  # a crop keeps none
