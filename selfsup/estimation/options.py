@@ -100,7 +100,7 @@ class Tuning:
             is named: ``search`` (the grid search, the cost-volume network's lights among its
             starts) or ``settled`` (``cnn``'s answer, the shipped iterative networks settled and
             picked on the frame, refined with no grid; one light more searched leanly beside it:
-            1.5-2.2x faster on capture folders, as many successes, but six hard test cases
+            1.1-1.5x faster on capture folders, as many successes, but six hard test cases
             fail, glossy lobes among them; not the default).
         cnn_sure: with ``cnn_start=search`` or a named checkpoint, ``cnn+refine`` searches nothing
             where the network's calibrated confidence (an iterative network's,
