@@ -13,11 +13,10 @@ from torch import Tensor
 
 from selfsup.estimation import albedo_free
 from selfsup.estimation.criterion import Candidate, bic, block_px, candidates
-from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import FitProblem
-from selfsup.estimation.reflectance import (albedo_unknown_images, grey_where_unknown, reflectance_unknown,
-                                            residual_options)
+from selfsup.estimation.reflectance import (albedo_free_segments, albedo_unknown_images, grey_where_unknown,
+                                            reflectance_unknown, residual_options)
 from selfsup.estimation.solvers import refine
 
 __all__ = ["checkpoints_of", "answer_checkpoints", "start_checkpoint", "cached_network", "network_slots",
@@ -190,10 +189,9 @@ def _settled(problem: FitProblem, slots: Tensor, keep: list[int], options: Estim
 def network_segments(problem: FitProblem, options: EstimateOptions) -> Tensor | None:
     """Every image's albedo segments ``(B, H, W)`` as the albedo-free fit finds them, for the
     settle; None where no image's albedo is unknown or the fit uses pairs."""
-    if options.tuning.albedo_free_residuals != "segments" or not any(albedo_unknown_images(problem, options)):
+    if not any(albedo_unknown_images(problem, options)):
         return None
-    g = problem.gbuffer
-    return albedo_free.tuned_segments(problem, options.tuning, surface_segments(g.points, g.normals, g.mask))
+    return albedo_free_segments(problem, options)[0]
 
 
 def counted(problem: FitProblem, slots: Tensor, present: Tensor, options: EstimateOptions,

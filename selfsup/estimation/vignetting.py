@@ -81,6 +81,7 @@ def choose_vignetting(problem: FitProblem, labels: Tensor | None, criterion, sea
     :func:`selfsup.estimation.albedo_free.search`'s ``extra_starts`` (a network's first light), or none.
     ``position (B, 1, 3)``: a sure network's first light, refined under each strength
     (:func:`selfsup.estimation.albedo_free.refine_from`) in place of the search."""
+    B = problem.batch
 
     def first_light(p: FitProblem, at: Tensor | None, **kwargs) -> albedo_free.AlbedoFreeFit:
         if position is None:
@@ -88,7 +89,6 @@ def choose_vignetting(problem: FitProblem, labels: Tensor | None, criterion, sea
         kept = {k: v for k, v in kwargs.items() if k == "iterations"}
         return albedo_free.refine_from(p, position.repeat(p.batch // B, 1, 1), labels=at, **kept, **search_kwargs)
 
-    B = problem.batch
     problem.median_observed(), problem.noise_level()  # the scales, found once on the image as given
     cropped = torch.zeros(B, dtype=torch.bool, device=problem.image.device) if problem.cropped is None else problem.cropped
     if problem.gbuffer.intrinsics is None or bool(cropped.all()):

@@ -176,6 +176,16 @@ def test_cnn_refine_gives_the_networks_lights_to_the_albedo_free_searches(monkey
     assert seen and all(shape is None for shape in seen)
 
 
+def _capture_and_near_slots(n_lights):
+    # A capture-like frame of n_lights and a network's two slots near its lights (the second far
+    # from any light where there is one): (scene, slots (1, 2, 3)).
+    scene = _unknown_albedo(_scene(3 if n_lights == 1 else 4, n_lights=n_lights, config=MEDIUM))
+    offset = torch.tensor([0.03, -0.02, 0.02]) * scene.scene_scale
+    slots = scene.light_pos[None, :2] + offset if n_lights == 2 else torch.stack(
+        [scene.light_pos[0], scene.light_pos[0] + torch.tensor([1.0, -0.5, 0.5])])[None] + offset
+    return scene, slots
+
+
 @pytest.mark.parametrize("n_lights", [1, 2])
 def test_where_the_network_is_sure_its_first_light_is_refined_not_searched(monkeypatch, n_lights):
     # cnn+refine with a network sure of itself (confidence 1): its first light refined where it
@@ -184,10 +194,7 @@ def test_where_the_network_is_sure_its_first_light_is_refined_not_searched(monke
     from selfsup.estimation import network as network_module
     from selfsup.estimation import stages
 
-    scene = _unknown_albedo(_scene(3 if n_lights == 1 else 4, n_lights=n_lights, config=MEDIUM))
-    offset = torch.tensor([0.03, -0.02, 0.02]) * scene.scene_scale
-    slots = scene.light_pos[None, :2] + offset if n_lights == 2 else torch.stack(
-        [scene.light_pos[0], scene.light_pos[0] + torch.tensor([1.0, -0.5, 0.5])])[None] + offset
+    scene, slots = _capture_and_near_slots(n_lights)
 
     def sure_slots(problem, checkpoint=None, with_confidence=False):
         return slots.to(problem.image), torch.ones(1, 2, dtype=torch.bool), torch.ones(1)
@@ -219,10 +226,7 @@ def test_the_settled_start_refines_the_networks_answer_with_no_first_light_searc
     # first light refined where they put it, one light more searched beside it (the lean search).
     from selfsup.estimation import network as network_module
 
-    scene = _unknown_albedo(_scene(3 if n_lights == 1 else 4, n_lights=n_lights, config=MEDIUM))
-    offset = torch.tensor([0.03, -0.02, 0.02]) * scene.scene_scale
-    slots = scene.light_pos[None, :2] + offset if n_lights == 2 else torch.stack(
-        [scene.light_pos[0], scene.light_pos[0] + torch.tensor([1.0, -0.5, 0.5])])[None] + offset
+    scene, slots = _capture_and_near_slots(n_lights)
     asked = []
 
     def networks(problem, checkpoint=None, with_confidence=False):
