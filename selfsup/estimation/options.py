@@ -160,7 +160,8 @@ class Tuning:
             (:mod:`selfsup.estimation.albedo_free.gloss`) | ``instead``: a lobe with the first
             light tried only where the diffuse fit takes more lights, kept where its criterion
             is below theirs (a lobe and a second light beside the first explain the same
-            peak), not where the black pixels took the light (a lobe casts no shadow) | ``never``.
+            peak), not where the black pixels took the light (a lobe casts no shadow); beside
+            one light only a lobe that outshines it, from the highlight's mirror | ``never``.
             ``albedo_free_count``: where one light more is judged: ``segments`` (each
             albedo segment's level free) | ``classes`` (each model on its own segments
             merged into albedo classes, the classes counted as parameters: a light that

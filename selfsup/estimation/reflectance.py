@@ -276,26 +276,29 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
                 still.append(i)
         growing = still
     if options.tuning.albedo_free_gloss == "instead" and labels is not None:
-        problem = _lobe_instead(problem, found, labels, options, criterion, best, by_shadows, tried, geometry)
+        problem = _lobe_instead(problem, found, labels, options, criterion, best, by_shadows, tried, geometry,
+                                from_mirror=sure)
     return _chosen_candidates(problem, labels, geometry, options, best, tried, corner_loss, with_bounce)
 
 
 def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels: Tensor, options: EstimateOptions,
                   criterion, best: list, by_shadows: list[bool], tried: list[list[tuple]],
-                  geometry: Tensor | None = None) -> FitProblem:
-    # Where the diffuse fit took more than one light, one light with a specular lobe
-    # (:func:`albedo_free.choose_gloss`) in their place, where its criterion on every residual is
-    # below theirs: a metal's or a gloss's broad lobe is a second peak that a light beside the
-    # first also makes. Its light starts at the one-light fit ``found`` and at each of the more
-    # lights alone (beside other objects a metal's one diffuse light lands 20 degrees off, between
-    # its lamp and the lobe's peak; one of the pair's lights is near the lamp). Not where the last
-    # light was taken by the capture's black pixels (``by_shadows``): a lobe casts no shadow.
+                  geometry: Tensor | None = None, from_mirror: bool = False) -> FitProblem:
+    # Where the diffuse fit took more than one light, one light with a specular lobe in their place
+    # (:func:`albedo_free.choose_gloss`), where its criterion on every residual is below theirs: a
+    # broad lobe is a second peak that a light beside the first also makes. Its light starts at the
+    # one-light fit ``found`` and at each of the more lights alone (a metal's one diffuse light lands
+    # between its lamp and the lobe's peak, one of the pair's near the lamp). Not where the black
+    # pixels took the last light (``by_shadows``): a lobe casts no shadow.
     # Beside a lobe that replaced lights, one light more is searched and judged as any second light
     # (:func:`_light_beside_lobe`): a glossy room may have two lamps. Where one light and its lobe
     # lose, the lobe is tried beside the lights the diffuse fit took (two lamps on a glossy object:
     # the diffuse pair lands 16-21 degrees off both, each light between a lamp and a highlight).
+    # Where it kept one light, a lobe that outshines it (:func:`albedo_free.choose_lone_lobe`). ``from_mirror``:
+    # the pairs' lobes start at the highlight's mirror too (a lean pair has no light near a metal's lamp).
     # ``best`` and ``tried`` are updated in place (the lobe's models join ``tried`` as
     # ``(n, criterion, True)``); returns the problem with each image's lobe.
+    scale, residuals = options.tuning.albedo_free_scale, options.tuning.albedo_free_residuals
     gloss = problem.image.new_zeros(problem.batch, 2)
     counts = [best[i][0].position.shape[1] for i in range(problem.batch)]
     for n_lights in sorted({n for n, shadows in zip(counts, by_shadows) if n > 1 and not shadows}):
@@ -304,9 +307,10 @@ def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels:
         alone = albedo_free.AlbedoFreeFit.rows([(found, i) for i in more])  # their one-light fits
         at = torch.tensor(more, dtype=torch.long, device=problem.image.device)
         sub = problem.select(at)
-        shapes, fitted, fitted_values = albedo_free.fit_lobes(sub, alone, labels[at], options.tuning.albedo_free_scale,
-                                                              criterion,
-                                                              starts=[several.only(k) for k in range(n_lights)])
+        starts = [several.only(k) for k in range(n_lights)]
+        if from_mirror:
+            starts.append(albedo_free.mirror_start(sub, alone, labels[at], scale, residuals))
+        shapes, fitted, fitted_values = albedo_free.fit_lobes(sub, alone, labels[at], scale, criterion, starts=starts)
         lobed_problem, lobed = albedo_free.keep_lobes(sub, alone, shapes, fitted, fitted_values, criterion,
                                                       against=criterion(several))
         took = _taken_lobes(lobed_problem, lobed, more, 1, criterion, best, tried, gloss)
@@ -318,11 +322,24 @@ def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels:
             beside = torch.tensor(rest, dtype=torch.long, device=problem.image.device)
             lobed_problem, lobed = albedo_free.choose_gloss(
                 sub.select(beside), albedo_free.AlbedoFreeFit.rows([(several, j) for j in rest]),
-                labels[at[beside]], options.tuning.albedo_free_scale, criterion, shapes=shapes[beside, None])
+                labels[at[beside]], scale, criterion, shapes=shapes[beside, None])
             _taken_lobes(lobed_problem, lobed, [more[j] for j in rest], n_lights, criterion, best, tried, gloss)
-    if not bool((gloss[:, 0] > 0).any()):
-        return problem
-    return problem.with_gloss(gloss)
+    ones = [i for i in range(problem.batch) if counts[i] == 1]
+    if from_mirror and ones:  # a sure network's light no better than the ambient alone is a wrong light, not
+        # a lamp beside a lobe: the search without a network follows (estimate_albedo_free) and tries the lobe
+        alone = albedo_free.AlbedoFreeFit.rows([(found, i) for i in ones])
+        at = torch.tensor(ones, dtype=torch.long, device=problem.image.device)
+        every = albedo_free.observe(problem.select(at), scale, labels=labels[at], **residual_options(options))
+        block = block_px(options, problem.image.shape[-1], albedo_free=True)
+        unlit = [bic(u, p, 0, block) for u, p in zip(ambient_only_loss(every, alone).tolist(), alone.pairs.tolist())]
+        ones = [i for i, u, c in zip(ones, unlit, criterion(alone)) if c < u]
+    if ones:
+        at = torch.tensor(ones, dtype=torch.long, device=problem.image.device)
+        lobed_problem, lobed = albedo_free.choose_lone_lobe(
+            problem.select(at), albedo_free.AlbedoFreeFit.rows([(found, i) for i in ones]), labels[at], scale,
+            criterion, residuals)
+        _taken_lobes(lobed_problem, lobed, ones, 1, criterion, best, tried, gloss)
+    return problem.with_gloss(gloss) if bool((gloss[:, 0] > 0).any()) else problem
 
 
 def _taken_lobes(lobed_problem: FitProblem, lobed: albedo_free.AlbedoFreeFit, images: list[int], n_lights: int,
@@ -446,7 +463,7 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
         losses, counted = chosen.loss.tolist(), chosen.pairs.tolist()
         # The model's own parameters: a position and a contrast per light, the bounce's strength, the lobe's two.
         bounced = chosen.bounced().tolist()
-        own = [4 * n_lights + int(b) + g for b, g in zip(bounced, gloss_parameters(sub))]
+        own = [4 * n_lights + int(b) + g for b, g in zip(bounced, albedo_free.gloss_parameters(sub))]
         evidence = [bic(unlit, pairs, 0, block) - bic(loss, pairs, k, block)
                     for unlit, loss, pairs, k in zip(ambient_only_loss(every, chosen).tolist(), losses, counted, own)]
         for i, loss, pairs, k in zip(group, losses, counted, own):
@@ -456,7 +473,7 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
             # The diffuse-only fit cannot explain a glossy surface's highlight: its pixels (in the
             # lights' mirror lobes, clearly brighter than the model) are left out of the placement.
             highlight = albedo_free.highlight_pixels(every, chosen, options.tuning.albedo_free_lobe_deg,
-                                                     HIGHLIGHT_EXCESS) & diffuse_images(sub)[:, None, None]
+                                                     HIGHLIGHT_EXCESS) & albedo_free.diffuse_images(sub)[:, None, None]
             segments = torch.where(highlight, -1, segments)
         if segments is not None and options.tuning.albedo_class_rounds > 0:
             # The chosen model's lights placed on its segments merged into classes of one albedo.
@@ -473,32 +490,12 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
                                   evidence=evidence[j], vignetting=round(float(corner_loss[i]), 3),
                                   highlight_pixels=int(highlight[j].sum()),
                                   bounce_share=round(float(bounce_share[j]), 4) if bounced[j] else None,
-                                  gloss=lobe_of(sub, j))
+                                  gloss=albedo_free.lobe_of(sub, j))
             # The records keep the tried models' counts and criteria only.
             # (n, value) of the diffuse models, (n, value, True) of one with a specular lobe.
             others = [Candidate(candidate.fit, n, bool(lobe), value, None, "albedo_free") for n, value, *lobe in tried[i]]
             results[i] = (candidate, others)
     return results, whole
-
-
-def diffuse_images(problem: FitProblem) -> Tensor:
-    """``(B,)`` bool: the images whose albedo-free model has no specular lobe."""
-    if problem.gloss is None:
-        return torch.ones(problem.batch, dtype=torch.bool, device=problem.image.device)
-    return ~(problem.gloss[:, 0] > 0)
-
-
-def gloss_parameters(problem: FitProblem) -> list[int]:
-    """Each image's parameters of its albedo-free specular lobe (:attr:`FitProblem.gloss`): two, or none."""
-    return [0 if diffuse else albedo_free.GLOSS_PARAMETERS for diffuse in diffuse_images(problem).tolist()]
-
-
-def lobe_of(problem: FitProblem, row: int) -> tuple[float, float] | None:
-    """Image ``row``'s albedo-free specular lobe ``(ratio, shininess)``, or None (diffuse only)."""
-    if problem.gloss is None or not float(problem.gloss[row, 0]) > 0:
-        return None
-    ratio, shininess = problem.gloss[row].tolist()
-    return round(ratio, 4), round(shininess, 2)
 
 
 def albedo_free_covariance(observed: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFit, problem: FitProblem,
@@ -521,7 +518,7 @@ def _or_black_pixels_need(problem: FitProblem, options: EstimateOptions, fewer: 
     under the criterion's cast shadows). Only the images not taken already are rendered, and
     only those of a diffuse model: where the fit has a specular lobe (metal, gloss), a black
     pixel may be one the lobe does not reach as well as a shadow."""
-    diffuse_only = diffuse_images(problem).tolist()
+    diffuse_only = albedo_free.diffuse_images(problem).tolist()
     rest = [j for j, t in enumerate(taken) if not t and diffuse_only[j]]
     if not rest:
         return taken
@@ -571,7 +568,7 @@ def _highlight_free_labels(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit
     whose model has no specular lobe (where it has one, the highlight is the model's)."""
     every_pixel = albedo_free.observe(problem, options.tuning.albedo_free_scale, labels=labels, **residual_options(options))
     held_out = albedo_free.highlight_pixels(every_pixel, fewer, options.tuning.albedo_free_lobe_deg)
-    held_out &= diffuse_images(problem)[:, None, None]
+    held_out &= albedo_free.diffuse_images(problem)[:, None, None]
     return torch.where(held_out, torch.full_like(labels, -1), labels)
 
 
