@@ -2,6 +2,7 @@
 
     python -m benchmarks.studio_frames --option method=cnn --option checkpoint=selfsup/checkpoints/iterative_studio.pt
     python -m benchmarks.studio_frames --option method=cnn --option checkpoint=selfsup/checkpoints/iterative.pt --name studio_frames_rooms
+    python -m benchmarks.studio_frames --count 24 --arrangement overlapping --depth integrated --name studio_frames_integrated
 
 ``--count`` frames (default 12) of :func:`selfsup.scenes.studio.studio_spec`, each photographed as
 a photometric-stereo set is (:func:`selfsup.scenes.studio.photograph`: auto exposure, sRGB, 8
@@ -28,7 +29,7 @@ from benchmarks.common import write_results
 from benchmarks.estimate_procedural import parse_options
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.stages import estimate_scene
-from selfsup.scenes.studio import HARD_PAINTS, photograph, sphere_centre, studio_spec
+from selfsup.scenes.studio import ARRANGEMENTS, HARD_PAINTS, photograph, sphere_centre, studio_spec
 
 COLUMNS = ["frame", "paint", "others", "direction", "angle_deg", "light_found"]
 
@@ -46,12 +47,14 @@ def frames(count: int, seed: int = 0) -> list[tuple[tuple[float, float, float], 
     return out
 
 
-def run(count: int, options: EstimateOptions, name: str, write: bool = True) -> list[dict]:
+def run(count: int, options: EstimateOptions, name: str, write: bool = True, arrangement: str = "apart",
+        depth: str = "rendered") -> list[dict]:
     rows = []
     for k, (direction, paint, others) in enumerate(frames(count)):
-        spec = studio_spec(direction, others=others, seed=k, **HARD_PAINTS.get(paint, {}))
+        others = others or arrangement == "overlapping"  # overlapping: the parts in every frame
+        spec = studio_spec(direction, others=others, seed=k, arrangement=arrangement, **HARD_PAINTS.get(paint, {}))
         with tempfile.TemporaryDirectory() as folder:
-            record = estimate_scene(photograph(folder, spec, seed=k), options)
+            record = estimate_scene(photograph(folder, spec, seed=k, depth=depth), options)
         lights = record["lights"] or record["unsupported_lights"]
         angle = 90.0
         if lights:
@@ -62,7 +65,8 @@ def run(count: int, options: EstimateOptions, name: str, write: bool = True) -> 
         print(rows[-1], flush=True)
     rows.append({"frame": "**median**", "angle_deg": round(statistics.median(r["angle_deg"] for r in rows), 2)})
     if write:
-        header = (f"Objects in the dark (`python -m benchmarks.studio_frames`, {count} frames), each "
+        header = (f"Objects in the dark (`python -m benchmarks.studio_frames`, {count} frames, the box and the "
+                  f"cylinder {arrangement}, the depth {depth}), each "
                   f"estimated with the settings changed: {options_text(options)}; the angle between the "
                   "true lamp direction and the sphere's centre to the brightest light (90 where none).")
         print(write_results(name, torch.device("cpu"), rows, header, COLUMNS))
@@ -79,10 +83,15 @@ def main() -> None:
     parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                         help="an estimate setting or tuned constant, e.g. method=cnn (repeatable)")
     parser.add_argument("--name", default="studio_frames")
+    parser.add_argument("--arrangement", choices=ARRANGEMENTS, default="apart",
+                        help="overlapping: the box and the cylinder in every frame, hiding parts of the sphere and hidden")
+    parser.add_argument("--depth", choices=("rendered", "integrated"), default="rendered",
+                        help="integrated: the depth integrated from the true normals, as DiLiGenT's objects' was made")
     args = parser.parse_args()
     if args.count < 1:
         raise SystemExit("--count must be >= 1")
-    run(args.count, EstimateOptions.from_settings(**parse_options(args.option)), args.name)
+    run(args.count, EstimateOptions.from_settings(**parse_options(args.option)), args.name, arrangement=args.arrangement,
+        depth=args.depth)
 
 
 if __name__ == "__main__":

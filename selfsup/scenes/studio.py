@@ -20,17 +20,20 @@ from torch import Tensor
 from selfsup.scenes.camera import CameraModel, camera_capture, with_area_lights, write_capture_frame
 from selfsup.scenes.capture import capture_frames, read_capture
 from selfsup.scenes.exact import render_spec
+from selfsup.scenes.integration import integrated_depth
 from selfsup.scenes.io import Scene
 from selfsup.scenes.raycast import Primitives
 from selfsup.scenes.sampler import Materials, SamplerConfig, SceneSpec, Texture, sample_scene
 
-__all__ = ["studio_spec", "sphere_centre", "PATTERNS", "HARD_PAINTS", "drawn_studio_spec", "scene_spec", "PHOTO_CAMERA",
+__all__ = ["studio_spec", "sphere_centre", "PATTERNS", "ARRANGEMENTS", "HARD_PAINTS", "drawn_studio_spec", "scene_spec", "PHOTO_CAMERA",
            "photograph", "PANEL_SIZE", "PANEL_POINTS"]
 
 
 # The paints of :func:`studio_spec`: one albedo, stripes of a second one (hard edges, as
 # painted bands), or fractal noise between the two (an albedo that changes smoothly).
 PATTERNS = {"uniform": Texture.UNIFORM, "stripes": Texture.STRIPES, "noise": Texture.NOISE}
+# Where :func:`studio_spec` sets the box and the cylinder beside the sphere.
+ARRANGEMENTS = ("apart", "overlapping")
 
 # :func:`studio_spec`'s analogues of the real objects that are hard (issue "Right on real
 # photographs of objects"): parts that shadow each other under gold, glossy paint; dark metal
@@ -61,7 +64,7 @@ def studio_spec(light_direction: tuple[float, float, float] | None, *, width: in
                 others: bool = True, albedo: tuple[float, float, float] = (0.8, 0.78, 0.75), ks: float = 0.3,
                 shininess: float = 60.0, ambient: float = 0.0, exposure: float = 0.9, seed: int = 0,
                 pattern: str = "uniform", second_albedo: tuple[float, float, float] | None = None,
-                pattern_scale: float | None = None) -> SceneSpec:
+                pattern_scale: float | None = None, arrangement: str = "apart") -> SceneSpec:
     """A sphere of ``radius`` metres ``distance`` metres before the camera (and, with
     ``others``, a box and an upright cylinder beside it), of one ``albedo`` and gloss
     (``ks``, ``shininess``), against a black background, in a camera of ``fov_x_deg``.
@@ -71,6 +74,12 @@ def studio_spec(light_direction: tuple[float, float, float] | None, *, width: in
     across the objects' surfaces, as stripes painted on a figure) or ``noise`` (fractal noise
     between the two: an albedo that changes smoothly). ``second_albedo`` defaults to 55% of
     ``albedo`` (a grey paint on a white one).
+
+    ``arrangement`` (with ``others``): ``apart`` (the box left of the sphere and a little behind
+    it, the cylinder right of it and behind: each its own region of the view) or
+    ``overlapping`` (the box half in front of the sphere's left, the cylinder half behind its
+    right: one region, parts that hide each other, as a figure's; its depth integrated from its
+    normals, :func:`photograph`, is then a smooth sheet over the hidden jumps).
 
     ``light_direction``: unit direction from the sphere's centre to the one light (camera
     frame), which stands ``light_distance`` sphere radii away; None: no light, the scene
@@ -82,6 +91,8 @@ def studio_spec(light_direction: tuple[float, float, float] | None, *, width: in
                          f"{width}x{height}")
     if pattern not in PATTERNS:
         raise ValueError(f"pattern must be one of {sorted(PATTERNS)}, got {pattern!r}")
+    if arrangement not in ARRANGEMENTS:
+        raise ValueError(f"arrangement must be one of {ARRANGEMENTS}, got {arrangement!r}")
     if pattern_scale is not None and not pattern_scale > 0:
         raise ValueError(f"pattern_scale must be > 0 metres, got {pattern_scale}")
     focal = width / 2 / math.tan(math.radians(fov_x_deg) / 2)
@@ -97,10 +108,13 @@ def studio_spec(light_direction: tuple[float, float, float] | None, *, width: in
         rotation = torch.tensor([[math.cos(angle), 0, math.sin(angle)], [0, 1, 0], [-math.sin(angle), 0, math.cos(angle)]],
                                 dtype=torch.float64)
         half = torch.tensor([0.7, 0.7, 0.7], dtype=torch.float64) * radius
-        box_centre = centre + torch.tensor([-2.6 * radius, radius - half[1], 1.2 * radius], dtype=torch.float64)
+        # Overlapping: the box 1.1 radii left of the sphere's centre and 1.3 before it, the cylinder
+        # 1.0 right and 0.9 behind.
+        box_x, box_z, cylinder_x, cylinder_z = (-2.6, 1.2, 2.5, 0.8) if arrangement == "apart" else (-1.1, -1.3, 1.0, 0.9)
+        box_centre = centre + torch.tensor([box_x * radius, radius - half[1], box_z * radius], dtype=torch.float64)
         boxes = torch.cat([box_centre, half, rotation.reshape(-1)])[None]
-        cylinders = torch.tensor([[2.5 * radius, 0.0, distance + 0.8 * radius, 0.0, 1.0, 0.0, 0.6 * radius, radius]],
-                                 dtype=torch.float64)
+        cylinders = torch.tensor([[cylinder_x * radius, 0.0, distance + cylinder_z * radius, 0.0, 1.0, 0.0, 0.6 * radius,
+                                   radius]], dtype=torch.float64)
     prims = Primitives(spheres=spheres, boxes=boxes, cylinders=cylinders)
     count = 1 + boxes.shape[0] + cylinders.shape[0]
     if light_direction is None:  # a light of no intensity above the camera: the renderer takes one light or more
@@ -127,11 +141,16 @@ PHOTO_CAMERA = CameraModel(key=(0.12, 0.3), white_balance=False, vignetting=0.0,
                            misregistration_px=0.0, disparity_step=0.0, depth_bumps=0.0, edge_holes=0.0, random_holes=0.0)
 
 
-def photograph(folder: str | Path, spec: SceneSpec, seed: int = 0) -> Scene:
+def photograph(folder: str | Path, spec: SceneSpec, seed: int = 0, depth: str = "rendered") -> Scene:
     """``spec`` rendered exactly, through :data:`PHOTO_CAMERA` (its draw ``seed``), written as a
-    capture folder ``folder`` (docs/scene-format.md) and read back: the frame as a user's file."""
-    rendered = render_spec(spec)
-    shot = camera_capture(rendered.scene.image, rendered.scene.depth, rendered.scene.K, PHOTO_CAMERA, seed=seed)
+    capture folder ``folder`` (docs/scene-format.md) and read back: the frame as a user's file.
+    ``depth``: ``rendered`` (the true depth) or ``integrated`` (integrated from the true normals,
+    :func:`selfsup.scenes.integration.integrated_depth`, as the DiLiGenT objects' depth was made)."""
+    if depth not in ("rendered", "integrated"):
+        raise ValueError(f"depth must be 'rendered' or 'integrated', got {depth!r}")
+    rendered = render_spec(spec).scene
+    z = rendered.depth if depth == "rendered" else integrated_depth(rendered.normals, rendered.depth, rendered.K)
+    shot = camera_capture(rendered.image, z, rendered.K, PHOTO_CAMERA, seed=seed)
     write_capture_frame(Path(folder), "frame", shot)
     return read_capture(capture_frames(folder)[0])
 

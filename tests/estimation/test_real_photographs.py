@@ -57,6 +57,22 @@ def test_hard_objects_in_the_dark_give_their_light_within_two_degrees(tmp_path, 
     assert _angle_deg(record, spec, direction) < 2.0
 
 
+# Parts that hide each other: with the true depth the lamp is found; with the depth integrated
+# from the normals (as the DiLiGenT objects' depth was made) the hidden jumps become a tilted
+# sheet whose normals are 4 degrees off at the median, and the light lands 8.4 degrees off (a
+# Lambertian fit given that depth's normals: 10.5 over 24 frames). Known short, strict.
+SHEET_SHORT = pytest.mark.xfail(strict=True, reason="depth integrated across hidden jumps: 8.4 degrees")
+
+
+@pytest.mark.parametrize("depth", ["rendered", pytest.param("integrated", marks=SHEET_SHORT)])
+def test_parts_that_hide_each_other_give_their_light_within_two_degrees(tmp_path, depth):
+    direction = (0.775, -0.566, -0.283)
+    spec = studio_spec(direction, arrangement="overlapping", seed=16)
+    record = estimate_scene(photograph(tmp_path, spec, seed=16, depth=depth), EstimateOptions())
+    assert record["light_found"] is True and len(record["lights"]) == 1
+    assert _angle_deg(record, spec, direction) < 2.0
+
+
 def test_a_studio_paint_is_checked():
     with pytest.raises(ValueError, match="pattern must be one of"):
         studio_spec((0.0, 0.0, -1.0), pattern="plaid")
