@@ -120,8 +120,9 @@ class Scene:
         larger pixels would see, with less noise and JPEG error than one pixel of it), the
         depth the median of those (a block across an edge takes one side, never a point
         between), normals averaged and renormalised, ``K`` moved to the blocks' centres; a
-        block with fewer than half its pixels with a depth has none. The lights and the
-        truth are unchanged.
+        block with fewer than half the depths of the frame's typical block has none (half
+        the block on a dense depth; half of what a lattice of holes leaves, where the depth
+        was registered from a coarser sensor's grid). The lights and the truth are unchanged.
 
         Example:
             >>> scene.binned(4).image.shape  # a 640x480 scene   # doctest: +SKIP
@@ -141,7 +142,12 @@ class Scene:
             .reshape(h, w, factor * factor, *x.shape[2:])  # noqa: E731
         inside = blocks(valid)  # (h, w, f*f)
         count = inside.sum(-1)  # (h, w)
-        kept = count * 2 >= factor * factor
+        # A block keeps a depth where it holds at least half the valid pixels of the frame's typical
+        # block that has any: half the block where the depth is dense; where it was registered from a
+        # coarser sensor's grid (a lattice of holes in every block: the shelf bin's RealSense frames,
+        # a third of the pixels), half of what the lattice leaves.
+        typical = float(count[count > 0].float().median()) if bool((count > 0).any()) else factor * factor
+        kept = (count > 0) & (count * 2 >= min(factor * factor, typical))
 
         def mean(value: Tensor | None) -> Tensor | None:  # the per-pixel fields (H, W, ...) over the block's valid pixels
             if value is None or value.dim() < 2 or tuple(value.shape[:2]) != (H, W):

@@ -162,3 +162,20 @@ def test_binning_averages_light_takes_the_median_depth_and_keeps_every_point_on_
     assert torch.allclose(k @ ray / (k @ ray)[2], torch.tensor([1.0, 1.0, 1.0]), atol=1e-5)
     with pytest.raises(ValueError, match="no whole 64x64 block"):
         scene.binned(64)
+
+
+def test_binning_keeps_the_blocks_of_a_depth_with_a_lattice_of_holes():
+    # A depth registered from a coarser sensor's grid: one pixel in three without one, in every
+    # block. Half of what the lattice leaves makes a block's depth, not half the block; a block
+    # that misses more than that (a real hole) has none, as on a dense depth.
+    scene = _scene(3, config=dataclasses.replace(SMALL, height=48, width=64))
+    depth = scene.depth.clone()
+    depth[:, ::3] = 0  # columns 0, 3, 6, ...: each 4x4 block keeps 8 or 12 of 16
+    depth[::2, 1::3] = 0  # and half of columns 1, 4, ...: 6 or 8 of 16 (fewer than half in some)
+    depth[12:16, 12:16] = 0
+    depth[16:19, 16:20] = 0  # a block left with 2 of 16
+    binned = dataclasses.replace(scene, depth=depth).binned(4)
+    assert float((binned.depth > 0).float().mean()) > 0.95
+    assert binned.depth[3, 3] == 0 and binned.depth[4, 4] == 0
+    dense = dataclasses.replace(scene, depth=torch.where(torch.arange(48)[:, None] < 7, 0.0, scene.depth)).binned(4)
+    assert bool((dense.depth[1] == 0).all()) and bool((dense.depth[2:] > 0).all())  # 4 of 16 in row-block 1: dropped
