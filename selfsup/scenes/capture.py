@@ -31,7 +31,7 @@ import torch
 
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
-__all__ = ["CaptureFrame", "capture_frames", "is_capture_folder", "read_capture", "capture_geometry", "read_input",
+__all__ = ["CaptureFrame", "capture_frames", "is_capture_folder", "read_capture", "capture_normals", "capture_geometry", "read_input",
            "frame_of_color", "color_and_depth_frame", "srgb_to_linear", "linear_to_srgb", "COLOR_SUFFIXES", "DEPTH_SUFFIXES",
            "ASSUMED_ALBEDO"]
 
@@ -58,6 +58,7 @@ class CaptureFrame:
     video_frame: int | None = None  # the colour is this frame of the video ``color`` (a phone app's rgb.mp4)
     confidence: Path | None = None  # a depth confidence image (0, 1, 2): depth below ``min_confidence`` is missing
     min_confidence: int = 1
+    normals: Path | None = None  # ``normals/<id>.npy``: the surfaces' unit normals on the depth's grid, where known
 
     @property
     def id(self) -> str:
@@ -110,8 +111,9 @@ def capture_frames(folder: str | Path, depth_scale: float = 1000.0,
     _check_depth_scale(depth_scale)
     colors = _by_stem(folder / "color", COLOR_SUFFIXES)
     depths = _by_stem(folder / "depth", DEPTH_SUFFIXES)
+    normals = _by_stem(folder / "normals", (".npy",))
     return [CaptureFrame(colors[stem], depths.get(stem), _intrinsics_file(stem, [folder]), float(depth_scale),
-                         _override(intrinsics), prefix) for stem in sorted(colors)]
+                         _override(intrinsics), prefix, normals=normals.get(stem)) for stem in sorted(colors)]
 
 
 def _check_depth_scale(depth_scale: float) -> None:
@@ -287,11 +289,14 @@ def capture_geometry(frame: CaptureFrame) -> tuple[np.ndarray, np.ndarray]:
 
 def read_capture(frame: CaptureFrame) -> Scene:
     """The scene of one capture frame: linear image, depth in metres, K of the depth
-    image, kd :data:`ASSUMED_ALBEDO` everywhere, no normals (from the depth), no ambient.
+    image, kd :data:`ASSUMED_ALBEDO` everywhere, no ambient; the normals of
+    ``normals/<id>.npy`` where the folder has them (:func:`capture_normals`), else none
+    (from the depth).
 
     Raises:
         SceneFileError: naming the file and the fix (unreadable image, 8-bit or empty
-            depth, no depth of the stem, no intrinsics, sizes whose aspects differ).
+            depth, no depth of the stem, no intrinsics, sizes whose aspects differ,
+            normals of another grid or not finite).
     """
     codes, table = _color_codes(frame.color, frame.video_frame)
     depth, K = capture_geometry(frame)
@@ -311,8 +316,31 @@ def read_capture(frame: CaptureFrame) -> Scene:
     def tensor(array: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
 
+    normals = None if frame.normals is None else tensor(capture_normals(frame.normals, (H, W)))
+    if normals is not None:
+        meta["normals"] = str(frame.normals)
     return Scene(image=tensor(image), depth=tensor(depth), K=tensor(K),
-                 kd=torch.full((H, W, 3), ASSUMED_ALBEDO), meta=meta)
+                 kd=torch.full((H, W, 3), ASSUMED_ALBEDO), meta=meta, normals=normals)
+
+
+def capture_normals(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    """A capture's normal map ``(H, W, 3)`` float (camera frame, OpenCV axes; a photometric-stereo
+    set's, a scanner's) on the depth's grid ``shape``, each nonzero vector made unit; all-zero
+    vectors stay zero (missing: taken from the depth there). A depth integrated from normals
+    is a tilted sheet where parts hide each other, and its normals are wrong over the whole
+    object (``benchmarks/results/integrated_depth_cpu2_2026-12-07.md``): the normals themselves
+    are what to give."""
+    try:
+        normals = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as error:
+        raise SceneFileError(path, f"not a readable .npy normal map ({error})") from None
+    if normals.shape != (*shape, 3) or not np.issubdtype(normals.dtype, np.floating):
+        raise SceneFileError(path, f"normals must be a float array {shape[1]}x{shape[0]}x3 on the depth's grid "
+                                   f"(H, W, 3), got {normals.dtype} {normals.shape}")
+    if not np.isfinite(normals).all():
+        raise SceneFileError(path, "normals hold NaN or inf: write all-zero vectors where a normal is missing")
+    length = np.linalg.norm(normals, axis=-1, keepdims=True)
+    return np.where(length > 0, normals / np.maximum(length, 1e-30), 0.0)
 
 
 def color_and_depth_frame(color: str | Path, depth: str | Path, depth_scale: float = 1000.0,
@@ -341,7 +369,9 @@ def frame_of_color(color: str | Path, depth_scale: float = 1000.0) -> CaptureFra
                   if path.is_file()), None)
     if depth is None:  # upper-case suffixes: the folder's listing
         depth = _by_stem(root / "depth", DEPTH_SUFFIXES).get(color.stem)
-    return CaptureFrame(color, depth, _intrinsics_file(color.stem, [root]), float(depth_scale))
+    normals = root / "normals" / f"{color.stem}.npy"
+    return CaptureFrame(color, depth, _intrinsics_file(color.stem, [root]), float(depth_scale),
+                        normals=normals if normals.is_file() else None)
 
 
 def read_input(item: str | Path | CaptureFrame) -> Scene:

@@ -13,8 +13,8 @@ import torch
 from benchmarks.captures import make_capture, read_truth
 from selfsup.estimation import EstimateOptions, RefineOptions, Tuning, estimate_files
 from selfsup.estimation.inputs import estimate_inputs
-from selfsup.scenes.capture import (ASSUMED_ALBEDO, capture_frames, linear_to_srgb, read_capture,
-                                    color_and_depth_frame, srgb_to_linear)
+from selfsup.scenes.capture import (ASSUMED_ALBEDO, capture_frames, color_and_depth_frame, frame_of_color,
+                                    linear_to_srgb, read_capture, srgb_to_linear)
 from selfsup.scenes.exact import render_spec
 from selfsup.scenes.io import SceneFileError, write_scene
 from selfsup.scenes.sampler import SamplerConfig, sample_scene
@@ -34,6 +34,26 @@ def _capture(folder: Path, seeds=(3, 4)) -> list:
         make_capture(folder / "scenes" / f"{seed}.npz", folder / "cap", f"frame_{seed:03d}")
         scenes.append(scene)
     return scenes
+
+
+def test_a_capture_folders_normal_maps_are_read_on_the_depths_grid(tmp_path):
+    (scene,) = _capture(tmp_path, seeds=(3,))
+    (tmp_path / "cap" / "normals").mkdir()
+    normals = 2.0 * scene.normals.numpy()  # not unit: made unit on reading
+    normals[0, :5] = 0.0  # missing: taken from the depth there
+    np.save(tmp_path / "cap" / "normals" / "frame_003.npy", normals)
+    (frame,) = capture_frames(tmp_path / "cap")
+    read = read_capture(frame)
+    assert read.meta["normals"].endswith("frame_003.npy")
+    torch.testing.assert_close(read.normals[1:], scene.normals[1:] / scene.normals[1:].norm(dim=-1, keepdim=True).clamp_min(1e-30)
+                               * (scene.normals[1:].norm(dim=-1, keepdim=True) > 0))
+    assert bool((read.normals[0, :5] == 0).all())
+    assert read_capture(frame_of_color(frame.color)).normals is not None  # a list's frame finds them too
+    for bad, match in ((normals[:, :-1], "on the depth's grid"), (normals.astype(np.int32), "float array"),
+                       (np.where(normals == 0, np.nan, normals), "NaN or inf")):
+        np.save(tmp_path / "cap" / "normals" / "frame_003.npy", bad)
+        with pytest.raises(SceneFileError, match=match):
+            read_capture(frame)
 
 
 def test_srgb_decoding_inverts_the_encoding_and_matches_the_standard():
