@@ -3,6 +3,7 @@
     python -m benchmarks.studio_frames --option method=cnn --option checkpoint=selfsup/checkpoints/iterative_studio.pt
     python -m benchmarks.studio_frames --option method=cnn --option checkpoint=selfsup/checkpoints/iterative.pt --name studio_frames_rooms
     python -m benchmarks.studio_frames --count 24 --arrangement overlapping --depth integrated --name studio_frames_integrated
+    python -m benchmarks.studio_frames --count 24 --arrangement overlapping --depth integrated --normals --name studio_frames_integrated_normals
 
 ``--count`` frames (default 12) of :func:`selfsup.scenes.studio.studio_spec`, each photographed as
 a photometric-stereo set is (:func:`selfsup.scenes.studio.photograph`: auto exposure, sRGB, 8
@@ -48,13 +49,13 @@ def frames(count: int, seed: int = 0) -> list[tuple[tuple[float, float, float], 
 
 
 def run(count: int, options: EstimateOptions, name: str, write: bool = True, arrangement: str = "apart",
-        depth: str = "rendered") -> list[dict]:
+        depth: str = "rendered", normals: bool = False) -> list[dict]:
     rows = []
     for k, (direction, paint, others) in enumerate(frames(count)):
         others = others or arrangement == "overlapping"  # overlapping: the parts in every frame
         spec = studio_spec(direction, others=others, seed=k, arrangement=arrangement, **HARD_PAINTS.get(paint, {}))
         with tempfile.TemporaryDirectory() as folder:
-            record = estimate_scene(photograph(folder, spec, seed=k, depth=depth), options)
+            record = estimate_scene(photograph(folder, spec, seed=k, depth=depth, normals=normals), options)
         lights = record["lights"] or record["unsupported_lights"]
         angle = 90.0
         if lights:
@@ -66,7 +67,7 @@ def run(count: int, options: EstimateOptions, name: str, write: bool = True, arr
     rows.append({"frame": "**median**", "angle_deg": round(statistics.median(r["angle_deg"] for r in rows), 2)})
     if write:
         header = (f"Objects in the dark (`python -m benchmarks.studio_frames`, {count} frames, the box and the "
-                  f"cylinder {arrangement}, the depth {depth}), each "
+                  f"cylinder {arrangement}, the depth {depth}{', the true normals given' if normals else ''}), each "
                   f"estimated with the settings changed: {options_text(options)}; the angle between the "
                   "true lamp direction and the sphere's centre to the brightest light (90 where none).")
         print(write_results(name, torch.device("cpu"), rows, header, COLUMNS))
@@ -87,11 +88,13 @@ def main() -> None:
                         help="overlapping: the box and the cylinder in every frame, hiding parts of the sphere and hidden")
     parser.add_argument("--depth", choices=("rendered", "integrated"), default="rendered",
                         help="integrated: the depth integrated from the true normals, as DiLiGenT's objects' was made")
+    parser.add_argument("--normals", action="store_true",
+                        help="the true normals written in each capture folder (normals/<id>.npy) and read instead of the depth's")
     args = parser.parse_args()
     if args.count < 1:
         raise SystemExit("--count must be >= 1")
     run(args.count, EstimateOptions.from_settings(**parse_options(args.option)), args.name, arrangement=args.arrangement,
-        depth=args.depth)
+        depth=args.depth, normals=args.normals)
 
 
 if __name__ == "__main__":

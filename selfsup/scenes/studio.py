@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -141,17 +142,23 @@ PHOTO_CAMERA = CameraModel(key=(0.12, 0.3), white_balance=False, vignetting=0.0,
                            misregistration_px=0.0, disparity_step=0.0, depth_bumps=0.0, edge_holes=0.0, random_holes=0.0)
 
 
-def photograph(folder: str | Path, spec: SceneSpec, seed: int = 0, depth: str = "rendered") -> Scene:
+def photograph(folder: str | Path, spec: SceneSpec, seed: int = 0, depth: str = "rendered",
+               normals: bool = False) -> Scene:
     """``spec`` rendered exactly, through :data:`PHOTO_CAMERA` (its draw ``seed``), written as a
     capture folder ``folder`` (docs/scene-format.md) and read back: the frame as a user's file.
     ``depth``: ``rendered`` (the true depth) or ``integrated`` (integrated from the true normals,
-    :func:`selfsup.scenes.integration.integrated_depth`, as the DiLiGenT objects' depth was made)."""
+    :func:`selfsup.scenes.integration.integrated_depth`, as the DiLiGenT objects' depth was made).
+    ``normals``: the true normals written beside it (``normals/frame.npy``), as a
+    photometric-stereo set gives them."""
     if depth not in ("rendered", "integrated"):
         raise ValueError(f"depth must be 'rendered' or 'integrated', got {depth!r}")
     rendered = render_spec(spec).scene
     z = rendered.depth if depth == "rendered" else integrated_depth(rendered.normals, rendered.depth, rendered.K)
     shot = camera_capture(rendered.image, z, rendered.K, PHOTO_CAMERA, seed=seed)
     write_capture_frame(Path(folder), "frame", shot)
+    if normals:
+        (Path(folder) / "normals").mkdir(exist_ok=True)
+        np.save(Path(folder) / "normals" / "frame.npy", rendered.normals.numpy())
     return read_capture(capture_frames(folder)[0])
 
 
