@@ -347,12 +347,13 @@ def color_and_depth_frame(color: str | Path, depth: str | Path, depth_scale: flo
                           intrinsics: tuple[float, float, float, float] | None = None) -> CaptureFrame:
     """The frame of a single colour file and its depth file (``estimate.depth``);
     intrinsics from ``intrinsics``, else ``intrinsics/<stem>.json`` or ``intrinsics.json``
-    beside the colour file's folder or in it."""
+    beside the colour file's folder or in it; normals from ``normals/<stem>.npy`` there, if any."""
     color, depth = Path(color), Path(depth)
     _check_depth_scale(depth_scale)
-    return CaptureFrame(color, depth if depth.exists() else None,
-                        _intrinsics_file(color.stem, [color.parent.parent, color.parent]), float(depth_scale),
-                        _override(intrinsics))
+    roots = [color.parent.parent, color.parent]
+    normals = next((path for path in (root / "normals" / f"{color.stem}.npy" for root in roots) if path.is_file()), None)
+    return CaptureFrame(color, depth if depth.exists() else None, _intrinsics_file(color.stem, roots),
+                        float(depth_scale), _override(intrinsics), normals=normals)
 
 
 def frame_of_color(color: str | Path, depth_scale: float = 1000.0) -> CaptureFrame:

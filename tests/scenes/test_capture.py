@@ -49,6 +49,7 @@ def test_a_capture_folders_normal_maps_are_read_on_the_depths_grid(tmp_path):
                                * (scene.normals[1:].norm(dim=-1, keepdim=True) > 0))
     assert bool((read.normals[0, :5] == 0).all())
     assert read_capture(frame_of_color(frame.color)).normals is not None  # a list's frame finds them too
+    assert read_capture(color_and_depth_frame(frame.color, frame.depth)).normals is not None  # and one colour file's
     for bad, match in ((normals[:, :-1], "on the depth's grid"), (normals.astype(np.int32), "float array"),
                        (np.where(normals == 0, np.nan, normals), "NaN or inf")):
         np.save(tmp_path / "cap" / "normals" / "frame_003.npy", bad)
