@@ -31,9 +31,9 @@ import torch
 
 from selfsup.scenes.io import Scene, SceneFileError, read_scene
 
-__all__ = ["CaptureFrame", "capture_frames", "is_capture_folder", "read_capture", "capture_normals", "capture_geometry", "read_input",
-           "frame_of_color", "color_and_depth_frame", "srgb_to_linear", "linear_to_srgb", "COLOR_SUFFIXES", "DEPTH_SUFFIXES",
-           "ASSUMED_ALBEDO"]
+__all__ = ["CaptureFrame", "capture_frames", "is_capture_folder", "read_capture", "capture_normals", "capture_geometry",
+           "read_input", "frame_of_color", "color_and_depth_frame", "srgb_to_linear", "linear_to_srgb", "COLOR_SUFFIXES",
+           "DEPTH_SUFFIXES", "ASSUMED_ALBEDO"]
 
 COLOR_SUFFIXES = (".png", ".jpg", ".jpeg")
 DEPTH_SUFFIXES = (".png", ".npy", ".tif", ".tiff")
