@@ -30,7 +30,7 @@ from benchmarks.common import write_results
 from benchmarks.estimate_procedural import parse_options
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.stages import estimate_scene
-from selfsup.scenes.studio import ARRANGEMENTS, HARD_PAINTS, photograph, sphere_centre, studio_spec
+from selfsup.scenes.studio import ARRANGEMENTS, DEPTHS, HARD_PAINTS, photograph, sphere_centre, studio_spec
 
 COLUMNS = ["frame", "paint", "others", "direction", "angle_deg", "light_found"]
 
@@ -86,7 +86,7 @@ def main() -> None:
     parser.add_argument("--name", default="studio_frames")
     parser.add_argument("--arrangement", choices=ARRANGEMENTS, default="apart",
                         help="overlapping: the box and the cylinder in every frame, hiding parts of the sphere and hidden")
-    parser.add_argument("--depth", choices=("rendered", "integrated"), default="rendered",
+    parser.add_argument("--depth", choices=DEPTHS, default="rendered",
                         help="integrated: the depth integrated from the true normals, as DiLiGenT's objects' was made")
     parser.add_argument("--normals", action="store_true",
                         help="the true normals written in each capture folder (normals/<id>.npy) and read instead of the depth's")

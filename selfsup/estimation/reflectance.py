@@ -304,8 +304,7 @@ def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels:
     for n_lights in sorted({n for n, shadows in zip(counts, by_shadows) if n > 1 and not shadows}):
         more = [i for i in range(problem.batch) if counts[i] == n_lights and not by_shadows[i]]
         several = albedo_free.AlbedoFreeFit.rows([best[i][:2] for i in more])
-        alone = albedo_free.AlbedoFreeFit.rows([(found, i) for i in more])  # their one-light fits
-        at = torch.tensor(more, dtype=torch.long, device=problem.image.device)
+        at, alone = _rows_of(problem, found, more)  # their one-light fits
         sub = problem.select(at)
         starts = [several.only(k) for k in range(n_lights)]
         if from_mirror:
@@ -327,17 +326,14 @@ def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels:
     ones = [i for i in range(problem.batch) if counts[i] == 1]
     if from_mirror and ones:  # a sure network's light no better than the ambient alone is a wrong light, not
         # a lamp beside a lobe: the search without a network follows (estimate_albedo_free) and tries the lobe
-        alone = albedo_free.AlbedoFreeFit.rows([(found, i) for i in ones])
-        at = torch.tensor(ones, dtype=torch.long, device=problem.image.device)
+        at, alone = _rows_of(problem, found, ones)
         every = albedo_free.observe(problem.select(at), scale, labels=labels[at], **residual_options(options))
-        block = block_px(options, problem.image.shape[-1], albedo_free=True)
-        unlit = [bic(u, p, 0, block) for u, p in zip(ambient_only_loss(every, alone).tolist(), alone.pairs.tolist())]
+        unlit = _ambient_criterion(every, alone, block_px(options, problem.image.shape[-1], albedo_free=True))
         ones = [i for i, u, c in zip(ones, unlit, criterion(alone)) if c < u]
     if ones:
-        at = torch.tensor(ones, dtype=torch.long, device=problem.image.device)
-        lobed_problem, lobed = albedo_free.choose_lone_lobe(
-            problem.select(at), albedo_free.AlbedoFreeFit.rows([(found, i) for i in ones]), labels[at], scale,
-            criterion, residuals)
+        at, alone = _rows_of(problem, found, ones)
+        lobed_problem, lobed = albedo_free.choose_lone_lobe(problem.select(at), alone, labels[at], scale, criterion,
+                                                            residuals)
         _taken_lobes(lobed_problem, lobed, ones, 1, criterion, best, tried, gloss)
     return problem.with_gloss(gloss) if bool((gloss[:, 0] > 0).any()) else problem
 
@@ -464,8 +460,8 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
         # The model's own parameters: a position and a contrast per light, the bounce's strength, the lobe's two.
         bounced = chosen.bounced().tolist()
         own = [4 * n_lights + int(b) + g for b, g in zip(bounced, albedo_free.gloss_parameters(sub))]
-        evidence = [bic(unlit, pairs, 0, block) - bic(loss, pairs, k, block)
-                    for unlit, loss, pairs, k in zip(ambient_only_loss(every, chosen).tolist(), losses, counted, own)]
+        evidence = [unlit - bic(loss, pairs, k, block)
+                    for unlit, loss, pairs, k in zip(_ambient_criterion(every, chosen, block), losses, counted, own)]
         for i, loss, pairs, k in zip(group, losses, counted, own):
             whole[i] = bic(loss, pairs, k + int(bool(corner_loss[i] > 0)), block)
         highlight = torch.zeros_like(sub.gbuffer.mask)
@@ -496,6 +492,19 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
             others = [Candidate(candidate.fit, n, bool(lobe), value, None, "albedo_free") for n, value, *lobe in tried[i]]
             results[i] = (candidate, others)
     return results, whole
+
+
+def _rows_of(problem: FitProblem, fit: albedo_free.AlbedoFreeFit, images: list[int]
+             ) -> tuple[Tensor, albedo_free.AlbedoFreeFit]:
+    # ``images`` as an index tensor on the problem's device, and ``fit``'s rows of them.
+    return (torch.tensor(images, dtype=torch.long, device=problem.image.device),
+            albedo_free.AlbedoFreeFit.rows([(fit, i) for i in images]))
+
+
+def _ambient_criterion(every: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFit, block: int) -> list[float]:
+    # Each image's criterion of the model without lights (the ambient alone, no parameter) on the
+    # residuals of ``every``: a model explains the shading only where its own criterion is below.
+    return [bic(loss, pairs, 0, block) for loss, pairs in zip(ambient_only_loss(every, fit).tolist(), fit.pairs.tolist())]
 
 
 def albedo_free_covariance(observed: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFit, problem: FitProblem,

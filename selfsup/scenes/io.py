@@ -147,7 +147,7 @@ class Scene:
         # coarser sensor's grid (a lattice of holes in every block: the shelf bin's RealSense frames,
         # a third of the pixels), half of what the lattice leaves.
         typical = float(count[count > 0].float().median()) if bool((count > 0).any()) else factor * factor
-        kept = (count > 0) & (count * 2 >= min(factor * factor, typical))
+        kept = count * 2 >= min(factor * factor, typical)
 
         def mean(value: Tensor | None) -> Tensor | None:  # the per-pixel fields (H, W, ...) over the block's valid pixels
             if value is None or value.dim() < 2 or tuple(value.shape[:2]) != (H, W):

@@ -26,8 +26,8 @@ from selfsup.scenes.io import Scene
 from selfsup.scenes.raycast import Primitives
 from selfsup.scenes.sampler import Materials, SamplerConfig, SceneSpec, Texture, sample_scene
 
-__all__ = ["studio_spec", "sphere_centre", "PATTERNS", "ARRANGEMENTS", "HARD_PAINTS", "drawn_studio_spec", "scene_spec", "PHOTO_CAMERA",
-           "photograph", "PANEL_SIZE", "PANEL_POINTS"]
+__all__ = ["studio_spec", "sphere_centre", "PATTERNS", "ARRANGEMENTS", "DEPTHS", "HARD_PAINTS", "drawn_studio_spec",
+           "scene_spec", "PHOTO_CAMERA", "photograph", "PANEL_SIZE", "PANEL_POINTS"]
 
 
 # The paints of :func:`studio_spec`: one albedo, stripes of a second one (hard edges, as
@@ -35,6 +35,8 @@ __all__ = ["studio_spec", "sphere_centre", "PATTERNS", "ARRANGEMENTS", "HARD_PAI
 PATTERNS = {"uniform": Texture.UNIFORM, "stripes": Texture.STRIPES, "noise": Texture.NOISE}
 # Where :func:`studio_spec` sets the box and the cylinder beside the sphere.
 ARRANGEMENTS = ("apart", "overlapping")
+# The depth :func:`photograph` writes: the render's, or integrated from its normals.
+DEPTHS = ("rendered", "integrated")
 
 # :func:`studio_spec`'s analogues of the real objects that are hard (issue "Right on real
 # photographs of objects"): parts that shadow each other under gold, glossy paint; dark metal
@@ -150,8 +152,8 @@ def photograph(folder: str | Path, spec: SceneSpec, seed: int = 0, depth: str = 
     :func:`selfsup.scenes.integration.integrated_depth`, as the DiLiGenT objects' depth was made).
     ``normals``: the true normals written beside it (``normals/frame.npy``), as a
     photometric-stereo set gives them."""
-    if depth not in ("rendered", "integrated"):
-        raise ValueError(f"depth must be 'rendered' or 'integrated', got {depth!r}")
+    if depth not in DEPTHS:
+        raise ValueError(f"depth must be one of {DEPTHS}, got {depth!r}")
     rendered = render_spec(spec).scene
     z = rendered.depth if depth == "rendered" else integrated_depth(rendered.normals, rendered.depth, rendered.K)
     shot = camera_capture(rendered.image, z, rendered.K, PHOTO_CAMERA, seed=seed)

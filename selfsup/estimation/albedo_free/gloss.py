@@ -227,6 +227,7 @@ def choose_lone_lobe(problem: FitProblem, found: AlbedoFreeFit, labels: Tensor |
     shapes, fitted, values = fit_lobes(sub, AlbedoFreeFit.rows([(start, int(i)) for i in at]),
                                        None if labels is None else labels[at], robust_scale, criterion, residuals,
                                        min_ratio=LONE_LOBE_RATIO)
+    # The refinement about the grid may take a lobe below the ratio: not kept.
     values = [v if ratio >= LONE_LOBE_RATIO else math.inf for v, ratio in zip(values, shapes[:, 0].tolist())]
     # Every image: a lobe where screened, fitted and kept; none elsewhere.
     gloss = problem.image.new_zeros(problem.batch, 2)
@@ -234,8 +235,7 @@ def choose_lone_lobe(problem: FitProblem, found: AlbedoFreeFit, labels: Tensor |
     every = [math.inf] * problem.batch
     for j, i in enumerate(at.tolist()):
         every[i] = values[j]
-    whole = found.chosen(passed, _scattered(found, fitted, at))
-    return keep_lobes(problem, found, gloss, whole, every, criterion)
+    return keep_lobes(problem, found, gloss, _scattered(found, fitted, at), every, criterion)
 
 
 def _scattered(like: AlbedoFreeFit, part: AlbedoFreeFit, at: Tensor) -> AlbedoFreeFit:
