@@ -39,6 +39,9 @@ class Candidate:
     samples: float | None = None  # the independent samples the criterion counted (effective_samples)
     coat: bool = False  # whether the specular pixels' diffuse light went through a clear coat (render.Material.coat)
     evidence: float | None = None  # the ambient-only model's criterion less this one's (albedo-free fits)
+    # ... judged at the sensor's noise (the fit's own scale), not the frame's misfit: a sure network's
+    # lights must explain the shading as a lamp's would, or the frame is searched (estimate_albedo_free)
+    noise_evidence: float | None = None
     vignetting: float | None = None  # the corner light loss of the lens the fit took out (albedo-free fits)
     highlight_pixels: int | None = None  # pixels left out of the placement as a highlight (albedo-free fits)
     bounce_share: float | None = None  # the modelled light's share bounced off the surfaces (albedo-free fits with it)

@@ -1,6 +1,6 @@
-"""The albedo-free fit's lights in the image's units (:func:`intensities_of`), and the loss of
-its model without lights (:func:`ambient_only_loss`): what the fit's ratios become in a
-record, and how much its lights explain."""
+"""The albedo-free fit's lights in the image's units (:func:`intensities_of`), the loss of
+its model without lights (:func:`ambient_only_loss`) and the evidence for its lights
+(:func:`evidence`): what the fit's ratios become in a record, and how much its lights explain."""
 
 from __future__ import annotations
 
@@ -11,11 +11,12 @@ import torch
 from torch import Tensor
 
 from selfsup.estimation import albedo_free
+from selfsup.estimation.criterion import bic
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import Fit, FitProblem, cauchy_scale, irls_weights
 from selfsup.estimation.solvers import refine
 
-__all__ = ["intensities_of", "ambient_only_loss"]
+__all__ = ["intensities_of", "ambient_only_loss", "ambient_criterion", "evidence"]
 
 
 # An ambient log weight this far above the first light's: its shading is the ambient's alone.
@@ -29,6 +30,37 @@ def ambient_only_loss(obs: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFi
     log_weight = fit.log_weight.clone()
     log_weight[:, 0] = AMBIENT_ONLY_LOG_WEIGHT
     return albedo_free.refine_positions(obs, fit.position, log_weight, 0).loss
+
+
+def ambient_criterion(obs: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFit, block: int) -> list[float]:
+    """Each image's :func:`bic` of the model without lights (no parameter; :func:`ambient_only_loss`)
+    on the residuals of ``obs``, ``block`` pixels a side an independent sample: a model
+    explains the shading only where its own criterion is below."""
+    return [bic(loss, pairs, 0, block) for loss, pairs in zip(ambient_only_loss(obs, fit).tolist(), fit.pairs.tolist())]
+
+
+def evidence(obs: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFit, n_params: list[int], block: int,
+             spread: float) -> list[float]:
+    """Each image's evidence for ``fit``'s lights (``n_params`` parameters each): the criterion
+    of the model without lights less the fit's, both under one Cauchy scale fitted to the
+    frame: ``spread`` x the fit's residual spread (:func:`albedo_free.residual_spread`), at
+    least the observation's own (0: the observation's).
+
+    The observation's scale is the sensor's noise (at least 2%): where the model misses by
+    more than that (normals integrated across parts that hide each other, a paint's sheen),
+    every residual costs about its logarithm, so that a light explaining most of the
+    shading gained no more than the ambient alone loses, and the frame said "no light"
+    (our analogue of DiLiGenT's gold-painted figure: a light with all the light, evidence -3).
+    At the frame's own misfit the two models are judged as least squares judge them, on how
+    much of the shading's variation each leaves. At the observation's scale (``spread`` 0) the
+    fit's own loss is taken (``fit.loss``, on ``obs``)."""
+    judged, loss = obs, fit.loss
+    if spread > 0:
+        judged = replace(obs, scale=torch.maximum(obs.scale, spread * albedo_free.residual_spread(obs, fit)))
+        loss = albedo_free.refine_positions(judged, fit.position, fit.log_weight, 0, log_bounce=fit.log_bounce).loss
+    return [unlit - bic(value, pairs, k, block)
+            for unlit, value, pairs, k in zip(ambient_criterion(judged, fit, block), loss.tolist(), fit.pairs.tolist(),
+                                                n_params)]
 
 
 def intensities_of(problem: FitProblem, fit: albedo_free.AlbedoFreeFit, options: EstimateOptions,

@@ -192,6 +192,13 @@ class Tuning:
             share of the light on the visible surfaces (with cast shadows) and, albedo-free,
             the lights beat the ambient alone by the criterion; else the record says
             ``light_found: false`` (0: always report).
+        evidence_spread: the albedo-free lights' evidence (the ambient alone's criterion less
+            theirs) is the larger of it under the fit's own Cauchy scale (the sensor's noise) and
+            under one scale fitted to the frame, this times the chosen model's residual spread
+            (1.4826 x their median absolute value; 0: the fit's scale alone;
+            :func:`selfsup.estimation.intensities.evidence`): 2.385, the Cauchy loss's constant
+            for 95% efficiency on Gaussian residuals, so that a model that misses the shading by
+            more than the sensor's noise is still judged by how much of it it explains.
     Uncertainty:
         albedo_error: std of the file's kd error (0: exact).
         indirect_variation, indirect_length: files without ambient (every capture, the
@@ -249,6 +256,7 @@ class Tuning:
     light_colour: str = "neutral"
     vignetting: str = "auto"
     min_found_share: float = 0.1
+    evidence_spread: float = 2.385
     max_pixels: int | None = 19200
     refine: RefineOptions = field(default_factory=RefineOptions)
 
@@ -286,6 +294,8 @@ def _check_tuning(t: Tuning) -> None:
     need(t.weak_light_min_share >= 0, "weak_light_min_share", ">= 0")
     need(0 <= t.min_light_share <= 1, "min_light_share", "a share in [0, 1]")
     need(0 <= t.min_found_share <= 1, "min_found_share", "a share in [0, 1]")
+    need(t.evidence_spread >= 0 and math.isfinite(t.evidence_spread), "evidence_spread",
+         "a finite factor >= 0 (0: the fit's own scale)")
     for name in ("block_width", "albedo_free_block_width"):
         need(0 < getattr(t, name) <= 1, name, "in (0, 1] (of the image width)")
     need(t.final_robust_scale > 0, "final_robust_scale", "> 0")

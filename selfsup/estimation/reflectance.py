@@ -15,7 +15,7 @@ from torch import Tensor
 
 from selfsup.estimation import albedo_free, unlit
 from selfsup.estimation.criterion import Candidate, bic, block_px, criterion_light, fit_row
-from selfsup.estimation.intensities import ambient_only_loss, intensities_of
+from selfsup.estimation.intensities import ambient_criterion, evidence, intensities_of
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.problem import FitProblem, centre_and_size
@@ -146,12 +146,15 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions, slots: T
         # searched as without a network and keep whichever answer has the more evidence (on the
         # DiLiGenT ball 4 of 12 frames said "no light" from a sure network's lights). An unsure
         # image's "no light" came from a search already.
-        doubtful = [i for i in range(problem.batch) if bool(sure[i]) and not (results[i][0].evidence or 0.0) > 0]
+        # Judged at the sensor's noise (noise_evidence): at the frame's own misfit a wrong light
+        # that misses the shading widely still explains some of it (tracking's noisy sequences,
+        # frame by frame, lost 4 counts so).
+        doubtful = [i for i in range(problem.batch) if bool(sure[i]) and not (results[i][0].noise_evidence or 0.0) > 0]
         if doubtful:
             before = {i: results[i] for i in doubtful}
             _estimate_rows(problem, options, labels, geometry, None, doubtful, False, results)
             for i, old in before.items():
-                if (old[0].evidence or -math.inf) >= (results[i][0].evidence or -math.inf):
+                if (old[0].noise_evidence or -math.inf) >= (results[i][0].noise_evidence or -math.inf):
                     results[i] = old
     return results
 
@@ -328,7 +331,7 @@ def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels:
         # a lamp beside a lobe: the search without a network follows (estimate_albedo_free) and tries the lobe
         at, alone = _rows_of(problem, found, ones)
         every = albedo_free.observe(problem.select(at), scale, labels=labels[at], **residual_options(options))
-        unlit = _ambient_criterion(every, alone, block_px(options, problem.image.shape[-1], albedo_free=True))
+        unlit = ambient_criterion(every, alone, block_px(options, problem.image.shape[-1], albedo_free=True))
         ones = [i for i, u, c in zip(ones, unlit, criterion(alone)) if c < u]
     if ones:
         at, alone = _rows_of(problem, found, ones)
@@ -460,8 +463,10 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
         # The model's own parameters: a position and a contrast per light, the bounce's strength, the lobe's two.
         bounced = chosen.bounced().tolist()
         own = [4 * n_lights + int(b) + g for b, g in zip(bounced, albedo_free.gloss_parameters(sub))]
-        evidence = [unlit - bic(loss, pairs, k, block)
-                    for unlit, loss, pairs, k in zip(_ambient_criterion(every, chosen, block), losses, counted, own)]
+        # The lights' evidence under the sensor's noise or, where larger, under the frame's own misfit.
+        at_noise = evidence(every, chosen, own, block, 0.0)
+        support = at_noise if options.tuning.evidence_spread == 0 else [
+            max(a, b) for a, b in zip(at_noise, evidence(every, chosen, own, block, options.tuning.evidence_spread))]
         for i, loss, pairs, k in zip(group, losses, counted, own):
             whole[i] = bic(loss, pairs, k + int(bool(corner_loss[i] > 0)), block)
         highlight = torch.zeros_like(sub.gbuffer.mask)
@@ -483,7 +488,7 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
         cov = albedo_free_covariance(observed, chosen, sub, options).cpu()
         for j, i in enumerate(group):
             candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free",
-                                  evidence=evidence[j], vignetting=round(float(corner_loss[i]), 3),
+                                  evidence=support[j], noise_evidence=at_noise[j], vignetting=round(float(corner_loss[i]), 3),
                                   highlight_pixels=int(highlight[j].sum()),
                                   bounce_share=round(float(bounce_share[j]), 4) if bounced[j] else None,
                                   gloss=albedo_free.lobe_of(sub, j))
@@ -499,12 +504,6 @@ def _rows_of(problem: FitProblem, fit: albedo_free.AlbedoFreeFit, images: list[i
     # ``images`` as an index tensor on the problem's device, and ``fit``'s rows of them.
     return (torch.tensor(images, dtype=torch.long, device=problem.image.device),
             albedo_free.AlbedoFreeFit.rows([(fit, i) for i in images]))
-
-
-def _ambient_criterion(every: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFit, block: int) -> list[float]:
-    # Each image's criterion of the model without lights (the ambient alone, no parameter) on the
-    # residuals of ``every``: a model explains the shading only where its own criterion is below.
-    return [bic(loss, pairs, 0, block) for loss, pairs in zip(ambient_only_loss(every, fit).tolist(), fit.pairs.tolist())]
 
 
 def albedo_free_covariance(observed: albedo_free.LogShading, fit: albedo_free.AlbedoFreeFit, problem: FitProblem,

@@ -11,6 +11,7 @@ from render.shading import blinn_phong_lobe, light_geometry
 from selfsup.estimation import albedo_free
 from selfsup.estimation.albedo_free import fit as albedo_fit
 from selfsup.estimation.albedo_free import light_search, observation
+from selfsup.estimation.intensities import evidence
 from selfsup.estimation.options import EstimateOptions, Tuning
 from selfsup.estimation.stages import estimate_scene
 from selfsup.estimation.prepare import problem_of
@@ -533,3 +534,28 @@ def test_group_medians_take_each_groups_middle_value():
     assert counts.tolist() == [3, 0, 4]
     assert (lower[0], upper[0]) == (4.0, 4.0)  # odd count: the middle, either way
     assert (lower[2], upper[2]) == (3.0, 7.0)  # 2, 3, 7, 9: the two middles
+
+
+def _missed_by(obs, log_shading):
+    # ``obs`` seeing ``log_shading`` instead: a frame the model misses where they differ.
+    seen = dataclasses.replace(obs, log_shading=log_shading)
+    seen.observed = seen.differences(log_shading)
+    return seen
+
+
+def test_the_evidence_judges_a_light_at_the_frames_own_misfit():
+    # A light's shading (std 0.26 in log) missed by 0.3 in log at every pixel, as normals a few
+    # degrees off or a sheen miss it: under the sensor's 2% scale every residual costs about its
+    # logarithm and the light seems to explain nothing; at the frame's own spread it explains
+    # most of the shading. A frame without the light's shading stays without evidence either way.
+    scene, problem = _exact_problem()
+    obs = albedo_free.observe(problem)
+    miss = 0.3 * torch.randn(obs.log_shading.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    start, log_weight = scene.light_pos[None].double(), torch.tensor([[-3.0, 0.0]], dtype=torch.float64)
+    lit = _missed_by(obs, 0.3 * obs.log_shading + miss)
+    fit = albedo_free.refine_positions(lit, start, log_weight, 20)
+    assert float(albedo_free.residual_spread(lit, fit)) == pytest.approx(0.3, rel=0.1)
+    assert evidence(lit, fit, [4], 4, 0.0)[0] < 0 < evidence(lit, fit, [4], 4, Tuning().evidence_spread)[0]
+    flat = _missed_by(obs, miss)
+    fit = albedo_free.refine_positions(flat, start, log_weight, 20)
+    assert max(evidence(flat, fit, [4], 4, 0.0)[0], evidence(flat, fit, [4], 4, Tuning().evidence_spread)[0]) < 0

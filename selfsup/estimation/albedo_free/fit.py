@@ -245,6 +245,14 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
     return AlbedoFreeFit(position, log_weight, loss, obs.pairs.sum(1), log_bounce)
 
 
+def residual_spread(obs: LogShading, fit: AlbedoFreeFit) -> Tensor:
+    """``(B,)`` robust spread of ``fit``'s residuals on ``obs``: 1.4826 x their median absolute
+    value over the residuals that count (a Gaussian's standard deviation; 0 where none count)."""
+    _, residual = _evaluate(obs, fit.position, fit.log_weight, fit.log_bounce)
+    counted = torch.where(obs.pairs, residual.abs(), torch.full_like(residual, float("nan")))
+    return 1.4826 * torch.nan_to_num(counted.nanmedian(1).values, nan=0.0)
+
+
 def light_shares(problem: FitProblem, fit: AlbedoFreeFit) -> Tensor:
     """Each light's share ``(B, L)`` of the fitted direct shading over the valid pixels (its
     lobe's with it where ``problem`` has one, :attr:`FitProblem.gloss`)."""
