@@ -71,6 +71,9 @@ def test_bad_plausibility_settings_are_named():
         Tuning(light_colour="rgb")
     with pytest.raises(ValueError, match="min_found_share"):
         Tuning(min_found_share=1.5)
+    for spread in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="evidence_spread"):
+            Tuning(evidence_spread=spread)
     with pytest.raises(ValueError, match="estimate.batch must be 'auto' or an integer >= 1"):
         batch_size(0, torch.device("cpu"))
     assert batch_size("auto", torch.device("cpu")) == 1 and batch_size("auto", torch.device("cuda")) == 256
