@@ -488,7 +488,8 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
         cov = albedo_free_covariance(observed, chosen, sub, options).cpu()
         for j, i in enumerate(group):
             candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free",
-                                  evidence=support[j], noise_evidence=at_noise[j], vignetting=round(float(corner_loss[i]), 3),
+                                  evidence=support[j], noise_evidence=at_noise[j],
+                                  vignetting=round(float(corner_loss[i]), 3),
                                   highlight_pixels=int(highlight[j].sum()),
                                   bounce_share=round(float(bounce_share[j]), 4) if bounced[j] else None,
                                   gloss=albedo_free.lobe_of(sub, j))
