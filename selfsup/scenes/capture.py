@@ -95,6 +95,11 @@ def _intrinsics_file(stem: str, roots: list[Path]) -> Path | None:
     return next((path for path in candidates if path.is_file()), None)
 
 
+def _normals_file(stem: str, roots: list[Path]) -> Path | None:
+    # The first <root>/normals/<stem>.npy that exists, root by root (a frame's normal map is optional).
+    return next((path for path in (root / "normals" / f"{stem}.npy" for root in roots) if path.is_file()), None)
+
+
 def _override(intrinsics) -> tuple[float, float, float, float] | None:
     return None if intrinsics is None else tuple(float(x) for x in intrinsics)
 
@@ -351,9 +356,8 @@ def color_and_depth_frame(color: str | Path, depth: str | Path, depth_scale: flo
     color, depth = Path(color), Path(depth)
     _check_depth_scale(depth_scale)
     roots = [color.parent.parent, color.parent]
-    normals = next((path for path in (root / "normals" / f"{color.stem}.npy" for root in roots) if path.is_file()), None)
     return CaptureFrame(color, depth if depth.exists() else None, _intrinsics_file(color.stem, roots),
-                        float(depth_scale), _override(intrinsics), normals=normals)
+                        float(depth_scale), _override(intrinsics), normals=_normals_file(color.stem, roots))
 
 
 def frame_of_color(color: str | Path, depth_scale: float = 1000.0) -> CaptureFrame:
@@ -370,9 +374,8 @@ def frame_of_color(color: str | Path, depth_scale: float = 1000.0) -> CaptureFra
                   if path.is_file()), None)
     if depth is None:  # upper-case suffixes: the folder's listing
         depth = _by_stem(root / "depth", DEPTH_SUFFIXES).get(color.stem)
-    normals = root / "normals" / f"{color.stem}.npy"
     return CaptureFrame(color, depth, _intrinsics_file(color.stem, [root]), float(depth_scale),
-                        normals=normals if normals.is_file() else None)
+                        normals=_normals_file(color.stem, [root]))
 
 
 def read_input(item: str | Path | CaptureFrame) -> Scene:
