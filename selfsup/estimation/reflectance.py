@@ -146,9 +146,8 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions, slots: T
         # searched as without a network and keep whichever answer has the more evidence (on the
         # DiLiGenT ball 4 of 12 frames said "no light" from a sure network's lights). An unsure
         # image's "no light" came from a search already.
-        # Judged at the sensor's noise (noise_evidence): at the frame's own misfit a wrong light
-        # that misses the shading widely still explains some of it (tracking's noisy sequences,
-        # frame by frame, lost 4 counts so).
+        # Judged at the sensor's noise (noise_evidence), as when this check was measured: at the
+        # frame's own misfit a wrong light that misses the shading widely still explains some of it.
         doubtful = [i for i in range(problem.batch) if bool(sure[i]) and not (results[i][0].noise_evidence or 0.0) > 0]
         if doubtful:
             before = {i: results[i] for i in doubtful}
