@@ -79,3 +79,21 @@ def test_a_closed_room_leaves_no_pixel_open():
     assert (open_room.depth == 0).any()  # this scene looks past a wall's edge
     assert (closed["direct"].depth > 0).all()
     assert closed["gi"].image.mean() > closed["direct"].image.mean()  # the closing walls reflect
+
+
+def test_the_mitsuba_studio_cup_shows_its_inside_to_the_camera():
+    # benchmarks/mitsuba_studio.py's cup: an open tube on a bottom, tilted towards the camera, so the
+    # inside (deeper than the front rim by about a diameter) is in view and lit by a lamp in front.
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    from benchmarks.mitsuba_studio import CUP_RADIUS, render
+    from selfsup.scenes.studio import sphere_centre, studio_spec
+
+    spec = studio_spec((0.1, -0.1, -0.99), others=False, width=40, height=30)
+    image, depth = render(spec, "cup", "matte", "direct", spp=4)
+    seen = depth > 0
+    assert 0.1 < float(seen.float().mean()) < 0.6
+    centre = float(sphere_centre(spec)[2])
+    assert float(depth[seen].min()) < centre - 0.5 * CUP_RADIUS  # the front of the tube
+    assert float(depth[seen].max()) > centre + 0.5 * CUP_RADIUS  # the inside's far wall and bottom
+    assert float(image[~seen].mean()) < 0.05 * float(image[seen].mean())  # lit, in the dark (edge pixels partly)
