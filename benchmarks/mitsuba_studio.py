@@ -4,6 +4,7 @@ estimator scored on them: our analogue of the held-back DiLiGenT metal cup.
     python -m pip install "mitsuba>=3.5"      # the `mitsuba` extra; nothing else needs it
     python -m benchmarks.mitsuba_studio --shapes cup objects --materials matte gloss gold aluminium
     python -m benchmarks.mitsuba_studio --shapes cup --materials matte --integrator direct --name mitsuba_studio_direct
+    python -m benchmarks.mitsuba_studio --depth integrated --name mitsuba_studio_integrated
 
 Shapes: ``cup``, an open tube on a bottom (radius 0.2 m, 0.44 m tall, 5 m before the camera)
 tilted 35 degrees towards the camera so that its inside shows, as a cup or a goblet photographed
@@ -39,8 +40,9 @@ from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.stages import estimate_scene
 from selfsup.scenes.camera import camera_capture, write_capture_frame
 from selfsup.scenes.capture import capture_frames, read_capture
+from selfsup.scenes.integration import integrated_depth
 from selfsup.scenes.sampler import SceneSpec
-from selfsup.scenes.studio import PHOTO_CAMERA, sphere_centre, studio_spec
+from selfsup.scenes.studio import DEPTHS, PHOTO_CAMERA, sphere_centre, studio_spec
 
 SHAPES = ("cup", "objects")
 INTEGRATORS = ("path", "direct")
@@ -102,14 +104,21 @@ def scene_dict(spec: SceneSpec, shape: str, material: str, integrator: str) -> d
     return scene
 
 
-def render(spec: SceneSpec, shape: str, material: str, integrator: str, spp: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The linear image ``(H, W, 3)`` and the depth ``(H, W)`` (metres; 0 off the object) of a frame."""
+def render(spec: SceneSpec, shape: str, material: str, integrator: str, spp: int, depth: str = "rendered"
+           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The linear image ``(H, W, 3)`` and the depth ``(H, W)`` (metres; 0 off the object) of a frame:
+    ``rendered``, or ``integrated`` from the true normals as the DiLiGenT objects' depth was made
+    (:func:`selfsup.scenes.integration.integrated_depth`: the rim's hidden jump spread as a tilt)."""
     scene = scene_dict(spec, shape, material, integrator)
     aov = {"type": "aov", "aovs": "pos:position,nn:sh_normal"}
     geometry = _render({**scene, "integrator": aov}, 1, {"type": "stratified", "sample_count": 1, "jitter": False})
-    seen = np.linalg.norm(geometry[..., 3:6], axis=-1) > 0.5
-    depth = np.where(seen, geometry[..., 2], 0.0)
-    return torch.tensor(_render(scene, spp), dtype=torch.float32), torch.tensor(depth, dtype=torch.float32)
+    points, normals = geometry[..., 0:3], geometry[..., 3:6]
+    seen = np.linalg.norm(normals, axis=-1) > 0.5
+    z = torch.tensor(np.where(seen, points[..., 2], 0.0), dtype=torch.float32)
+    if depth == "integrated":  # two-sided surfaces: each normal turned to face the camera
+        facing = np.where((np.sum(normals * points, -1) > 0)[..., None], -normals, normals)
+        z = integrated_depth(torch.tensor(facing), z, spec.K.double()).float()
+    return torch.tensor(_render(scene, spp), dtype=torch.float32), z
 
 
 def _angle(record: dict, spec: SceneSpec, direction: tuple[float, float, float]) -> float:
@@ -122,7 +131,8 @@ def _angle(record: dict, spec: SceneSpec, direction: tuple[float, float, float])
     return math.degrees(math.acos(float(np.clip(v @ d / np.linalg.norm(v), -1, 1))))
 
 
-def run(shapes, materials, integrator: str, spp: int, options: EstimateOptions, name: str, write: bool = True) -> list[dict]:
+def run(shapes, materials, integrator: str, spp: int, options: EstimateOptions, name: str, write: bool = True,
+        depth: str = "rendered") -> list[dict]:
     import mitsuba as mi
 
     mi.set_variant("scalar_rgb")
@@ -132,11 +142,11 @@ def run(shapes, materials, integrator: str, spp: int, options: EstimateOptions, 
             angles = []
             for k, direction in enumerate(DIRECTIONS):
                 spec = studio_spec(direction, others=shape == "objects")
-                image, depth = render(spec, shape, material, integrator, spp)
+                image, z = render(spec, shape, material, integrator, spp, depth)
                 row = {"shape": shape, "material": material, "integrator": integrator, "frame": k,
                        "direction": list(direction), "light_found": False, "lights": 0, "note": ""}
                 with tempfile.TemporaryDirectory() as folder:
-                    write_capture_frame(Path(folder), "frame", camera_capture(image, depth, spec.K.double(),
+                    write_capture_frame(Path(folder), "frame", camera_capture(image, z, spec.K.double(),
                                                                               PHOTO_CAMERA, seed=k))
                     try:
                         record = estimate_scene(read_capture(capture_frames(Path(folder))[0]), options)
@@ -154,7 +164,7 @@ def run(shapes, materials, integrator: str, spp: int, options: EstimateOptions, 
                          "lights": f"one light: {sum(r['lights'] == 1 for r in rows[-len(angles):])}"})
     if write:
         header = (f"Objects in the dark rendered by Mitsuba 3 (`python -m benchmarks.mitsuba_studio`, integrator "
-                  f"{integrator}, {spp} samples a pixel), through the studio's photo camera, each estimated with the "
+                  f"{integrator}, {spp} samples a pixel, the depth {depth}), through the studio's photo camera, each estimated with the "
                   f"settings changed: {options.changed_settings() or 'none'}; the angle between the true lamp direction "
                   "and the object's centre to the brightest light (90 where none). Median rows: light_found = frames "
                   "with a light, lights = frames with one light.")
@@ -170,12 +180,14 @@ def main() -> None:
     parser.add_argument("--spp", type=int, default=256, help="samples a pixel (path tracing's noise falls with it)")
     parser.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                         help="an estimate setting or tuned constant, e.g. method=cnn (repeatable)")
+    parser.add_argument("--depth", choices=DEPTHS, default="rendered",
+                        help="integrated: the depth integrated from the true normals, as DiLiGenT's objects' was made")
     parser.add_argument("--name", default="mitsuba_studio")
     args = parser.parse_args()
     if args.spp < 1:
         raise SystemExit("--spp must be >= 1")
     run(args.shapes, args.materials, args.integrator, args.spp, EstimateOptions.from_settings(**parse_options(args.option)),
-        args.name)
+        args.name, depth=args.depth)
 
 
 if __name__ == "__main__":
