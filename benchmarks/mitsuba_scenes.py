@@ -166,30 +166,17 @@ def scene_dict(spec: SceneSpec, seed: int, closed: bool = False) -> tuple[dict, 
     Returns the scene dictionary and, per primitive (the materials' global order),
     the Blinn-Phong ``ks`` and ``shininess`` the scene file reports.
     """
-    import mitsuba as mi
-
     rng = np.random.default_rng(seed)
-    p = {k: getattr(spec.prims, k).double().numpy() for k in ("planes", "spheres", "boxes", "cylinders")}
+    planes = spec.prims.planes.double().numpy()
     m = spec.materials
     kind, tex_scale = m.texture.numpy(), m.texture_scale.double().numpy()
     base, alt = m.kd_base.double().numpy(), m.kd_alt.double().numpy()
     ks_in, shin_in = m.ks.double().numpy(), m.shininess.double().numpy()
 
     parts: list[tuple[list[dict], float]] = []  # per primitive: its shapes, texture repeats over (u, v)
-    for rectangle, size in _room_rectangles(p["planes"], spec.meta["room_size_m"]):
+    for rectangle, size in _room_rectangles(planes, spec.meta["room_size_m"]):
         parts.append(([{"type": "rectangle", "to_world": rectangle}], size))
-    for row in p["spheres"]:
-        parts.append(([{"type": "sphere", "center": row[:3].tolist(), "radius": float(row[3])}], 2 * math.pi * row[3]))
-    for row in p["boxes"]:
-        rot = row[6:15].reshape(3, 3)
-        parts.append(([{"type": "cube", "to_world": _affine(rot @ np.diag(row[3:6]), row[:3])}], 2 * row[3:6].max()))
-    for row in p["cylinders"]:
-        centre, axis, radius, half_height = row[:3], row[3:6], float(row[6]), float(row[7])
-        body = {"type": "cylinder", "p0": (centre - half_height * axis).tolist(),
-                "p1": (centre + half_height * axis).tolist(), "radius": radius}
-        caps = [{"type": "disk", "to_world": _affine(_frame(side * axis) @ np.diag([radius] * 3),
-                                                      centre + side * half_height * axis)} for side in (-1.0, 1.0)]
-        parts.append(([body, *caps], 2 * math.pi * radius))
+    parts += object_shapes(spec)
 
     scene: dict = {"type": "scene"}
     ks_out, shin_out = np.zeros(len(parts)), np.ones(len(parts))
@@ -204,23 +191,54 @@ def scene_dict(spec: SceneSpec, seed: int, closed: bool = False) -> tuple[dict, 
         for part_index, shape in enumerate(shapes):
             scene[f"shape_{index}_{part_index}"] = {**shape, "bsdf": bsdf}
     if closed:
-        for index, (rectangle, _) in enumerate(_closing_rectangles(p["planes"], spec.meta["room_size_m"])):
+        for index, (rectangle, _) in enumerate(_closing_rectangles(planes, spec.meta["room_size_m"])):
             scene[f"closing_{index}"] = {"type": "rectangle", "to_world": rectangle,
                                          "bsdf": _bsdf({"type": "rgb", "value": [0.7, 0.7, 0.7]}, 0.0, 1.0)}
+    scene.update(lights_and_sensor(spec, seed))
+    scene["integrator"] = {"type": "direct"}
+    return scene, ks_out, shin_out
+
+
+def object_shapes(spec: SceneSpec) -> list[tuple[list[dict], float]]:
+    """Mitsuba's shapes of ``spec``'s spheres, boxes and capped cylinders, per primitive (in
+    that order) with the length its texture spans (a sphere's or cylinder's girth, a box's
+    longest side)."""
+    p = {k: getattr(spec.prims, k).double().numpy() for k in ("spheres", "boxes", "cylinders")}
+    parts = [([{"type": "sphere", "center": row[:3].tolist(), "radius": float(row[3])}], 2 * math.pi * row[3])
+             for row in p["spheres"]]
+    for row in p["boxes"]:
+        rot = row[6:15].reshape(3, 3)
+        parts.append(([{"type": "cube", "to_world": _affine(rot @ np.diag(row[3:6]), row[:3])}], 2 * row[3:6].max()))
+    for row in p["cylinders"]:
+        centre, axis, radius, half_height = row[:3], row[3:6], float(row[6]), float(row[7])
+        body = {"type": "cylinder", "p0": (centre - half_height * axis).tolist(),
+                "p1": (centre + half_height * axis).tolist(), "radius": radius}
+        caps = [{"type": "disk", "to_world": _affine(_frame(side * axis) @ np.diag([radius] * 3),
+                                                      centre + side * half_height * axis)} for side in (-1.0, 1.0)]
+        parts.append(([body, *caps], 2 * math.pi * radius))
+    return parts
+
+
+def lights_and_sensor(spec: SceneSpec, seed: int) -> dict:
+    """The scene entries of ``spec``'s point lights (``light_<i>``; a radiant intensity of pi
+    times the format's) and its camera (``sensor``: the spec's frame, field of view and size, an
+    independent sampler of ``seed``, a box filter)."""
+    import mitsuba as mi
+
+    out: dict = {}
     for index, (position, intensity) in enumerate(zip(spec.light_position.double().numpy(),
                                                        spec.light_relative_intensity.double().numpy())):
-        scene[f"light_{index}"] = {"type": "point", "position": position.tolist(),
-                                   "intensity": {"type": "rgb", "value": (math.pi * intensity).tolist()}}
+        out[f"light_{index}"] = {"type": "point", "position": position.tolist(),
+                                 "intensity": {"type": "rgb", "value": (math.pi * intensity).tolist()}}
     fov = 2 * math.degrees(math.atan(0.5 * spec.width / float(spec.K[0, 0])))
-    scene["sensor"] = {
+    out["sensor"] = {
         "type": "perspective", "fov": fov, "fov_axis": "x",
         "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, 1], up=[0, -1, 0]),
         "sampler": {"type": "independent", "seed": seed},
         "film": {"type": "hdrfilm", "width": spec.width, "height": spec.height, "rfilter": {"type": "box"},
                  "pixel_format": "rgb", "component_format": "float32"},
     }
-    scene["integrator"] = {"type": "direct"}
-    return scene, ks_out, shin_out
+    return out
 
 
 def _render(scene: dict, spp: int, sampler: dict | None = None) -> np.ndarray:

@@ -35,7 +35,7 @@ import torch
 
 from benchmarks.common import write_results
 from benchmarks.estimate_procedural import parse_options
-from benchmarks.mitsuba_scenes import _affine, _frame, _render
+from benchmarks.mitsuba_scenes import _affine, _frame, _render, lights_and_sensor, object_shapes
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.stages import estimate_scene
 from selfsup.scenes.camera import camera_capture, write_capture_frame
@@ -63,43 +63,23 @@ COLUMNS = ["shape", "material", "integrator", "frame", "direction", "angle_deg",
 
 def _shapes(spec: SceneSpec, shape: str) -> list[dict]:
     # Mitsuba shapes of the cup, or of the spec's primitives.
-    if shape == "cup":
-        centre = sphere_centre(spec).double().numpy()
-        tilt = math.radians(CUP_TILT_DEG)
-        axis = np.array([0.0, -math.cos(tilt), -math.sin(tilt)])  # up and towards the camera: the inside shows
-        bottom = centre - CUP_HALF_HEIGHT * axis
-        return [{"type": "cylinder", "p0": bottom.tolist(), "p1": (centre + CUP_HALF_HEIGHT * axis).tolist(),
-                 "radius": CUP_RADIUS},  # Mitsuba's cylinder is an open tube
-                {"type": "disk", "to_world": _affine(_frame(-axis) @ np.diag([CUP_RADIUS] * 3), bottom)}]
-    prims = {k: getattr(spec.prims, k).double().numpy() for k in ("spheres", "boxes", "cylinders")}
-    out = [{"type": "sphere", "center": row[:3].tolist(), "radius": float(row[3])} for row in prims["spheres"]]
-    out += [{"type": "cube", "to_world": _affine(row[6:15].reshape(3, 3) @ np.diag(row[3:6]), row[:3])}
-            for row in prims["boxes"]]
-    for row in prims["cylinders"]:
-        c, a, r, h = row[:3], row[3:6], float(row[6]), float(row[7])
-        out.append({"type": "cylinder", "p0": (c - h * a).tolist(), "p1": (c + h * a).tolist(), "radius": r})
-        out += [{"type": "disk", "to_world": _affine(_frame(side * a) @ np.diag([r] * 3), c + side * h * a)}
-                for side in (-1.0, 1.0)]
-    return out
+    if shape != "cup":
+        return [one for shapes, _ in object_shapes(spec) for one in shapes]
+    centre = sphere_centre(spec).double().numpy()
+    tilt = math.radians(CUP_TILT_DEG)
+    axis = np.array([0.0, -math.cos(tilt), -math.sin(tilt)])  # up and towards the camera: the inside shows
+    bottom = centre - CUP_HALF_HEIGHT * axis
+    return [{"type": "cylinder", "p0": bottom.tolist(), "p1": (centre + CUP_HALF_HEIGHT * axis).tolist(),
+             "radius": CUP_RADIUS},  # Mitsuba's cylinder is an open tube
+            {"type": "disk", "to_world": _affine(_frame(-axis) @ np.diag([CUP_RADIUS] * 3), bottom)}]
 
 
 def scene_dict(spec: SceneSpec, shape: str, material: str, integrator: str) -> dict:
-    """Mitsuba's scene of ``shape`` in ``material`` under ``spec``'s lamp and camera."""
-    import mitsuba as mi
-
+    """Mitsuba's scene of ``shape`` in ``material`` under ``spec``'s lamp and camera (sampler seed 0)."""
     scene: dict = {"type": "scene"}
     for i, s in enumerate(_shapes(spec, shape)):
         scene[f"s{i}"] = {**s, "bsdf": {"type": "twosided", "material": MATERIALS[material]}}
-    for i, (position, intensity) in enumerate(zip(spec.light_position.double().numpy(),
-                                                  spec.light_relative_intensity.double().numpy())):
-        scene[f"light_{i}"] = {"type": "point", "position": position.tolist(),
-                               "intensity": {"type": "rgb", "value": (math.pi * intensity).tolist()}}
-    fov = 2 * math.degrees(math.atan(0.5 * spec.width / float(spec.K[0, 0])))
-    scene["sensor"] = {"type": "perspective", "fov": fov, "fov_axis": "x",
-                       "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, 1], up=[0, -1, 0]),
-                       "sampler": {"type": "independent", "seed": 0},
-                       "film": {"type": "hdrfilm", "width": spec.width, "height": spec.height,
-                                "rfilter": {"type": "box"}, "pixel_format": "rgb", "component_format": "float32"}}
+    scene.update(lights_and_sensor(spec, 0))
     scene["integrator"] = {"type": "path", "max_depth": 6} if integrator == "path" else {"type": "direct"}
     return scene
 
