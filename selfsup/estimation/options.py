@@ -162,6 +162,10 @@ class Tuning:
             is below theirs (a lobe and a second light beside the first explain the same
             peak), not where the black pixels took the light (a lobe casts no shadow); beside
             one light only a lobe that outshines it, from the highlight's mirror | ``never``.
+            ``albedo_free_coat``: ``auto`` sends the fit's diffuse light through a clear
+            coat (:mod:`render.coat`: the glossy paint's and plastic's Fresnel-weighted diffuse
+            layer) where the criterion prefers it at the first light (no parameter more) |
+            ``always`` | ``never``.
             ``albedo_free_count``: where one light more is judged: ``segments`` (each
             albedo segment's level free) | ``classes`` (each model on its own segments
             merged into albedo classes, the classes counted as parameters: a light that
@@ -243,6 +247,7 @@ class Tuning:
     highlights: str = "leave_out"
     albedo_free_bounce: str = "never"
     albedo_free_gloss: str = "instead"
+    albedo_free_coat: str = "never"
     albedo_free_count: str = "segments"
     unlit_evidence: bool = True
     albedo_class_rounds: int = 1
@@ -325,6 +330,7 @@ def _check_tuning(t: Tuning) -> None:
     need(t.criterion_stride >= 1, "criterion_stride", ">= 1 pixel")
     for name, choices in (("reflectance", REFLECTANCE), ("albedo_free_residuals", ALBEDO_FREE_RESIDUALS),
                           ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT), ("light_colour", LIGHT_COLOUR), ("vignetting", VIGNETTING), ("highlights", HIGHLIGHTS), ("albedo_free_bounce", ALBEDO_FREE_BOUNCE), ("albedo_free_gloss", ALBEDO_FREE_GLOSS),
+                          ("albedo_free_coat", COAT),
                           ("albedo_free_count", ALBEDO_FREE_COUNT), ("cnn_count", CNN_COUNT), ("cnn_start", CNN_START),
                           ("indirect", INDIRECT), ("search_shadows", SHADOW_METHODS),
                           ("criterion_shadows", SHADOW_METHODS)):

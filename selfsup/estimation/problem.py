@@ -137,6 +137,11 @@ class FitProblem:
         shininess; None: diffuse only)."""
         return self._changed(gloss=gloss)
 
+    def with_coat(self, coat: Tensor | None) -> "FitProblem":
+        """The same images with their diffuse light through a clear coat of weight ``coat
+        (B, H, W, 1)`` (0: none; :mod:`render.coat`), or with none (None)."""
+        return self._changed(material=dataclasses.replace(self.material, coat=coat))
+
     def with_indirect(self, indirect: bool = True) -> "FitProblem":
         """The same images with (or without) each light's indirect light in its basis images."""
         return self._changed(indirect=indirect)

@@ -243,6 +243,9 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         raise ValueError(f"kd is one constant, so the lights are fitted albedo-free, but image {pairs.index(min(pairs))} "
                          f"has {min(pairs)} usable residuals (lit pixels of albedo segments, or pairs of neighbouring "
                          f"pixels with kd > 0 and light; at least {MIN_RESIDUALS} needed)")
+    if options.tuning.albedo_free_coat != "never":  # glossy paint and plastic: the diffuse light through a coat
+        problem, found = albedo_free.choose_coat(problem, found, labels, search_kwargs["robust_scale"], criterion,
+                                                 search_kwargs["residuals"], options.tuning.albedo_free_coat == "always")
     if options.tuning.albedo_free_gloss == "auto" and labels is not None:
         # Metal and glossy paint: a specular lobe beside the diffuse light, where it pays.
         problem, found = albedo_free.choose_gloss(problem, found, labels, options.tuning.albedo_free_scale, criterion)
@@ -287,19 +290,17 @@ def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels:
                   criterion, best: list, by_shadows: list[bool], tried: list[list[tuple]],
                   geometry: Tensor | None = None, from_mirror: bool = False) -> FitProblem:
     # Where the diffuse fit took more than one light, one light with a specular lobe in their place
-    # (:func:`albedo_free.choose_gloss`), where its criterion on every residual is below theirs: a
-    # broad lobe is a second peak that a light beside the first also makes. Its light starts at the
-    # one-light fit ``found`` and at each of the more lights alone (a metal's one diffuse light lands
-    # between its lamp and the lobe's peak, one of the pair's near the lamp). Not where the black
-    # pixels took the last light (``by_shadows``): a lobe casts no shadow.
-    # Beside a lobe that replaced lights, one light more is searched and judged as any second light
-    # (:func:`_light_beside_lobe`): a glossy room may have two lamps. Where one light and its lobe
-    # lose, the lobe is tried beside the lights the diffuse fit took (two lamps on a glossy object:
-    # the diffuse pair lands 16-21 degrees off both, each light between a lamp and a highlight).
-    # Where it kept one light, a lobe that outshines it (:func:`albedo_free.choose_lone_lobe`). ``from_mirror``:
-    # the pairs' lobes start at the highlight's mirror too (a lean pair has no light near a metal's lamp).
-    # ``best`` and ``tried`` are updated in place (the lobe's models join ``tried`` as
-    # ``(n, criterion, True)``); returns the problem with each image's lobe.
+    # (:func:`albedo_free.choose_gloss`), where its criterion on every residual is below theirs: a broad lobe is a
+    # second peak that a light beside the first also makes. Its light starts at the one-light fit ``found`` and at
+    # each of the more lights alone (a metal's one diffuse light lands between its lamp and the lobe's peak, one
+    # of the pair's near the lamp). Not where the black pixels took the last light (``by_shadows``): a lobe casts
+    # no shadow. Beside a lobe that replaced lights, one light more is searched and judged as any second light
+    # (:func:`_light_beside_lobe`): a glossy room may have two lamps. Where one light and its lobe lose, the lobe
+    # is tried beside the lights the diffuse fit took (two lamps on a glossy object: the diffuse pair lands 16-21
+    # degrees off both, each light between a lamp and a highlight). Where it kept one light, a lobe that outshines
+    # it (:func:`albedo_free.choose_lone_lobe`). ``from_mirror``: the pairs' lobes start at the highlight's mirror
+    # too (a lean pair has no light near a metal's lamp). ``best`` and ``tried`` are updated in place (the lobe's
+    # models join ``tried`` as ``(n, criterion, True)``); returns the problem with each image's lobe.
     scale, residuals = options.tuning.albedo_free_scale, options.tuning.albedo_free_residuals
     gloss = problem.image.new_zeros(problem.batch, 2)
     counts = [best[i][0].position.shape[1] for i in range(problem.batch)]
@@ -491,7 +492,7 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
                                   vignetting=round(float(corner_loss[i]), 3),
                                   highlight_pixels=int(highlight[j].sum()),
                                   bounce_share=round(float(bounce_share[j]), 4) if bounced[j] else None,
-                                  gloss=albedo_free.lobe_of(sub, j))
+                                  gloss=albedo_free.lobe_of(sub, j), coat=albedo_free.coated(sub, j))
             # The records keep the tried models' counts and criteria only.
             # (n, value) of the diffuse models, (n, value, True) of one with a specular lobe.
             others = [Candidate(candidate.fit, n, bool(lobe), value, None, "albedo_free") for n, value, *lobe in tried[i]]

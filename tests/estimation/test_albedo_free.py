@@ -559,3 +559,32 @@ def test_the_evidence_judges_a_light_at_the_frames_own_misfit():
     flat = _missed_by(obs, miss)
     fit = albedo_free.refine_positions(flat, start, log_weight, 20)
     assert max(evidence(flat, fit, [4], 4, 0.0)[0], evidence(flat, fit, [4], 4, Tuning().evidence_spread)[0]) < 0
+
+
+def _through_coat(scene, problem, coat: bool):
+    # ``scene`` (albedo unknown) re-lit by its lights alone, a grey paint whose diffuse light goes
+    # through a smooth clear coat (render.coat) or not, a little ambient beside.
+    from render.functional import light_transport
+
+    B, H, W = 1, *scene.depth.shape
+    material = albedo_free.glossy_material(torch.ones(B, H, W, 3), None, torch.ones(B, H, W, 1) if coat else None)
+    diffuse = light_transport(problem.gbuffer, material, scene.light_pos[None].float(), falloff=problem.falloff,
+                              shadows="none", specular=False).diffuse[0]  # (L, H, W)
+    shading = (scene.light_intensity.float().mean(-1)[:, None, None] * diffuse).sum(0)
+    image = 0.5 * (shading + 0.02 * shading.max())[..., None].expand(H, W, 3)
+    return dataclasses.replace(scene, image=torch.where(scene.depth[..., None] > 0, image, 0.0))
+
+
+def test_a_clear_coat_is_kept_where_the_diffuse_light_went_through_one():
+    # Glossy paint and plastic: their diffuse layer lies under a clear coat, which dims it towards
+    # grazing angles. The same lamp through a coat and without: choose_coat keeps the coat for the
+    # first only, and there it takes the light nearer the truth than the plain fit does.
+    base = _unknown_albedo(_scene(3, config=MEDIUM))
+    for coat in (True, False):
+        scene = _through_coat(base, problem_of(base, shadows="none"), coat)
+        problem = problem_of(scene, shadows="none")
+        found = albedo_free.refine_from(problem, scene.light_pos[None].float())
+        chosen, fit = albedo_free.choose_coat(problem, found, None, 0.02, lambda f, extra=None: f.loss.tolist())
+        assert albedo_free.coated(chosen, 0) == coat
+        if coat:
+            assert _rel_error(fit.position[0], scene) < 0.5 * _rel_error(found.position[0], scene)

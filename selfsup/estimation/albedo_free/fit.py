@@ -256,8 +256,8 @@ def residual_spread(obs: LogShading, fit: AlbedoFreeFit) -> Tensor:
 def light_shares(problem: FitProblem, fit: AlbedoFreeFit) -> Tensor:
     """Each light's share ``(B, L)`` of the fitted direct shading over the valid pixels (its
     lobe's with it where ``problem`` has one, :attr:`FitProblem.gloss`)."""
-    transport = model_transport(problem.gbuffer, glossy_material(problem.material.kd, problem.gloss), problem.falloff,
-                                fit.position)
+    material = glossy_material(problem.material.kd, problem.gloss, problem.material.coat)
+    transport = model_transport(problem.gbuffer, material, problem.falloff, fit.position)
     direct = (fit.log_weight[:, 1:].exp()[..., None, None] * transport * problem.gbuffer.mask[:, None]).flatten(2).sum(2)
     return direct / direct.sum(1, keepdim=True).clamp_min(1e-30)
 

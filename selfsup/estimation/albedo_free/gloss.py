@@ -50,8 +50,8 @@ from selfsup.estimation.albedo_free.fit import FINAL_TOLERANCE, refine_positions
 from selfsup.estimation.albedo_free.observation import AlbedoFreeFit, observe
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
 
-__all__ = ["choose_gloss", "choose_lone_lobe", "fit_lobes", "keep_lobes", "mirror_start", "diffuse_images",
-           "gloss_parameters", "lobe_of", "GLOSS_RATIOS", "GLOSS_SHININESS", "GLOSS_PARAMETERS"]
+__all__ = ["choose_gloss", "choose_coat", "choose_lone_lobe", "fit_lobes", "keep_lobes", "mirror_start", "diffuse_images",
+           "gloss_parameters", "lobe_of", "coated", "GLOSS_RATIOS", "GLOSS_SHININESS", "GLOSS_PARAMETERS"]
 
 # The grid of lobes tried (ratio of the lobe's peak to the diffuse light, Blinn-Phong
 # shininess): from a paint's broad sheen to a metal whose diffuse light is nil, and from a
@@ -109,6 +109,27 @@ def choose_gloss(problem: FitProblem, found: AlbedoFreeFit, labels: Tensor | Non
     as :func:`fit_lobes`."""
     gloss, fitted, values = fit_lobes(problem, found, labels, robust_scale, criterion, residuals, starts, shapes)
     return keep_lobes(problem, found, gloss, fitted, values, criterion, against)
+
+
+def choose_coat(problem: FitProblem, found: AlbedoFreeFit, labels: Tensor | None, robust_scale: float,
+                criterion, residuals: str = "segments", always: bool = False) -> tuple[FitProblem, AlbedoFreeFit]:
+    """Each image's diffuse light through a clear coat, or not: ``found``'s lights refined with
+    the coat on every pixel (:mod:`render.coat`: a dielectric's transmission in and out, which
+    dims the diffuse light towards grazing angles as glossy paint and plastic do), kept where
+    ``criterion(fit)`` (a list per image, lower is better) is below ``found``'s (the coat's index
+    and roughness are fixed: no parameter more), or everywhere with ``always``. Returns the
+    problem with its coat (``material.coat (B, H, W, 1)``, 0 where none; unchanged where no image
+    keeps one) and each image's fit. ``labels``, ``robust_scale``, ``residuals``: as :func:`observe`."""
+    B, H, W = problem.gbuffer.mask.shape
+    every = problem.image.new_ones(B, H, W, 1)
+    coated = observe(problem.with_coat(every), robust_scale, residuals=residuals, labels=labels)
+    fitted = refine_positions(coated, found.position, found.log_weight, GLOSS_ITERATIONS[1], FINAL_TOLERANCE,
+                              log_bounce=found.log_bounce)
+    take = [True] * B if always else [c < p for p, c in zip(criterion(found), criterion(fitted))]
+    if not any(take):
+        return problem, found
+    take = torch.tensor(take, device=problem.image.device)
+    return problem.with_coat(every * take[:, None, None, None]), found.chosen(take, fitted)
 
 
 def fit_lobes(problem: FitProblem, found: AlbedoFreeFit, labels: Tensor | None, robust_scale: float,
@@ -313,6 +334,11 @@ def diffuse_images(problem: FitProblem) -> Tensor:
 def gloss_parameters(problem: FitProblem) -> list[int]:
     """Each image's parameters of its albedo-free specular lobe (:attr:`FitProblem.gloss`): two, or none."""
     return [0 if diffuse else GLOSS_PARAMETERS for diffuse in diffuse_images(problem).tolist()]
+
+
+def coated(problem: FitProblem, row: int) -> bool:
+    """Whether image ``row``'s diffuse light goes through a clear coat (:func:`choose_coat`)."""
+    return problem.material.coat is not None and bool(problem.material.coat[row].amax() > 0)
 
 
 def lobe_of(problem: FitProblem, row: int) -> tuple[float, float] | None:

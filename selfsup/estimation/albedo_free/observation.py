@@ -193,6 +193,9 @@ def _pair_mask(mask: Tensor) -> Tensor:
 SEGMENT_SIGMA = 0.5
 SEGMENT_MIN_SIZE = 15
 MIN_SEGMENT_PIXELS = 8
+# The clear coat of glossy_material without a lobe: the Blinn-Phong exponent that sets its
+# roughness (Beckmann a = sqrt(2 / (s + 2)), 0.1: a smooth varnish or plastic).
+COAT_SHININESS = 200.0
 
 
 def albedo_segments(problem: FitProblem, scale: float = 50.0, geometry: Tensor | None = None,
@@ -292,7 +295,8 @@ def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float 
         pairs = segments < count
     else:
         pairs = _pair_mask(valid)
-    obs = LogShading(log_shading, pairs, log_shading, problem.gbuffer, glossy_material(problem.material.kd, problem.gloss),
+    material = glossy_material(problem.material.kd, problem.gloss, problem.material.coat)
+    obs = LogShading(log_shading, pairs, log_shading, problem.gbuffer, material,
                      problem.falloff, scale.to(grey.dtype), segments, count)
     obs.observed = obs.differences(log_shading)  # the same view of the data as of every model
     return obs
@@ -308,13 +312,18 @@ def _tiled(obs: LogShading, count: int) -> LogShading:
                       obs.falloff, rep(obs.scale), rep(obs.segments), obs.segment_count)
 
 
-def glossy_material(kd: Tensor, gloss: Tensor | None) -> Material:
+def glossy_material(kd: Tensor, gloss: Tensor | None, coat: Tensor | None = None) -> Material:
     """The albedo-free fit's reflectance: ``kd (B, H, W, 3)`` and, with ``gloss (B, 2)``
     (:attr:`~selfsup.estimation.problem.FitProblem.gloss`), a specular lobe of each image's
     ratio to the diffuse light (``ks (B, H, W, 1)``, one value an image, an expanded view) and
-    shininess ``(B,)``; diffuse only where ``gloss`` is None."""
-    if gloss is None:
-        return Material(kd=kd)
+    shininess ``(B,)``; diffuse only where ``gloss`` is None. ``coat (B, H, W, 1)``: the diffuse
+    light through a clear coat of that weight (:mod:`render.coat`), as rough as the lobe, or as
+    :data:`COAT_SHININESS` without one."""
     B, H, W, _ = kd.shape
+    if gloss is None:
+        if coat is None:
+            return Material(kd=kd)
+        return Material(kd=kd, shininess=kd.new_full((B,), COAT_SHININESS), coat=coat.to(kd))
     gloss = gloss.to(kd)
-    return Material(kd=kd, ks=gloss[:, 0].view(B, 1, 1, 1).expand(B, H, W, 1), shininess=gloss[:, 1].clamp_min(1e-3))
+    return Material(kd=kd, ks=gloss[:, 0].view(B, 1, 1, 1).expand(B, H, W, 1), shininess=gloss[:, 1].clamp_min(1e-3),
+                    coat=None if coat is None else coat.to(kd))
