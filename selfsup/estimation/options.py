@@ -164,7 +164,7 @@ class Tuning:
             one light only a lobe that outshines it, from the highlight's mirror | ``never``.
             ``albedo_free_coat``: ``auto`` sends the fit's diffuse light through a clear
             coat (:mod:`render.coat`: the glossy paint's and plastic's Fresnel-weighted diffuse
-            layer) where the criterion prefers it at the first light (no parameter more) |
+            layer) where the criterion prefers it at the first light (one parameter more) |
             ``always`` | ``never``.
             ``albedo_free_count``: where one light more is judged: ``segments`` (each
             albedo segment's level free) | ``classes`` (each model on its own segments

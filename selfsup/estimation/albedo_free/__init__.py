@@ -52,9 +52,8 @@ from selfsup.estimation.albedo_free.fit import (FINAL_TOLERANCE, LM_TOLERANCE, b
                                                 residual_spread, shading_loss)
 from selfsup.estimation.albedo_free.observation import (MIN_SEGMENT_PIXELS, AlbedoFreeFit, LogShading, albedo_segments,
                                                         glossy_material, observe, pair_differences, tuned_segments)
-from selfsup.estimation.albedo_free.gloss import (GLOSS_PARAMETERS, choose_coat, choose_gloss, choose_lone_lobe,
-                                                  diffuse_images,
-                                                  coated, fit_lobes, gloss_parameters, keep_lobes, lobe_of,
+from selfsup.estimation.albedo_free.gloss import (GLOSS_PARAMETERS, choose_coat, choose_gloss, choose_lone_lobe, coated,
+                                                  diffuse_images, fit_lobes, gloss_parameters, keep_lobes, lobe_of,
                                                   mirror_start)
 from selfsup.estimation.albedo_free.light_search import (AMBIENT_STEPS, LEAN_SEARCH, RATIO_STEPS, anchor_pairs,
                                                          refine_from, search, search_each, split_starts)

@@ -64,6 +64,10 @@ GLOSS_STRIDE = 4  # the grid is tried at every fourth pixel (every second: the s
 # 24 Mitsuba metal frames, one frame fewer of sharp gold taking one, at 2.2 times the time)
 GLOSS_ITERATIONS = (8, 12)  # LM steps of every lobe of the grid, then of the best at full resolution
 GLOSS_PARAMETERS = 2  # the ratio and the shininess, counted by the criterion
+# The coat's choice, counted by the criterion where it is chosen (choose_coat). Priced at 0, rooms
+# whose paint is mostly matte took a coat that fitted a little better: eight capture sets 176 -> 172
+# successes, 67 -> 64 counts; at 1, 175 and 67 (ad hoc, 2026-12-07: coat_albedo_free_cpu1_2026-12-07.md).
+COAT_PARAMETERS = 1
 # Each start's best lobe of the grid is then refined on the 8 lobes about it, each round at half
 # the last step (in log; the grid's is a factor of about 3.2 in both): the grid alone is too
 # coarse for a lobe between its shininesses (our renderer's rough gold-like paint, Blinn-Phong 8
@@ -116,8 +120,9 @@ def choose_coat(problem: FitProblem, found: AlbedoFreeFit, labels: Tensor | None
     """Each image's diffuse light through a clear coat, or not: ``found``'s lights refined with
     the coat on every pixel (:mod:`render.coat`: a dielectric's transmission in and out, which
     dims the diffuse light towards grazing angles as glossy paint and plastic do), kept where
-    ``criterion(fit)`` (a list per image, lower is better) is below ``found``'s (the coat's index
-    and roughness are fixed: no parameter more), or everywhere with ``always``. Returns the
+    ``criterion(fit, extra)`` (a list per image, lower is better) is below ``found``'s, the coat's
+    choice one parameter more (:data:`COAT_PARAMETERS`; its index and roughness are fixed), or
+    everywhere with ``always``. Returns the
     problem with its coat (``material.coat (B, H, W, 1)``, 0 where none; unchanged where no image
     keeps one) and each image's fit. ``labels``, ``robust_scale``, ``residuals``: as :func:`observe`."""
     B, H, W = problem.gbuffer.mask.shape
@@ -125,7 +130,7 @@ def choose_coat(problem: FitProblem, found: AlbedoFreeFit, labels: Tensor | None
     coated = observe(problem.with_coat(every), robust_scale, residuals=residuals, labels=labels)
     fitted = refine_positions(coated, found.position, found.log_weight, GLOSS_ITERATIONS[1], FINAL_TOLERANCE,
                               log_bounce=found.log_bounce)
-    take = [True] * B if always else [c < p for p, c in zip(criterion(found), criterion(fitted))]
+    take = [True] * B if always else [c < p for p, c in zip(criterion(found), criterion(fitted, [COAT_PARAMETERS] * B))]
     if not any(take):
         return problem, found
     take = torch.tensor(take, device=problem.image.device)
