@@ -86,7 +86,7 @@ def intensities_of(problem: FitProblem, fit: albedo_free.AlbedoFreeFit, options:
     """
     solve = replace(options.tuning.refine, specular=False, max_iters=(0,), strides=(1,))
     weight = fit.log_weight.exp()  # (B, L + 1): the ambient's, then each light's, relative
-    material = albedo_free.glossy_material(problem.material.kd, problem.gloss, problem.material.coat)  # lobe, coat
+    material = albedo_free.fit_material(problem)  # with the fit's lobe and coat, if any
     diffuse = albedo_free.model_transport(problem.gbuffer, material, problem.falloff, fit.position)  # (B, L, H, W)
     direct = (weight[:, 1:, None, None] * diffuse).sum(1)  # (B, H, W)
     bounce = torch.zeros_like(direct)

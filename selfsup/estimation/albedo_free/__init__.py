@@ -51,7 +51,8 @@ from selfsup.estimation.albedo_free.fit import (FINAL_TOLERANCE, LM_TOLERANCE, b
                                                 light_shares, mirror_lobes, model_transport, refine_positions,
                                                 residual_spread, shading_loss)
 from selfsup.estimation.albedo_free.observation import (MIN_SEGMENT_PIXELS, AlbedoFreeFit, LogShading, albedo_segments,
-                                                        glossy_material, observe, pair_differences, tuned_segments)
+                                                        fit_material, glossy_material, observe, pair_differences,
+                                                        tuned_segments)
 from selfsup.estimation.albedo_free.gloss import (GLOSS_PARAMETERS, choose_coat, choose_gloss, choose_lone_lobe, coated,
                                                   diffuse_images, fit_lobes, gloss_parameters, keep_lobes, lobe_of,
                                                   mirror_start)
@@ -60,7 +61,7 @@ from selfsup.estimation.albedo_free.light_search import (AMBIENT_STEPS, LEAN_SEA
 
 __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "albedo_segments", "tuned_segments", "shading_loss", "search",
            "search_each", "split_starts", "anchor_pairs", "refine_positions", "bounce_maps", "light_shares", "model_transport",
-           "glossy_material", "mirror_lobes", "residual_spread",
+           "glossy_material", "fit_material", "mirror_lobes", "residual_spread",
            "highlight_pixels", "position_covariance", "block_scores_of", "group_medians", "albedo_classes",
            "refine_on_classes", "refine_from", "choose_gloss", "choose_coat", "choose_lone_lobe", "fit_lobes", "keep_lobes", "mirror_start",
            "diffuse_images", "gloss_parameters", "lobe_of", "coated",

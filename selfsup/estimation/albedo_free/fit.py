@@ -13,7 +13,7 @@ from render import GBuffer, Material
 from render.functional import light_transport, light_transport_jacobian
 from render.indirect import PATCHES_ACROSS, one_bounce
 from render.shading import blinn_phong_lobe, light_geometry
-from selfsup.estimation.albedo_free.observation import AlbedoFreeFit, LogShading, glossy_material
+from selfsup.estimation.albedo_free.observation import AlbedoFreeFit, LogShading, fit_material
 from selfsup.estimation.problem import FitProblem, gbuffer_centre_and_size
 from selfsup.estimation.solvers import RUNAWAY_SIZES
 
@@ -256,8 +256,7 @@ def residual_spread(obs: LogShading, fit: AlbedoFreeFit) -> Tensor:
 def light_shares(problem: FitProblem, fit: AlbedoFreeFit) -> Tensor:
     """Each light's share ``(B, L)`` of the fitted direct shading over the valid pixels (its
     lobe's with it where ``problem`` has one, :attr:`FitProblem.gloss`)."""
-    material = glossy_material(problem.material.kd, problem.gloss, problem.material.coat)
-    transport = model_transport(problem.gbuffer, material, problem.falloff, fit.position)
+    transport = model_transport(problem.gbuffer, fit_material(problem), problem.falloff, fit.position)
     direct = (fit.log_weight[:, 1:].exp()[..., None, None] * transport * problem.gbuffer.mask[:, None]).flatten(2).sum(2)
     return direct / direct.sum(1, keepdim=True).clamp_min(1e-30)
 

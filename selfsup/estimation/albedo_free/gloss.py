@@ -127,8 +127,8 @@ def choose_coat(problem: FitProblem, found: AlbedoFreeFit, labels: Tensor | None
     keeps one) and each image's fit. ``labels``, ``robust_scale``, ``residuals``: as :func:`observe`."""
     B, H, W = problem.gbuffer.mask.shape
     every = problem.image.new_ones(B, H, W, 1)
-    coated = observe(problem.with_coat(every), robust_scale, residuals=residuals, labels=labels)
-    fitted = refine_positions(coated, found.position, found.log_weight, GLOSS_ITERATIONS[1], FINAL_TOLERANCE,
+    seen = observe(problem.with_coat(every), robust_scale, residuals=residuals, labels=labels)
+    fitted = refine_positions(seen, found.position, found.log_weight, GLOSS_ITERATIONS[1], FINAL_TOLERANCE,
                               log_bounce=found.log_bounce)
     take = [True] * B if always else [c < p for p, c in zip(criterion(found), criterion(fitted, [COAT_PARAMETERS] * B))]
     if not any(take):

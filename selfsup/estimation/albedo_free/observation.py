@@ -20,7 +20,7 @@ from selfsup.estimation.options import ALBEDO_FREE_RESIDUALS, Tuning
 from selfsup.estimation.problem import FitProblem
 
 __all__ = ["LogShading", "AlbedoFreeFit", "pair_differences", "albedo_segments", "tuned_segments", "observe",
-           "glossy_material", "MIN_SEGMENT_PIXELS"]
+           "glossy_material", "fit_material", "MIN_SEGMENT_PIXELS"]
 
 # The robust segment offsets (:meth:`LogShading.offsets`): reweighted means from the plain
 # mean, the Cauchy scale times these factors (wide first, so that a start pulled towards a
@@ -295,8 +295,7 @@ def observe(problem: FitProblem, robust_scale: float = 0.02, noise_floor: float 
         pairs = segments < count
     else:
         pairs = _pair_mask(valid)
-    material = glossy_material(problem.material.kd, problem.gloss, problem.material.coat)
-    obs = LogShading(log_shading, pairs, log_shading, problem.gbuffer, material,
+    obs = LogShading(log_shading, pairs, log_shading, problem.gbuffer, fit_material(problem),
                      problem.falloff, scale.to(grey.dtype), segments, count)
     obs.observed = obs.differences(log_shading)  # the same view of the data as of every model
     return obs
@@ -327,3 +326,9 @@ def glossy_material(kd: Tensor, gloss: Tensor | None, coat: Tensor | None = None
     gloss = gloss.to(kd)
     return Material(kd=kd, ks=gloss[:, 0].view(B, 1, 1, 1).expand(B, H, W, 1), shininess=gloss[:, 1].clamp_min(1e-3),
                     coat=None if coat is None else coat.to(kd))
+
+
+def fit_material(problem: FitProblem) -> Material:
+    """The albedo-free fit's reflectance of ``problem``: :func:`glossy_material` of its kd, its
+    lobe (:attr:`~selfsup.estimation.problem.FitProblem.gloss`) and its coat (``material.coat``)."""
+    return glossy_material(problem.material.kd, problem.gloss, problem.material.coat)
