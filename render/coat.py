@@ -39,6 +39,8 @@ from functools import lru_cache
 import torch
 from torch import Tensor
 
+from render.geometry import broadcast_shape
+
 __all__ = ["fresnel_dielectric", "beckmann_g1", "coat_roughness", "rough_transmittance", "internal_reflectance",
            "coat_tables", "coat_eta", "coat_transmission", "CoatProfile", "coat_profile", "profile_transmission"]
 
@@ -153,7 +155,7 @@ def coat_transmission(cosine: Tensor, coat: Tensor, shininess: Tensor, f0: float
         [0.94, 0.88]
     """
     table, scale = coat_tables(coat_eta(float(f0)), cosine.dtype, str(cosine.device))
-    shape = torch.broadcast_shapes(cosine.shape, coat.shape, shininess.shape)
+    shape = broadcast_shape(cosine.shape, coat.shape, shininess.shape)
     row, row_weight = _roughness_rows(shininess.to(cosine.dtype))
     row_weight = row_weight.expand(shape)
     row = row.expand(shape)
@@ -209,7 +211,7 @@ def coat_profile(coat: Tensor, shininess: Tensor, f0: float, dtype: torch.dtype 
     or None where they hold more than ``max_rows`` distinct pairs (a shininess texture:
     use :func:`coat_transmission`). Costs one sort of the pixels."""
     dtype = coat.dtype if dtype is None else dtype
-    shape = torch.broadcast_shapes(coat.shape, shininess.shape)
+    shape = broadcast_shape(coat.shape, shininess.shape)
     # Pairs numbered by the distinct values of each (three 1-D sorts: far faster than
     # a sort of the pairs as rows).
     coats, coat_index = torch.unique(coat.detach().to(dtype), return_inverse=True)

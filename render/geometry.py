@@ -11,7 +11,21 @@ from kornia.geometry.depth import depth_to_3d_v2
 from torch import Tensor
 
 __all__ = ["unproject_depth", "normals_from_points", "smallest_eigenvector", "fit_intrinsics", "pixel_grid", "dot3",
-           "norm3"]
+           "norm3", "broadcast_shape"]
+
+
+def broadcast_shape(*shapes: torch.Size | tuple[int, ...]) -> tuple[int, ...]:
+    """The broadcast of ``shapes``, as ``torch.broadcast_shapes``; ValueError where they do
+    not broadcast. Not that function: its first call imports sympy (half a second in every
+    fresh process or DataLoader worker), and each call costs more."""
+    width = max(len(shape) for shape in shapes)
+    out = [1] * width
+    for shape in shapes:
+        for axis, size in enumerate((1,) * (width - len(shape)) + tuple(shape)):
+            if size != 1 and out[axis] not in (1, size):
+                raise ValueError(f"shapes {[tuple(s) for s in shapes]} do not broadcast")
+            out[axis] = size if size != 1 else out[axis]
+    return tuple(out)
 
 
 def dot3(a: Tensor, b: Tensor) -> Tensor:

@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from render.geometry import broadcast_shape
+
 __all__ = ["Primitives", "PrimitiveBatch", "Bundles", "Hit", "bundle_rays", "cast_bundles", "blocked_bundles", "hit_normals",
            "cast_rays", "any_hit", "camera_rays", "exact_visibility", "blinn_phong", "shade_exact"]
 
@@ -72,22 +74,10 @@ class Hit:
 _FAR = 1e30
 
 
-def _broadcast(a: torch.Size, b: torch.Size) -> tuple[int, ...]:
-    # The broadcast of two shapes. Not torch.broadcast_shapes: its first call imports
-    # sympy (half a second in every fresh DataLoader worker), and each call costs more.
-    if a == b:
-        return tuple(a)
-    width = max(len(a), len(b))
-    a, b = (1,) * (width - len(a)) + tuple(a), (1,) * (width - len(b)) + tuple(b)
-    if any(x != y and 1 not in (x, y) for x, y in zip(a, b)):
-        raise ValueError(f"shapes {a} and {b} do not broadcast")
-    return tuple(y if x == 1 else x for x, y in zip(a, b))
-
-
 def _mask(compare, a: Tensor, b: Tensor | float, dtype: torch.dtype | None = None) -> Tensor:
     """``compare(a, b)`` (``torch.gt``, ``ge``, ``le``...) as float 0/1, broadcast, in
     ``dtype`` (default ``a``'s: give one where ``a`` holds integers)."""
-    shape = _broadcast(a.shape, b.shape) if isinstance(b, Tensor) else a.shape
+    shape = broadcast_shape(a.shape, b.shape) if isinstance(b, Tensor) else a.shape
     return compare(a, b, out=torch.empty(shape, dtype=dtype or a.dtype, device=a.device))
 
 
