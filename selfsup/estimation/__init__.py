@@ -8,6 +8,7 @@ Read it top down, each module one job, every import pointing down this list:
 - :mod:`~selfsup.estimation.network`, :mod:`~selfsup.estimation.reflectance`: the network's starts; unknown albedo
   (:mod:`~selfsup.estimation.intensities`: its lights' intensities; :mod:`~selfsup.estimation.gains`: per-surface
   albedo gains);
+- :mod:`~selfsup.estimation.count`: whether the albedo-free fit takes one light more;
 - :mod:`~selfsup.estimation.criterion`: model selection (how many lights, which terms);
 - :mod:`~selfsup.estimation.uncertainty`: covariances of the chosen lights;
 - :mod:`~selfsup.estimation.solvers`: LM, first-order (the paper's GD, Adam), grid search;

@@ -170,7 +170,7 @@ class Tuning:
             albedo segment's level free) | ``classes`` (each model on its own segments
             merged into albedo classes, the classes counted as parameters: a light that
             explains how bright segments are beside each other pays for itself;
-            :data:`selfsup.estimation.reflectance.CLASS_COUNT_PENALTY`) | ``either`` (one
+            :data:`selfsup.estimation.count.CLASS_COUNT_PENALTY`) | ``either`` (one
             light more where it wins either comparison).
             ``unlit_evidence``: one more light is also taken where the capture's black
             pixels need it (:mod:`selfsup.estimation.unlit`: the fewer lights' shadows

@@ -13,8 +13,9 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
-from selfsup.estimation import albedo_free, unlit
-from selfsup.estimation.criterion import Candidate, bic, block_px, criterion_light, fit_row
+from selfsup.estimation import albedo_free
+from selfsup.estimation.count import MIN_RESIDUALS, judged, residual_options
+from selfsup.estimation.criterion import Candidate, bic, block_px, fit_row
 from selfsup.estimation.intensities import ambient_criterion, evidence, intensities_of
 from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.options import EstimateOptions
@@ -24,7 +25,6 @@ from selfsup.estimation.vignetting import choose_vignetting, devignetted
 __all__ = ["reflectance_unknown", "albedo_free_images", "albedo_free_segments", "estimate_albedo_free",
            "albedo_free_covariance"]
 
-MIN_RESIDUALS = 100  # the fewest residuals an albedo-free fit or count decision rests on
 # The bounce of the albedo-free fit (estimate.tuning.albedo_free_bounce): its strength's start
 # (log; the bounce maps of albedo relative to its median, bounce_maps) and the LM steps that
 # refine it beside the lights.
@@ -33,13 +33,6 @@ BOUNCE_ITERATIONS = 8
 # A highlight's pixel (left out of the chosen lights' placement): brighter than the diffuse
 # model by this many times the fit's Cauchy scale, inside the lights' mirror lobes.
 HIGHLIGHT_EXCESS = 2.0
-# How many times a light's parameters count when one light more is judged on albedo classes
-# (estimate.tuning.albedo_free_count=classes): each model's classes are merged under its own
-# lights, a choice the criterion does not count. Measured (2026-12-06, results file
-# count_classes_cpu2_2026-12-06.md): counted once, one-light Mitsuba rooms took a second light in 2
-# of 48 frames and the DiLiGenT bear in 5 of 24 (1 on segments); twice, none and 1, the
-# two-light counts still 4 rooms up over eight capture sets; three times, the bear none.
-CLASS_COUNT_PENALTY = 2
 
 
 def reflectance_unknown(problem: FitProblem, rel_tol: float = 1e-6) -> Tensor:
@@ -82,11 +75,6 @@ def albedo_unknown_images(problem: FitProblem, options: EstimateOptions) -> list
     return reflectance_unknown(problem).tolist()
 
 
-def residual_options(options: EstimateOptions) -> dict:
-    # The albedo-free fit's residuals, as the tuning says.
-    return dict(residuals=options.tuning.albedo_free_residuals, segment_scale=options.tuning.albedo_segment_scale)
-
-
 def albedo_free_segments(problem: FitProblem, options: EstimateOptions) -> tuple[Tensor | None, Tensor | None]:
     """Every image's albedo segments ``(B, H, W)`` and smooth surfaces ``(B, H, W)`` as the
     albedo-free fit finds them (:func:`selfsup.estimation.albedo_free.tuned_segments`,
@@ -103,8 +91,8 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions, slots: T
                          ) -> list[tuple[Candidate, list[Candidate]]]:
     """Lights fitted to the log shading with each albedo segment's mean taken out (or its
     neighbour differences; :mod:`selfsup.estimation.albedo_free`), 1 .. ``max_lights`` while
-    :func:`bic` of their Cauchy loss falls (with segments, judged without the highlights
-    of the lights before, :func:`_without_highlights`, where :data:`MIN_RESIDUALS` are left) and each light
+    :func:`bic` of their Cauchy loss falls (:func:`selfsup.estimation.count.judged`: with
+    segments, without the highlights of the lights before, where ``MIN_RESIDUALS`` are left) and each light
     carries ``min_light_share`` of the fitted shading, or while the capture's black pixels need
     one light more (``unlit_evidence``, :func:`selfsup.estimation.unlit.needs_another_light`:
     then the records' criteria may favour the fewer lights); the chosen model's lights then
@@ -268,9 +256,9 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         else:
             more = albedo_free.search_each(sub, albedo_free.search(sub, n_lights, fixed=before, **kwargs,
                                                                    **network_starts(at, n_lights)), **kwargs)
-        taken, shadows, fewer_value, more_value = _judged(sub, before, more, [best[i][2] for i in growing],
-                                                          kwargs["labels"], options, criterion,
-                                                          None if geometry is None else geometry[at])
+        taken, shadows, fewer_value, more_value = judged(sub, before, more, [best[i][2] for i in growing],
+                                                         kwargs["labels"], options, criterion,
+                                                         None if geometry is None else geometry[at])
         still = []
         for j, (i, c) in enumerate(zip(growing, more_value)):
             tried[i][-1] = (n_lights - 1, fewer_value[j])  # the records keep the values compared
@@ -363,7 +351,7 @@ def _light_beside_lobe(problem: FitProblem, lobed: albedo_free.AlbedoFreeFit, se
     # Rows ``rows`` of ``problem`` (with its lobes; images ``images`` of ``best``) took one light
     # and its lobe (``lobed``) in the place of the lights of ``several``: one light more searched
     # beside it (the lobe on both), also from the lobe's light beside each light it replaced (and
-    # the replaced pair itself), taken where :func:`_judged` takes it and the two lights are
+    # the replaced pair itself), taken where :func:`selfsup.estimation.count.judged` takes it and the two lights are
     # resolved (:func:`_resolved_beside_lobe`). The two models differ by a light only, so they are
     # judged without the lobe's parameters; the records keep them with.
     at = torch.tensor(rows, dtype=torch.long, device=problem.image.device)
@@ -375,8 +363,8 @@ def _light_beside_lobe(problem: FitProblem, lobed: albedo_free.AlbedoFreeFit, se
     more = albedo_free.search(sub, 2, fixed=before, starts=4 + len(starts), extra_starts=torch.stack(starts, 1),
                               **kwargs)
     more = albedo_free.search_each(sub, more, **kwargs)
-    taken, _, _, _ = _judged(sub, before, more, criterion(before), kwargs["labels"], options, criterion,
-                             None if geometry is None else geometry[at])
+    taken, _, _, _ = judged(sub, before, more, criterion(before), kwargs["labels"], options, criterion,
+                            None if geometry is None else geometry[at])
     apart = _resolved_beside_lobe(sub, more).tolist()
     taken = [t and a for t, a in zip(taken, apart)]
     values = criterion(more, [albedo_free.GLOSS_PARAMETERS] * len(rows))
@@ -398,43 +386,6 @@ def _resolved_beside_lobe(problem: FitProblem, fit: albedo_free.AlbedoFreeFit) -
     cosine = (seen[:, 0] * seen[:, 1]).sum(-1).clamp(-1.0, 1.0)
     half_width = torch.acos(torch.exp2(-1.0 / problem.gloss[:, 1].clamp_min(1e-3)))
     return torch.acos(cosine) > half_width
-
-
-def _judged(sub: FitProblem, before: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
-            fewer_value: list[float], labels: Tensor | None, options: EstimateOptions, criterion,
-            geometry: Tensor | None = None) -> tuple[list[bool], list[bool], list[float], list[float]]:
-    # Whether each image takes the fit of one light more: its criterion lower (judged without the
-    # highlights where enough residuals are left; on albedo classes with albedo_free_count=classes;
-    # on either with either) and each light carrying min_light_share, or the black pixels asking
-    # for it; whether the black pixels alone took it; and the two criteria compared.
-    shares = albedo_free.light_shares(sub, more).amin(1).tolist()
-    more_value = criterion(more)
-    count, lobe_deg = options.tuning.albedo_free_count, options.tuning.albedo_free_lobe_deg
-    if labels is not None and lobe_deg > 0:
-        labels = _highlight_free_labels(sub, before, labels, options)  # found once for both comparisons
-    on_classes = None
-    if labels is not None and count != "segments":
-        on_classes = _judged_on_classes(sub, before, more, labels, geometry, options, criterion, fewer_value,
-                                        more_value)
-    if labels is not None and count != "classes" and lobe_deg > 0:
-        fewer_there, more_there = _without_highlights(sub, before, more, labels, options)
-        kept = (more_there.pairs >= MIN_RESIDUALS).tolist()
-        fewer_value = [c if ok else v for c, ok, v in zip(criterion(fewer_there), kept, fewer_value)]
-        more_value = [c if ok else v for c, ok, v in zip(criterion(more_there), kept, more_value)]
-    if on_classes is not None:
-        # classes: the classes' values. either: the values of whichever comparison the light wins
-        # (the classes' where both or neither do).
-        wins_on_segments = [m < f for f, m in zip(fewer_value, more_value)]
-        keep_segments = [count == "either" and on_segments and not c < f
-                         for on_segments, f, c in zip(wins_on_segments, *on_classes)]
-        fewer_value = [b if k else a for k, a, b in zip(keep_segments, on_classes[0], fewer_value)]
-        more_value = [b if k else a for k, a, b in zip(keep_segments, on_classes[1], more_value)]
-    by_criterion = [c < f and share >= options.tuning.min_light_share
-                    for c, f, share in zip(more_value, fewer_value, shares)]
-    taken = by_criterion
-    if options.tuning.unlit_evidence:
-        taken = _or_black_pixels_need(sub, options, before, more, by_criterion)
-    return taken, [t and not c for t, c in zip(taken, by_criterion)], fewer_value, more_value
 
 
 def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Tensor | None, options: EstimateOptions,
@@ -518,81 +469,3 @@ def albedo_free_covariance(observed: albedo_free.LogShading, fit: albedo_free.Al
                                            indirect_variation=tuning.indirect_variation,
                                            indirect_length=tuning.indirect_length,
                                            normal_tilt=problem.normal_tilt if tuning.normal_error else None)
-
-
-def _or_black_pixels_need(problem: FitProblem, options: EstimateOptions, fewer: albedo_free.AlbedoFreeFit,
-                          more: albedo_free.AlbedoFreeFit, taken: list[bool]) -> list[bool]:
-    """``taken`` (one light more, per image of ``problem``) or, where the criterion did not
-    take it, the capture's black pixels need it (:func:`selfsup.estimation.unlit.needs_another_light`
-    under the criterion's cast shadows). Only the images not taken already are rendered, and
-    only those of a diffuse model: where the fit has a specular lobe (metal, gloss), a black
-    pixel may be one the lobe does not reach as well as a shadow."""
-    diffuse_only = albedo_free.diffuse_images(problem).tolist()
-    rest = [j for j, t in enumerate(taken) if not t and diffuse_only[j]]
-    if not rest:
-        return taken
-    rows = torch.tensor(rest, dtype=torch.long, device=problem.image.device)
-    needed = unlit.needs_another_light(criterion_light(problem.select(rows), options),
-                                       (fewer.position[rows], fewer.log_weight[rows, 1:].exp()),
-                                       (more.position[rows], more.log_weight[rows, 1:].exp())).tolist()
-    out = list(taken)
-    for j, need in zip(rest, needed):
-        out[j] = need
-    return out
-
-
-def _judged_on_classes(sub: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
-                       labels: Tensor, geometry: Tensor | None, options: EstimateOptions, criterion,
-                       fewer_value: list[float], more_value: list[float]) -> tuple[list[float], list[float]]:
-    """The criteria of ``fewer`` and ``more`` (fits of n - 1 and n lights), each refined on its
-    own segments ``labels`` merged into albedo classes (:func:`albedo_free.refine_on_classes`),
-    the classes counted as parameters (each one level) and each light's
-    :data:`CLASS_COUNT_PENALTY` times, on the pixels of ``labels`` (the highlights already left
-    out: :func:`_highlight_free_labels`); an image left with fewer than :data:`MIN_RESIDUALS` keeps
-    ``fewer_value`` and ``more_value`` (as found). A segment's free level absorbs what a second
-    light does to it; how bright the segments of one paint are beside each other is part of what
-    the light explains, and a model that explains it joins more segments into fewer classes.
-    Measured over eight capture sets: 4 more two-light rooms counted, 2 one-light rooms' stray
-    pairs gone, but a capture sequence's second light lost in 8 frames (the pair's margin 6.6 on
-    segments, -4.2 here); the true pair as found from the truth still pays in only 6-20 of 24
-    two-light rooms a set (7-20 on segments: benchmarks/results/count_classes_cpu2_2026-12-06.md)."""
-    tuning = options.tuning
-    values = []
-    for fit in (fewer, more):
-        refined, observed = albedo_free.refine_on_classes(
-            sub, labels, fit, tuning.albedo_free_scale, 1, level_tolerance=tuning.albedo_class_level,
-            chroma_tolerance=tuning.albedo_class_chroma, geometry=geometry)
-        classes = [int(torch.unique(c[p]).numel()) for c, p in zip(observed.segments, observed.pairs)]
-        own = [k + 4 * fit.position.shape[1] * (CLASS_COUNT_PENALTY - 1) for k in classes]  # one level a class
-        values.append(criterion(refined, own))
-    kept = (refined.pairs >= MIN_RESIDUALS).tolist()  # both fits count the same pixels
-    return ([v if ok else f for v, ok, f in zip(values[0], kept, fewer_value)],
-            [v if ok else m for v, ok, m in zip(values[1], kept, more_value)])
-
-
-def _highlight_free_labels(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, labels: Tensor,
-                           options: EstimateOptions) -> Tensor:
-    """The segments ``labels (B, H, W)`` less the pixels of ``fewer``'s mirror lobes that are
-    brighter than its model (:func:`albedo_free.highlight_pixels`; -1 there), in the images
-    whose model has no specular lobe (where it has one, the highlight is the model's)."""
-    every_pixel = albedo_free.observe(problem, options.tuning.albedo_free_scale, labels=labels, **residual_options(options))
-    held_out = albedo_free.highlight_pixels(every_pixel, fewer, options.tuning.albedo_free_lobe_deg)
-    held_out &= albedo_free.diffuse_images(problem)[:, None, None]
-    return torch.where(held_out, torch.full_like(labels, -1), labels)
-
-
-def _without_highlights(problem: FitProblem, fewer: albedo_free.AlbedoFreeFit, more: albedo_free.AlbedoFreeFit,
-                        outside_labels: Tensor, options: EstimateOptions
-                        ) -> tuple[albedo_free.AlbedoFreeFit, albedo_free.AlbedoFreeFit]:
-    """``fewer`` and ``more`` (fits of n - 1 and n lights, as found on every pixel) with
-    their losses on the segments' pixels less those of ``fewer``'s brighter mirror lobes
-    (``outside_labels``: :func:`_highlight_free_labels`). A glossy surface
-    beside a light shows a highlight the diffuse-only fit cannot explain; a second light
-    next to the first widens the modelled peak towards it and lowers the loss (one-light
-    capture sequences with a glossy wall 0.05 of the scene from the light took such a pair
-    on almost every frame). Without the highlight the pair has nothing to explain."""
-    outside = albedo_free.observe(problem, options.tuning.albedo_free_scale, labels=outside_labels,
-                                  **residual_options(options))
-    # No iterations: the loss of each fit at its positions and log weights, on these pixels.
-    return (albedo_free.refine_positions(outside, fewer.position, fewer.log_weight, 0, log_bounce=fewer.log_bounce),
-            albedo_free.refine_positions(outside, more.position, more.log_weight, 0, log_bounce=more.log_bounce))
