@@ -21,7 +21,7 @@ SHADOW_METHODS = tuple(m.value for m in ShadowMethod)
 NORMAL_SMOOTHING = ("auto", "always", "never")
 REFLECTANCE = ("auto", "given", "albedo_free")
 INDIRECT = ("auto", "never")
-COAT = ("auto", "never", "always")
+COAT = ("auto", "chosen", "never", "always")
 ALBEDO_FREE_RESIDUALS = ("segments", "pairs")
 LIGHT_COLOUR = ("neutral", "shared", "free")
 VIGNETTING = ("auto", "none")
@@ -162,10 +162,11 @@ class Tuning:
             is below theirs (a lobe and a second light beside the first explain the same
             peak), not where the black pixels took the light (a lobe casts no shadow); beside
             one light only a lobe that outshines it, from the highlight's mirror | ``never``.
-            ``albedo_free_coat``: ``auto`` sends the fit's diffuse light through a clear
+            ``albedo_free_coat``: ``chosen`` sends the fit's diffuse light through a clear
             coat (:mod:`render.coat`: the glossy paint's and plastic's Fresnel-weighted diffuse
-            layer) where the criterion prefers it at the first light (one parameter more) |
-            ``always`` | ``never``.
+            layer) where the criterion prefers it for the chosen model's lights, after their
+            count (one parameter more) | ``auto``: the same at the first light, every later
+            fit with it | ``always`` (at the first light) | ``never``.
             ``albedo_free_count``: where one light more is judged: ``segments`` (each
             albedo segment's level free) | ``classes`` (each model on its own segments
             merged into albedo classes, the classes counted as parameters: a light that
@@ -247,7 +248,7 @@ class Tuning:
     highlights: str = "leave_out"
     albedo_free_bounce: str = "never"
     albedo_free_gloss: str = "instead"
-    albedo_free_coat: str = "never"
+    albedo_free_coat: str = "chosen"
     albedo_free_count: str = "segments"
     unlit_evidence: bool = True
     albedo_class_rounds: int = 1

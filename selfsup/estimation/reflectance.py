@@ -231,7 +231,7 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
         raise ValueError(f"kd is one constant, so the lights are fitted albedo-free, but image {pairs.index(min(pairs))} "
                          f"has {min(pairs)} usable residuals (lit pixels of albedo segments, or pairs of neighbouring "
                          f"pixels with kd > 0 and light; at least {MIN_RESIDUALS} needed)")
-    if options.tuning.albedo_free_coat != "never":  # glossy paint and plastic: the diffuse light through a coat
+    if options.tuning.albedo_free_coat in ("auto", "always"):  # glossy paint and plastic: the diffuse light through a coat
         problem, found = albedo_free.choose_coat(problem, found, labels, search_kwargs["robust_scale"], criterion,
                                                  search_kwargs["residuals"], options.tuning.albedo_free_coat == "always")
     if options.tuning.albedo_free_gloss == "auto" and labels is not None:
@@ -271,7 +271,7 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
     if options.tuning.albedo_free_gloss == "instead" and labels is not None:
         problem = _lobe_instead(problem, found, labels, options, criterion, best, by_shadows, tried, geometry,
                                 from_mirror=sure)
-    return _chosen_candidates(problem, labels, geometry, options, best, tried, corner_loss, with_bounce)
+    return _chosen_candidates(problem, labels, geometry, options, best, tried, corner_loss, with_bounce, criterion)
 
 
 def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels: Tensor, options: EstimateOptions,
@@ -389,8 +389,8 @@ def _resolved_beside_lobe(problem: FitProblem, fit: albedo_free.AlbedoFreeFit) -
 
 
 def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Tensor | None, options: EstimateOptions,
-                       best: list, tried: list[list[tuple[int, float]]], corner_loss: Tensor, with_bounce=None
-                       ) -> tuple[list[tuple[Candidate, list[Candidate]]], list[float]]:
+                       best: list, tried: list[list[tuple[int, float]]], corner_loss: Tensor, with_bounce=None,
+                       criterion=None) -> tuple[list[tuple[Candidate, list[Candidate]]], list[float]]:
     # Each image's chosen fit ``best[i] = (fit, row, criterion)`` as a candidate (refined on its
     # albedo classes, its intensities and covariance), the models ``tried[i]`` beside it, and the
     # criterion of the whole model on every residual; one batched pass per light count.
@@ -405,13 +405,17 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
         rows = torch.tensor(group, dtype=torch.long, device=device)
         sub = problem.select(rows)
         segments = None if labels is None else labels[rows]
+        if options.tuning.albedo_free_coat == "chosen":  # the chosen lights' diffuse light through a coat, where it pays
+            sub, chosen = albedo_free.choose_coat(sub, chosen, segments, options.tuning.albedo_free_scale, criterion,
+                                                  options.tuning.albedo_free_residuals)
         # The chosen model against the model without lights on every residual: how much its lights explain.
         # (The chosen fit's own loss is its loss on every residual: the searches end on this observation.)
         every = albedo_free.observe(sub, options.tuning.albedo_free_scale, labels=segments, **residual_options(options))
         if with_bounce is not None:
             chosen = with_bounce(every, chosen)
         losses, counted = chosen.loss.tolist(), chosen.pairs.tolist()
-        # The model's own parameters: a position and a contrast per light, the bounce's strength, the lobe's two.
+        # The model's own parameters: a position and a contrast per light, the bounce's strength, the lobe's
+        # two, the coat's choice.
         bounced = chosen.bounced().tolist()
         own = [4 * n_lights + int(b) + g for b, g in zip(bounced, albedo_free.gloss_parameters(sub))]
         # The lights' evidence under the sensor's noise or, where larger, under the frame's own misfit.

@@ -588,3 +588,19 @@ def test_a_clear_coat_is_kept_where_the_diffuse_light_went_through_one():
         assert albedo_free.coated(chosen, 0) == coat
         if coat:
             assert _rel_error(fit.position[0], scene) < 0.5 * _rel_error(found.position[0], scene)
+
+
+def test_the_estimator_judges_the_coat_on_the_lights_it_chose():
+    # albedo_free_coat="chosen": after the count, the chosen lights refitted through a coat where
+    # the criterion (the coat's choice priced) prefers it; the record says which, and the light is
+    # nearer the truth through the coat than the plain model's.
+    base = _unknown_albedo(_scene(3, config=MEDIUM))
+    errors = {}
+    for coat in (True, False):
+        scene = _through_coat(base, problem_of(base, shadows="none"), coat)
+        for setting in ("chosen", "never"):
+            record = estimate_scene(scene, EstimateOptions(max_lights=1, tuning=Tuning(albedo_free_coat=setting)))
+            assert record["coat"] == (coat and setting == "chosen")
+            errors[coat, setting] = _rel_error(torch.tensor(record["lights"][0]["position"]), scene)
+    assert errors[True, "chosen"] < 0.5 * errors[True, "never"]
+    assert errors[False, "chosen"] == errors[False, "never"]

@@ -337,8 +337,10 @@ def diffuse_images(problem: FitProblem) -> Tensor:
 
 
 def gloss_parameters(problem: FitProblem) -> list[int]:
-    """Each image's parameters of its albedo-free specular lobe (:attr:`FitProblem.gloss`): two, or none."""
-    return [0 if diffuse else GLOSS_PARAMETERS for diffuse in diffuse_images(problem).tolist()]
+    """Each image's parameters of its albedo-free glossy terms: its specular lobe's two
+    (:attr:`FitProblem.gloss`) and its coat's choice (:data:`COAT_PARAMETERS`, :func:`coated`), where it has them."""
+    return [(0 if diffuse else GLOSS_PARAMETERS) + COAT_PARAMETERS * coated(problem, row)
+            for row, diffuse in enumerate(diffuse_images(problem).tolist())]
 
 
 def coated(problem: FitProblem, row: int) -> bool:
