@@ -96,6 +96,8 @@ def estimate_albedo_free(problem: FitProblem, options: EstimateOptions, slots: T
     carries ``min_light_share`` of the fitted shading, or while the capture's black pixels need
     one light more (``unlit_evidence``, :func:`selfsup.estimation.unlit.needs_another_light`:
     then the records' criteria may favour the fewer lights); the chosen model's lights then
+    refitted with their diffuse light through a clear coat, kept where the criterion prefers it
+    (``albedo_free_coat=chosen``, :func:`selfsup.estimation.albedo_free.choose_coat`), and
     placed on its segments merged into classes of one albedo (``albedo_class_rounds``,
     :func:`selfsup.estimation.albedo_free.refine_on_classes`), with the light they cast off
     the surfaces where ``albedo_free_bounce=auto`` and the criterion says it pays (before the
@@ -271,7 +273,7 @@ def _fit_albedo_free(problem: FitProblem, options: EstimateOptions, labels: Tens
     if options.tuning.albedo_free_gloss == "instead" and labels is not None:
         problem = _lobe_instead(problem, found, labels, options, criterion, best, by_shadows, tried, geometry,
                                 from_mirror=sure)
-    return _chosen_candidates(problem, labels, geometry, options, best, tried, corner_loss, with_bounce, criterion)
+    return _chosen_candidates(problem, labels, geometry, options, best, tried, corner_loss, criterion, with_bounce)
 
 
 def _lobe_instead(problem: FitProblem, found: albedo_free.AlbedoFreeFit, labels: Tensor, options: EstimateOptions,
@@ -389,11 +391,12 @@ def _resolved_beside_lobe(problem: FitProblem, fit: albedo_free.AlbedoFreeFit) -
 
 
 def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Tensor | None, options: EstimateOptions,
-                       best: list, tried: list[list[tuple[int, float]]], corner_loss: Tensor, with_bounce=None,
-                       criterion=None) -> tuple[list[tuple[Candidate, list[Candidate]]], list[float]]:
-    # Each image's chosen fit ``best[i] = (fit, row, criterion)`` as a candidate (refined on its
-    # albedo classes, its intensities and covariance), the models ``tried[i]`` beside it, and the
-    # criterion of the whole model on every residual; one batched pass per light count.
+                       best: list, tried: list[list[tuple[int, float]]], corner_loss: Tensor, criterion,
+                       with_bounce=None) -> tuple[list[tuple[Candidate, list[Candidate]]], list[float]]:
+    # Each image's chosen fit ``best[i] = (fit, row, criterion)`` as a candidate (through a coat
+    # where ``criterion(fit, extra)`` prefers it, refined on its albedo classes, its intensities and
+    # covariance), the models ``tried[i]`` beside it, and the criterion of the whole model on every
+    # residual; one batched pass per light count.
     B, device = problem.batch, problem.image.device
     block = block_px(options, problem.image.shape[-1], albedo_free=True)
     results: list = [None] * B
