@@ -133,3 +133,19 @@ def test_the_coated_image_is_differentiable_in_the_shininess():
     assert torch.autograd.gradcheck(
         lambda s: light_transport(gbuffer, Material(kd=material.kd, shininess=s, coat=material.coat), light,
                                   shadows="none").diffuse, (shininess,))
+
+
+def test_the_shipped_tables_are_the_quadratures_and_are_read_instead_of_it(monkeypatch):
+    # STORED_TABLES spares every fresh process the quadrature (0.5 s): its values must be what
+    # the quadrature finds now, for the default coat, and any other coat is still found by it.
+    from render import coat
+
+    eta = coat.coat_eta(0.04)
+    stored = coat._stored_tables(eta)
+    assert stored is not None, "render/coat_tables_f0_0.04.npz is missing or stale: run write_stored_tables()"
+    found = coat._quadrature_tables(eta)
+    for a, b in zip(stored, found):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-15)
+    assert coat._stored_tables(coat.coat_eta(0.05)) is None
+    monkeypatch.setattr(coat, "TABLE_COSINES", coat.TABLE_COSINES + 1)  # another layout: the file is not read
+    assert coat._stored_tables(eta) is None
