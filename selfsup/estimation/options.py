@@ -21,7 +21,8 @@ SHADOW_METHODS = tuple(m.value for m in ShadowMethod)
 NORMAL_SMOOTHING = ("auto", "always", "never")
 REFLECTANCE = ("auto", "given", "albedo_free")
 INDIRECT = ("auto", "never")
-COAT = ("auto", "chosen", "never", "always")
+COAT = ("auto", "never", "always")
+ALBEDO_FREE_COAT = ("chosen", "auto", "never", "always")
 ALBEDO_FREE_RESIDUALS = ("segments", "pairs")
 LIGHT_COLOUR = ("neutral", "shared", "free")
 VIGNETTING = ("auto", "none")
@@ -331,7 +332,7 @@ def _check_tuning(t: Tuning) -> None:
     need(t.criterion_stride >= 1, "criterion_stride", ">= 1 pixel")
     for name, choices in (("reflectance", REFLECTANCE), ("albedo_free_residuals", ALBEDO_FREE_RESIDUALS),
                           ("normal_smoothing", NORMAL_SMOOTHING), ("coat", COAT), ("light_colour", LIGHT_COLOUR), ("vignetting", VIGNETTING), ("highlights", HIGHLIGHTS), ("albedo_free_bounce", ALBEDO_FREE_BOUNCE), ("albedo_free_gloss", ALBEDO_FREE_GLOSS),
-                          ("albedo_free_coat", COAT),
+                          ("albedo_free_coat", ALBEDO_FREE_COAT),
                           ("albedo_free_count", ALBEDO_FREE_COUNT), ("cnn_count", CNN_COUNT), ("cnn_start", CNN_START),
                           ("indirect", INDIRECT), ("search_shadows", SHADOW_METHODS),
                           ("criterion_shadows", SHADOW_METHODS)):

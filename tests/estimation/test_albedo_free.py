@@ -205,6 +205,8 @@ def test_two_lights_are_told_from_one_without_the_albedo():
     (dict(albedo_free_block_width=0.0), "albedo_free_block_width"),
     (dict(albedo_free_lobe_deg=90.0), "albedo_free_lobe_deg"),
     (dict(albedo_free_lobe_deg=-1.0), "albedo_free_lobe_deg"),
+    (dict(albedo_free_coat="sometimes"), "albedo_free_coat"),
+    (dict(coat="chosen"), "estimate.tuning.coat"),  # the albedo-free fit's choice only, not the given albedo's coat
 ])
 def test_bad_reflectance_settings_are_named(options, word):
     with pytest.raises(ValueError, match=word):
