@@ -444,13 +444,14 @@ def _chosen_candidates(problem: FitProblem, labels: Tensor | None, geometry: Ten
             observed = every
         fit, bounce_share = intensities_of(sub, chosen, options, observed)
         cov = albedo_free_covariance(observed, chosen, sub, options).cpu()
+        coats = albedo_free.coated_images(sub).tolist()
         for j, i in enumerate(group):
             candidate = Candidate(fit_row(fit, j), n_lights, False, best[i][2], cov[j], "albedo_free",
                                   evidence=support[j], noise_evidence=at_noise[j],
                                   vignetting=round(float(corner_loss[i]), 3),
                                   highlight_pixels=int(highlight[j].sum()),
                                   bounce_share=round(float(bounce_share[j]), 4) if bounced[j] else None,
-                                  gloss=albedo_free.lobe_of(sub, j), coat=albedo_free.coated(sub, j))
+                                  gloss=albedo_free.lobe_of(sub, j), coat=coats[j])
             # The records keep the tried models' counts and criteria only.
             # (n, value) of the diffuse models, (n, value, True) of one with a specular lobe.
             others = [Candidate(candidate.fit, n, bool(lobe), value, None, "albedo_free") for n, value, *lobe in tried[i]]

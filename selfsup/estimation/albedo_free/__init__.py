@@ -53,9 +53,9 @@ from selfsup.estimation.albedo_free.fit import (FINAL_TOLERANCE, LM_TOLERANCE, b
 from selfsup.estimation.albedo_free.observation import (MIN_SEGMENT_PIXELS, AlbedoFreeFit, LogShading, albedo_segments,
                                                         fit_material, glossy_material, observe, pair_differences,
                                                         tuned_segments)
-from selfsup.estimation.albedo_free.gloss import (GLOSS_PARAMETERS, choose_coat, choose_gloss, choose_lone_lobe, coated,
-                                                  diffuse_images, fit_lobes, gloss_parameters, keep_lobes, lobe_of,
-                                                  mirror_start)
+from selfsup.estimation.albedo_free.gloss import (GLOSS_PARAMETERS, choose_coat, choose_gloss, choose_lone_lobe,
+                                                  coated_images, diffuse_images, fit_lobes, gloss_parameters,
+                                                  keep_lobes, lobe_of, mirror_start)
 from selfsup.estimation.albedo_free.light_search import (AMBIENT_STEPS, LEAN_SEARCH, RATIO_STEPS, anchor_pairs,
                                                          refine_from, search, search_each, split_starts)
 
@@ -64,6 +64,6 @@ __all__ = ["LogShading", "AlbedoFreeFit", "observe", "pair_differences", "albedo
            "glossy_material", "fit_material", "mirror_lobes", "residual_spread",
            "highlight_pixels", "position_covariance", "block_scores_of", "group_medians", "albedo_classes",
            "refine_on_classes", "refine_from", "choose_gloss", "choose_coat", "choose_lone_lobe", "fit_lobes", "keep_lobes", "mirror_start",
-           "diffuse_images", "gloss_parameters", "lobe_of", "coated",
+           "diffuse_images", "gloss_parameters", "lobe_of", "coated_images",
            "GLOSS_PARAMETERS", "AMBIENT_STEPS", "LEAN_SEARCH", "RATIO_STEPS", "CLASS_ITERATIONS", "MIN_SEGMENT_PIXELS",
            "LM_TOLERANCE", "FINAL_TOLERANCE"]

@@ -51,7 +51,7 @@ from selfsup.estimation.albedo_free.observation import AlbedoFreeFit, observe
 from selfsup.estimation.problem import FitProblem, centre_and_size, subsample
 
 __all__ = ["choose_gloss", "choose_coat", "choose_lone_lobe", "fit_lobes", "keep_lobes", "mirror_start", "diffuse_images",
-           "gloss_parameters", "lobe_of", "coated", "GLOSS_RATIOS", "GLOSS_SHININESS", "GLOSS_PARAMETERS"]
+           "gloss_parameters", "lobe_of", "coated_images", "GLOSS_RATIOS", "GLOSS_SHININESS", "GLOSS_PARAMETERS"]
 
 # The grid of lobes tried (ratio of the lobe's peak to the diffuse light, Blinn-Phong
 # shininess): from a paint's broad sheen to a metal whose diffuse light is nil, and from a
@@ -338,14 +338,17 @@ def diffuse_images(problem: FitProblem) -> Tensor:
 
 def gloss_parameters(problem: FitProblem) -> list[int]:
     """Each image's parameters of its albedo-free glossy terms: its specular lobe's two
-    (:attr:`FitProblem.gloss`) and its coat's choice (:data:`COAT_PARAMETERS`, :func:`coated`), where it has them."""
-    return [(0 if diffuse else GLOSS_PARAMETERS) + COAT_PARAMETERS * coated(problem, row)
-            for row, diffuse in enumerate(diffuse_images(problem).tolist())]
+    (:attr:`FitProblem.gloss`) and its coat's choice (:data:`COAT_PARAMETERS`, :func:`coated_images`), where it
+    has them."""
+    return [(0 if diffuse else GLOSS_PARAMETERS) + COAT_PARAMETERS * coat
+            for diffuse, coat in zip(diffuse_images(problem).tolist(), coated_images(problem).tolist())]
 
 
-def coated(problem: FitProblem, row: int) -> bool:
-    """Whether image ``row``'s diffuse light goes through a clear coat (:func:`choose_coat`)."""
-    return problem.material.coat is not None and bool(problem.material.coat[row].amax() > 0)
+def coated_images(problem: FitProblem) -> Tensor:
+    """``(B,)`` bool: the images whose diffuse light goes through a clear coat (:func:`choose_coat`)."""
+    if problem.material.coat is None:
+        return torch.zeros(problem.batch, dtype=torch.bool, device=problem.image.device)
+    return problem.material.coat.flatten(1).amax(1) > 0
 
 
 def lobe_of(problem: FitProblem, row: int) -> tuple[float, float] | None:
