@@ -43,8 +43,8 @@ from torch import Tensor
 
 from render.geometry import broadcast_shape
 
-__all__ = ["STORED_TABLES", "write_stored_tables", "fresnel_dielectric", "beckmann_g1", "coat_roughness", "rough_transmittance", "internal_reflectance",
-           "coat_tables", "coat_eta", "coat_transmission", "CoatProfile", "coat_profile", "profile_transmission"]
+__all__ = ["STORED_TABLES", "write_stored_tables", "fresnel_dielectric", "beckmann_g1", "coat_roughness",
+           "rough_transmittance", "internal_reflectance", "coat_tables", "coat_eta", "coat_transmission", "CoatProfile", "coat_profile", "profile_transmission"]
 
 ALPHA_RANGE = (0.02, 1.0)  # coat roughness tabulated (Blinn-Phong exponent about 5000 to 0)
 TABLE_ALPHAS = 25  # log-spaced

@@ -18,13 +18,17 @@ def broadcast_shape(*shapes: torch.Size | tuple[int, ...]) -> tuple[int, ...]:
     """The broadcast of ``shapes``, as ``torch.broadcast_shapes``; ValueError where they do
     not broadcast. Not that function: its first call imports sympy (half a second in every
     fresh process or DataLoader worker), and each call costs more."""
+    if all(shape == shapes[0] for shape in shapes[1:]):  # the ray caster's usual case, per operation
+        return tuple(shapes[0])
     width = max(len(shape) for shape in shapes)
     out = [1] * width
     for shape in shapes:
         for axis, size in enumerate((1,) * (width - len(shape)) + tuple(shape)):
-            if size != 1 and out[axis] not in (1, size):
+            if size == 1:
+                continue
+            if out[axis] not in (1, size):
                 raise ValueError(f"shapes {[tuple(s) for s in shapes]} do not broadcast")
-            out[axis] = size if size != 1 else out[axis]
+            out[axis] = size
     return tuple(out)
 
 

@@ -149,3 +149,23 @@ def test_the_shipped_tables_are_the_quadratures_and_are_read_instead_of_it(monke
     assert coat._stored_tables(coat.coat_eta(0.05)) is None
     monkeypatch.setattr(coat, "TABLE_COSINES", coat.TABLE_COSINES + 1)  # another layout: the file is not read
     assert coat._stored_tables(eta) is None
+
+
+def test_a_coat_is_rendered_without_importing_sympy_and_shapes_broadcast_as_torch_says():
+    # torch.broadcast_shapes imports sympy on its first call (half a second in every fresh
+    # estimator worker); render.geometry.broadcast_shape stands in for it.
+    import subprocess
+    import sys
+
+    from render.geometry import broadcast_shape
+
+    for shapes in [((2, 1, 3), (4, 1), (3,)), ((3,), (3,)), ((), (2, 3)), ((2, 3), (1, 3), (2, 1))]:
+        assert broadcast_shape(*shapes) == tuple(torch.broadcast_shapes(*shapes))
+    with pytest.raises(ValueError, match="do not broadcast"):
+        broadcast_shape((2, 3), (3, 3))
+    code = ("import sys, torch; from render.coat import coat_profile, coat_transmission; "
+            "coat_transmission(torch.rand(4, 5), torch.ones(4, 1), torch.full((1,), 50.0), 0.04); "
+            "coat_profile(torch.ones(2, 3, 1), torch.full((2, 1, 1), 50.0), 0.04); print('sympy' in sys.modules)")
+    ran = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert ran.returncode == 0, ran.stderr
+    assert ran.stdout.strip() == "False"
