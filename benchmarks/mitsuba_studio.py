@@ -42,7 +42,7 @@ from selfsup.scenes.camera import camera_capture, write_capture_frame
 from selfsup.scenes.capture import capture_frames, read_capture
 from selfsup.scenes.integration import integrated_depth
 from selfsup.scenes.sampler import SceneSpec
-from selfsup.scenes.studio import DEPTHS, PHOTO_CAMERA, sphere_centre, studio_spec
+from selfsup.scenes.studio import DEPTHS, PHOTO_CAMERA, lamp_angle_deg, sphere_centre, studio_spec
 
 SHAPES = ("cup", "objects")
 INTEGRATORS = ("path", "direct")
@@ -101,16 +101,6 @@ def render(spec: SceneSpec, shape: str, material: str, integrator: str, spp: int
     return torch.tensor(_render(scene, spp), dtype=torch.float32), z
 
 
-def _angle(record: dict, spec: SceneSpec, direction: tuple[float, float, float]) -> float:
-    # Degrees between the true direction and the object's centre to the brightest light (90: none).
-    lights = record["lights"] or record["unsupported_lights"]
-    if not lights:
-        return 90.0
-    v = np.asarray(lights[0]["position"]) - sphere_centre(spec).numpy()
-    d = np.asarray(direction) / np.linalg.norm(direction)
-    return math.degrees(math.acos(float(np.clip(v @ d / np.linalg.norm(v), -1, 1))))
-
-
 def run(shapes, materials, integrator: str, spp: int, options: EstimateOptions, name: str, write: bool = True,
         depth: str = "rendered") -> list[dict]:
     import mitsuba as mi
@@ -132,7 +122,7 @@ def run(shapes, materials, integrator: str, spp: int, options: EstimateOptions, 
                         record = estimate_scene(read_capture(capture_frames(Path(folder))[0]), options)
                     except ValueError as error:  # a frame the estimator refuses: its reason, no light
                         record, row["note"] = None, str(error)[:120]
-                row["angle_deg"] = 90.0 if record is None else round(_angle(record, spec, direction), 2)
+                row["angle_deg"] = 90.0 if record is None else round(lamp_angle_deg(record, spec, direction), 2)
                 if record is not None:
                     row["light_found"], row["lights"] = record["light_found"], len(record["lights"])
                 angles.append(row["angle_deg"])

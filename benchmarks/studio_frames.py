@@ -18,10 +18,8 @@ angle between the true direction and the sphere's centre to the brightest light.
 from __future__ import annotations
 
 import argparse
-import math
 import statistics
 import tempfile
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -30,7 +28,7 @@ from benchmarks.common import write_results
 from benchmarks.estimate_procedural import parse_options
 from selfsup.estimation.options import EstimateOptions
 from selfsup.estimation.stages import estimate_scene
-from selfsup.scenes.studio import ARRANGEMENTS, DEPTHS, HARD_PAINTS, photograph, sphere_centre, studio_spec
+from selfsup.scenes.studio import ARRANGEMENTS, DEPTHS, HARD_PAINTS, lamp_angle_deg, photograph, studio_spec
 
 COLUMNS = ["frame", "paint", "others", "direction", "angle_deg", "light_found"]
 
@@ -56,13 +54,8 @@ def run(count: int, options: EstimateOptions, name: str, write: bool = True, arr
         spec = studio_spec(direction, others=others, seed=k, arrangement=arrangement, **HARD_PAINTS.get(paint, {}))
         with tempfile.TemporaryDirectory() as folder:
             record = estimate_scene(photograph(folder, spec, seed=k, depth=depth, normals=normals), options)
-        lights = record["lights"] or record["unsupported_lights"]
-        angle = 90.0
-        if lights:
-            v = np.asarray(lights[0]["position"]) - sphere_centre(spec).numpy()
-            angle = math.degrees(math.acos(float(np.clip(v @ np.asarray(direction) / np.linalg.norm(v), -1, 1))))
         rows.append({"frame": k, "paint": paint, "others": others, "direction": [round(x, 3) for x in direction],
-                     "angle_deg": round(angle, 2), "light_found": record["light_found"]})
+                     "angle_deg": round(lamp_angle_deg(record, spec, direction), 2), "light_found": record["light_found"]})
         print(rows[-1], flush=True)
     rows.append({"frame": "**median**", "angle_deg": round(statistics.median(r["angle_deg"] for r in rows), 2)})
     if write:

@@ -26,7 +26,7 @@ from selfsup.scenes.io import Scene
 from selfsup.scenes.raycast import Primitives
 from selfsup.scenes.sampler import Materials, SamplerConfig, SceneSpec, Texture, sample_scene
 
-__all__ = ["studio_spec", "sphere_centre", "PATTERNS", "ARRANGEMENTS", "DEPTHS", "HARD_PAINTS", "drawn_studio_spec",
+__all__ = ["studio_spec", "sphere_centre", "lamp_angle_deg", "PATTERNS", "ARRANGEMENTS", "DEPTHS", "HARD_PAINTS", "drawn_studio_spec",
            "scene_spec", "PHOTO_CAMERA", "photograph", "PANEL_SIZE", "PANEL_POINTS"]
 
 
@@ -167,6 +167,18 @@ def photograph(folder: str | Path, spec: SceneSpec, seed: int = 0, depth: str = 
 def sphere_centre(spec: SceneSpec) -> Tensor:
     """The sphere's centre ``(3,)`` of a :func:`studio_spec` (the point light directions are judged from)."""
     return spec.prims.spheres[0, :3]
+
+
+def lamp_angle_deg(record: dict, spec: SceneSpec, direction) -> float:
+    """Degrees between the lamp's true ``direction`` (3,) and the direction from
+    :func:`sphere_centre` to an estimate ``record``'s first light (an unsupported one where it
+    found none); 90 where it has no light at all. How the studio's frames are scored."""
+    lights = record["lights"] or record.get("unsupported_lights") or []
+    if not lights:
+        return 90.0
+    v = np.asarray(lights[0]["position"]) - sphere_centre(spec).numpy()
+    d = np.asarray(direction, dtype=np.float64)
+    return math.degrees(math.acos(float(np.clip(v @ d / (np.linalg.norm(v) * np.linalg.norm(d)), -1, 1))))
 
 
 # How :func:`drawn_studio_spec` draws a photometric-stereo frame (DiLiGenT-like: one object in a

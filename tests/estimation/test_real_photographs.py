@@ -4,7 +4,6 @@ lamp in the dark, through a camera (auto exposure, sRGB, 8 bits, millimetre dept
 import dataclasses
 import math
 
-import numpy as np
 import pytest
 import torch
 
@@ -13,14 +12,7 @@ from selfsup.estimation.normals import surface_segments
 from selfsup.estimation.prepare import prepare, problem_of, saturated_pixels, within_pixels, working_range
 from selfsup.estimation.stages import estimate_scene
 from selfsup.scenes.exact import render_spec
-from selfsup.scenes.studio import HARD_PAINTS, photograph, sphere_centre, studio_spec
-
-
-def _angle_deg(record, spec, direction):
-    light = (record["lights"] or record["unsupported_lights"])[0]
-    v = np.asarray(light["position"]) - sphere_centre(spec).numpy()
-    d = np.asarray(direction) / np.linalg.norm(direction)
-    return math.degrees(math.acos(float(np.clip(v @ d / np.linalg.norm(v), -1, 1))))
+from selfsup.scenes.studio import HARD_PAINTS, lamp_angle_deg, photograph, sphere_centre, studio_spec
 
 
 @pytest.mark.parametrize("others,direction", [(False, (0.3, -0.5, -0.81)), (True, (-0.6, -0.3, -0.74))])
@@ -32,7 +24,7 @@ def test_a_glossy_object_in_the_dark_gives_its_light_within_two_degrees(tmp_path
     spec = studio_spec(direction, others=others)
     record = estimate_scene(photograph(tmp_path, spec), EstimateOptions())
     assert record["light_found"] is True and len(record["lights"]) == 1 and record["evidence"] > 20
-    assert _angle_deg(record, spec, direction) < 2.0
+    assert lamp_angle_deg(record, spec, direction) < 2.0
     assert record["lights"][0]["share"] > 0.8 and max(record["ambient"]) < 0.2 * record["lights"][0]["intensity"][0]
     # The highlight is not modelled (a diffuse-only fit): its pixels are left out, and the record says how many.
     assert record["specular"] is False and record["highlight_pixels"] > 20
@@ -54,7 +46,7 @@ def test_hard_objects_in_the_dark_give_their_light_within_two_degrees(tmp_path, 
     spec = studio_spec(direction, others=True, **HARD_PAINTS[name])
     record = estimate_scene(photograph(tmp_path, spec), EstimateOptions())
     assert record["light_found"] is True and len(record["lights"]) == 1
-    assert _angle_deg(record, spec, direction) < 2.0
+    assert lamp_angle_deg(record, spec, direction) < 2.0
 
 
 # Parts that hide each other: with the true depth the lamp is found; with the depth integrated
@@ -70,7 +62,7 @@ def test_parts_that_hide_each_other_give_their_light_within_two_degrees(tmp_path
     spec = studio_spec(direction, arrangement="overlapping", seed=16)
     record = estimate_scene(photograph(tmp_path, spec, seed=16, depth=depth), EstimateOptions())
     assert record["light_found"] is True and len(record["lights"]) == 1
-    assert _angle_deg(record, spec, direction) < 2.0
+    assert lamp_angle_deg(record, spec, direction) < 2.0
 
 
 def test_a_light_that_explains_the_shading_is_found_where_an_integrated_depth_misses_it(tmp_path):
@@ -83,7 +75,7 @@ def test_a_light_that_explains_the_shading_is_found_where_an_integrated_depth_mi
     record = estimate_scene(photograph(tmp_path, spec, seed=9, depth="integrated"), EstimateOptions())
     assert record["light_found"] is True and len(record["lights"]) == 1 and record["evidence"] > 0
     assert record["lights"][0]["share"] > 0.8
-    assert _angle_deg(record, spec, direction) < 20.0  # 15.2: the sheet's normals (the xfail above)
+    assert lamp_angle_deg(record, spec, direction) < 20.0  # 15.2: the sheet's normals (the xfail above)
 
 
 def test_parts_that_hide_each_other_give_their_light_where_their_normals_are_given(tmp_path):
@@ -95,7 +87,7 @@ def test_parts_that_hide_each_other_give_their_light_where_their_normals_are_giv
     assert scene.normals is not None
     record = estimate_scene(scene, EstimateOptions())
     assert record["light_found"] is True and len(record["lights"]) == 1
-    assert _angle_deg(record, spec, direction) < 2.0  # 0.97 (2026-12-07)
+    assert lamp_angle_deg(record, spec, direction) < 2.0  # 0.97 (2026-12-07)
 
 
 def test_a_studio_paint_is_checked():
@@ -109,7 +101,7 @@ def test_a_matte_object_leaves_no_highlight_out(tmp_path):
     direction = (0.3, -0.5, -0.81)
     spec = studio_spec(direction, others=False, ks=0.0)
     record = estimate_scene(photograph(tmp_path, spec), EstimateOptions())
-    assert record["light_found"] is True and _angle_deg(record, spec, direction) < 2.0
+    assert record["light_found"] is True and lamp_angle_deg(record, spec, direction) < 2.0
     assert record["highlight_pixels"] <= 5
 
 
@@ -206,7 +198,7 @@ def test_the_network_trained_in_the_dark_places_a_lamp_alone(tmp_path):
         spec = studio_spec(direction, others=others, seed=k, **paint)
         record = estimate_scene(photograph(tmp_path / str(k), spec, seed=k), options)
         assert record["lights"] or record["unsupported_lights"]
-        angles.append(_angle_deg(record, spec, direction))
+        angles.append(lamp_angle_deg(record, spec, direction))
         # The albedo unknown (the gold paint's colour is the surfaces' as much as the lamp's): the
         # lights and the ambient are the image's white, as the albedo-free fit's.
         for colour in [light["intensity"] for light in record["lights"] + record["unsupported_lights"]] + [record["ambient"]]:
@@ -220,13 +212,13 @@ def test_the_network_alone_is_settled_on_the_frame(tmp_path):
     direction, paint, others = STUDIO_FRAMES[1]
     spec = studio_spec(direction, others=others, seed=1, **paint)
     scene = photograph(tmp_path, spec, seed=1)
-    angles = [_angle_deg(estimate_scene(scene, EstimateOptions(method="cnn", checkpoint="selfsup/checkpoints/iterative_studio.pt",
+    angles = [lamp_angle_deg(estimate_scene(scene, EstimateOptions(method="cnn", checkpoint="selfsup/checkpoints/iterative_studio.pt",
                                                                 tuning=Tuning(cnn_settle=steps))), spec, direction)
               for steps in (0, 5)]
     assert angles[0] > 3.0 and angles[1] < 1.0
     # With no checkpoint named both shipped networks propose and the frame takes the lower settled
     # loss: the dark network's light here, where the rooms' network alone lands 16 degrees off.
-    rooms, both = [_angle_deg(estimate_scene(scene, EstimateOptions(method="cnn", checkpoint=checkpoint)), spec, direction)
+    rooms, both = [lamp_angle_deg(estimate_scene(scene, EstimateOptions(method="cnn", checkpoint=checkpoint)), spec, direction)
                    for checkpoint in ("selfsup/checkpoints/iterative.pt", None)]
     assert rooms > 10.0 and both < 1.0
     with pytest.raises(ValueError, match="estimate.tuning.cnn_settle"):
@@ -255,7 +247,7 @@ def test_a_specular_lobe_in_the_albedo_free_fit_takes_rough_metal_with_one_light
     assert len(plain["lights"]) == 2 and plain["gloss"] is None
     record = estimate_scene(scene, EstimateOptions(tuning=Tuning(albedo_free_gloss=gloss)))
     assert record["light_found"] is True and len(record["lights"]) == 1
-    assert _angle_deg(record, spec, direction) < 2.0
+    assert lamp_angle_deg(record, spec, direction) < 2.0
     assert record["gloss"]["ratio"] > 1.0 and record["gloss"]["shininess"] > 0
     if gloss == "instead":  # the lobe's models are in the record beside the diffuse ones the first beat
         lobe = [c for c in record["candidates"] if c["specular"]]
@@ -280,7 +272,7 @@ def test_glossy_objects_beside_others_take_one_light_and_its_lobe(tmp_path, pain
     spec = studio_spec(direction, others=True, **GLOSSY_PAINTS[paint])
     record = estimate_scene(photograph(tmp_path, spec), EstimateOptions())
     assert record["light_found"] is True and len(record["lights"]) == 1 and record["gloss"] is not None
-    assert _angle_deg(record, spec, direction) < 1.5
+    assert lamp_angle_deg(record, spec, direction) < 1.5
 
 
 def test_the_highlights_mirror_points_to_a_metals_lamp(tmp_path):
@@ -355,7 +347,7 @@ def test_a_lobe_between_the_grids_shapes_is_refined_to_its_own(tmp_path):
     direction = (-0.6, -0.3, -0.74)
     spec = studio_spec(direction, others=True, **GLOSSY_PAINTS["glossy white paint"])
     record = estimate_scene(photograph(tmp_path, spec), EstimateOptions())
-    assert len(record["lights"]) == 1 and _angle_deg(record, spec, direction) < 1.5
+    assert len(record["lights"]) == 1 and lamp_angle_deg(record, spec, direction) < 1.5
     assert 0.55 < record["gloss"]["ratio"] < 0.95 and 15.0 < record["gloss"]["shininess"] < 27.0
 
 
