@@ -19,8 +19,7 @@ from torch import Tensor
 from render.coat import CoatProfile, coat_profile, coat_transmission, profile_transmission
 from render.geometry import dot3, fit_intrinsics, norm3
 from render.indirect import INDIRECT_MODES, bounce_image
-from render.shading import (Falloff, blinn_phong_lobe, falloff_factor, light_geometry, light_offset,
-                            shading_and_position_gradients)
+from render.shading import Falloff, planar_lobe, planar_shading, shading_and_position_gradients
 from render.shadows import ShadowMethod, shadow_visibility
 from render.types import GBuffer, Material, PointLights, check_ambient
 
@@ -95,15 +94,11 @@ def _shininess(material: Material) -> Tensor:
     return shininess[:, None] if shininess.dim() == 3 else shininess
 
 
-def _geometry(gbuffer: GBuffer, light_position: Tensor):
-    # light_geometry of every pixel and light: points (B, 1, H, W, 3), lights (B, L, 1, 1, 3).
-    return light_geometry(gbuffer.points[:, None], light_position[:, :, None, None, :])
-
-
-def _coat(gbuffer: GBuffer, material: Material) -> tuple | None:
-    # (transmit, outward): transmit(cosine) -> (the coat's transmission at cosine, its
-    # derivative), cosine broadcastable to (B, L, H, W); outward (B, 1, H, W), the
-    # transmission towards the camera. None without a coat.
+def _coat(gbuffer: GBuffer, material: Material):
+    # The coat as a factor of the diffuse term's cosine c = n.l: g(c) -> (T(c) T_o, T'(c) T_o),
+    # c broadcastable to (B, L, H, W), T the coat's transmission in, T_o (B, 1, H, W) out,
+    # towards the camera (render.shading.shading_and_position_gradients' cosine_factor). None
+    # without a coat.
     if material.coat is None:
         return None
     dtype = gbuffer.points.dtype
@@ -118,7 +113,12 @@ def _coat(gbuffer: GBuffer, material: Material) -> tuple | None:
             return profile_transmission(cosine, profile)
     points = gbuffer.points[:, None]
     n_dot_v = -dot3(gbuffer.normals[:, None], points) / norm3(points).clamp_min(torch.finfo(points.dtype).tiny)
-    return transmit, transmit(n_dot_v)[0]
+    outward = transmit(n_dot_v)[0]
+
+    def cosine_factor(cosine: Tensor) -> tuple[Tensor, Tensor]:
+        inward, slope = transmit(cosine)
+        return inward * outward, slope * outward
+    return cosine_factor
 
 
 def _coat_profile(material: Material, coat: Tensor, shininess: Tensor, dtype: torch.dtype) -> CoatProfile | None:
@@ -138,20 +138,11 @@ def _coat_profile(material: Material, coat: Tensor, shininess: Tensor, dtype: to
     return profile
 
 
-def _transport(gbuffer, material, light_position, falloff, shadows, shadow_options, with_specular,
-               geometry=None) -> LightTransport:
-    # geometry: _geometry(gbuffer, light_position) when the caller already has it.
-    normals = gbuffer.normals[:, None]
-    if geometry is None and not with_specular:
-        # Diffuse alone needs no unit vectors: n.l = n.(L - X) / d, a third of the work
-        # (and of its backward) on (B, L, H, W, 3) arrays.
-        offset, distance, _, _ = light_offset(gbuffer.points[:, None], light_position[:, :, None, None, :])
-        n_dot_l = dot3(normals, offset) / distance
-    else:
-        to_light, distance, to_viewer = _geometry(gbuffer, light_position) if geometry is None else geometry
-        n_dot_l = dot3(normals, to_light)
+def _transport(gbuffer, material, light_position, falloff, shadows, shadow_options, with_specular) -> LightTransport:
+    geometry = planar_shading(*gbuffer.planes(), light_position, falloff)
+    n_dot_l = geometry.n_dot_l
     # Per-light scalar weights (B, L, H, W); RGB enters only where the caller sums lights.
-    weight = falloff_factor(distance, falloff)
+    weight = geometry.falloff
     visibility = None
     if shadows is not ShadowMethod.NONE:
         visibility = shadow_visibility(shadows, gbuffer.points, gbuffer.mask, _shadow_intrinsics(gbuffer, shadows),
@@ -163,11 +154,11 @@ def _transport(gbuffer, material, light_position, falloff, shadows, shadow_optio
         weight = weight * visibility
     specular = None
     if with_specular:
-        specular = weight * blinn_phong_lobe(normals, to_light, to_viewer, _shininess(material))
+        specular = weight * planar_lobe(geometry, _shininess(material))
     diffuse = weight * n_dot_l.clamp_min(0)
-    coat = _coat(gbuffer, material)
-    if coat is not None:
-        diffuse = diffuse * coat[0](n_dot_l)[0] * coat[1]
+    cosine_factor = _coat(gbuffer, material)
+    if cosine_factor is not None:
+        diffuse = diffuse * cosine_factor(n_dot_l)[0]
     return LightTransport(diffuse=diffuse, specular=specular, visibility=visibility)
 
 
@@ -240,18 +231,9 @@ def light_transport_jacobian(
         raise ValueError(f"light_position must have shape ({B}, L, 3), got {tuple(light_position.shape)}")
     falloff, shadows = Falloff(falloff), ShadowMethod(shadows)
     with_specular = bool(specular) and material.ks is not None
-    geometry = _geometry(gbuffer, light_position)
-    normals = gbuffer.normals[:, None]
-    diffuse, spec, d_diffuse, d_specular = shading_and_position_gradients(normals, geometry, _shininess(material),
-                                                                          falloff, with_specular)
-    coat = _coat(gbuffer, material)
-    if coat is not None:
-        # d(f c T(c) T_o)/dp = T(c) T_o d(f c)/dp + f c T_o T'(c) dc/dp, dc/dp = (n - c l) / d.
-        n_dot_l = dot3(normals, geometry.to_light)
-        inward, slope = coat[0](n_dot_l)
-        d_cos = (normals - n_dot_l[..., None] * geometry.to_light) / geometry.distance[..., None]
-        d_diffuse = (inward * coat[1])[..., None] * d_diffuse + (diffuse * coat[1] * slope)[..., None] * d_cos
-        diffuse = diffuse * inward * coat[1]
+    diffuse, spec, d_diffuse, d_specular, n_dot_l = shading_and_position_gradients(
+        *gbuffer.planes(), light_position, _shininess(material), falloff, with_specular,
+        _coat(gbuffer, material))
     if shadows is ShadowMethod.NONE:
         return TransportJacobian(LightTransport(diffuse, spec, None), d_diffuse, d_specular)
 
@@ -263,7 +245,7 @@ def light_transport_jacobian(
     cast_shifted = shadow_visibility(shadows, gbuffer.points.repeat(3, 1, 1, 1), gbuffer.mask.repeat(3, 1, 1),
                                      None if K is None else K.repeat(3, 1, 1), shifted, shadow_options)
     d_cast = ((cast_shifted.unflatten(0, (3, B)) - cast[None]) / step[None, :, None, None, None]).permute(1, 2, 3, 4, 0)
-    attached = (dot3(normals, geometry.to_light) > 0).to(cast.dtype)
+    attached = (n_dot_l > 0).to(cast.dtype)
     visibility = cast * attached
 
     def shadowed(value: Tensor, derivative: Tensor) -> Tensor:

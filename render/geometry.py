@@ -32,29 +32,39 @@ def broadcast_shape(*shapes: torch.Size | tuple[int, ...]) -> tuple[int, ...]:
     return tuple(out)
 
 
-def dot3(a: Tensor, b: Tensor) -> Tensor:
-    """``a . b`` over a last axis of length 3, broadcasting: ``(..., 3) x (..., 3) -> (...)``.
+def dot3(a: Tensor, b: Tensor, axis: int = -1) -> Tensor:
+    """``a . b`` over an axis of length 3 (the last by default), broadcasting:
+    ``(..., 3) x (..., 3) -> (...)``.
 
     On the CPU as three strided products and two sums: 2-3x faster there than a
     reduction over so short an axis (measured 2026-11-23, 300k vectors); elsewhere one
     fused kernel (``torch.linalg.vecdot``).
     """
     if a.device.type != "cpu":
-        return torch.linalg.vecdot(a, b)
-    ax, ay, az = a.unbind(-1)
-    bx, by, bz = b.unbind(-1)
+        return torch.linalg.vecdot(a, b, dim=axis)
+    ax, ay, az = a.unbind(axis)
+    bx, by, bz = b.unbind(axis)
     return ax * bx + ay * by + az * bz
 
 
-def norm3(v: Tensor) -> Tensor:
-    """Euclidean length over a last axis of length 3: ``(..., 3) -> (...)`` (see :func:`dot3`).
+def positive(x: Tensor) -> Tensor:
+    """1 where ``x > 0``, 0 elsewhere, in ``x``'s dtype (NaN stays NaN): a mask to multiply
+    by. On the CPU ``torch.where`` and bool masks cost 5-30x a float product (torch 2.13,
+    ad hoc 2026-12-07, one core, 38,400 floats: where 190 us, ``x > 0`` 30 us, this 12 us,
+    a product 5 us); a masked value ``v * positive(x)`` must be finite where ``x <= 0``."""
+    return x.sign().clamp_min(0)
+
+
+def norm3(v: Tensor, axis: int = -1) -> Tensor:
+    """Euclidean length over an axis of length 3 (the last by default): ``(..., 3) -> (...)``
+    (see :func:`dot3`).
 
     With a gradient, always ``torch.linalg.vector_norm``: its derivative at a zero
     vector is 0, where that of a square root is infinite.
     """
     if v.device.type != "cpu" or (v.requires_grad and torch.is_grad_enabled()):
-        return torch.linalg.vector_norm(v, dim=-1)
-    return dot3(v, v).sqrt()
+        return torch.linalg.vector_norm(v, dim=axis)
+    return dot3(v, v, axis).sqrt()
 
 
 def pixel_grid(height: int, width: int, like: Tensor) -> tuple[Tensor, Tensor]:

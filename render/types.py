@@ -94,6 +94,20 @@ class GBuffer:
     def batch_size(self) -> int:
         return self.points.shape[0]
 
+    def planes(self) -> tuple[Tensor, Tensor]:
+        """``points`` and ``normals`` as ``(B, 3, H, W)`` planes, each component contiguous
+        (:func:`render.shading.planar_shading`); kept on the buffer between calls (a
+        solver renders one buffer hundreds of times) and made again when either was
+        changed in place, or, untracked, where either needs a gradient."""
+        if torch.is_grad_enabled() and (self.points.requires_grad or self.normals.requires_grad):
+            return self.points.permute(0, 3, 1, 2).contiguous(), self.normals.permute(0, 3, 1, 2).contiguous()
+        key = (self.points._version, self.normals._version)
+        kept = self.__dict__.get("_planes")
+        if kept is None or kept[0] != key:
+            kept = (key, (self.points.permute(0, 3, 1, 2).contiguous(), self.normals.permute(0, 3, 1, 2).contiguous()))
+            object.__setattr__(self, "_planes", kept)
+        return kept[1]
+
     def select(self, index: Tensor) -> "GBuffer":
         """The images ``index`` (a 1-D long tensor, repeats allowed) as a buffer of
         ``len(index)`` images.

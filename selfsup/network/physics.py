@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from render import Material, light_transport
-from render.shading import Falloff, shading_and_position_gradients, light_geometry
+from render.shading import Falloff, shading_and_position_gradients
 from render.shadows import ShadowMethod, shadow_visibility
 from selfsup.network.grid import WorkGrid
 
@@ -109,9 +109,9 @@ def rerender(grid: WorkGrid, state: LightState, shadows: ShadowMethod | str = Sh
         size = grid.frame.size[:, None, None, None]
         points = (g.points - grid.frame.centre[:, None, None]) / size  # (B, h, w, 3)
         position = state.position.detach()
-        geometry = light_geometry(points[:, None], position[:, :, None, None, :])
-        diffuse, _, d_diffuse, _ = shading_and_position_gradients(g.normals[:, None], geometry, 1.0,
-                                                                  Falloff.INVERSE_SQUARE, with_specular=False)
+        diffuse, _, d_diffuse, _, _ = shading_and_position_gradients(
+            points.permute(0, 3, 1, 2).contiguous(), g.planes()[1], position, 1.0, Falloff.INVERSE_SQUARE,
+            with_specular=False)
         method = ShadowMethod(shadows)
         if method is ShadowMethod.NONE:
             visibility = torch.ones_like(diffuse)

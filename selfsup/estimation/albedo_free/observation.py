@@ -76,12 +76,20 @@ class LogShading:
             raise ValueError("segment means are a segment view's; pairs have none")
         # An expanded index is read with stride 0, which scatter_add_ takes 1.6x as long over
         # as over a copy of it (the copy's cost included; ad hoc, 2026-11-27, 2-core CPU, (16, 8, 4800) sums).
-        index = self.segments if x.dim() == 2 else self.segments[:, None].expand_as(x).contiguous()
+        index = self.segments if x.dim() == 2 else self._rows_of_segments(x.shape[1])
         w = weight if x.dim() == 2 else weight[:, None]
         slots = self.segment_count + 1  # the segments and "none": a few hundred sums, not one per pixel
         sums = x.new_zeros(*x.shape[:-1], slots).scatter_add_(-1, index, x * w)
         totals = weight.new_zeros(weight.shape[0], slots).scatter_add_(1, self.segments, weight)
         return (sums / (totals if x.dim() == 2 else totals[:, None]).clamp_min(1e-30)).gather(-1, index)
+
+    def _rows_of_segments(self, rows: int) -> Tensor:
+        # The segments for (B, rows, P) values, kept by rows (not a field: the view's fields are
+        # its data): a solver asks for the same rows every step.
+        kept = self.__dict__.setdefault("_row_index", {})
+        if rows not in kept:
+            kept[rows] = self.segments[:, None].expand(-1, rows, -1).contiguous()
+        return kept[rows]
 
     def offsets(self, x: Tensor, valid: Tensor | None = None) -> Tensor:
         """Each segment's robust location of ``x (B, P)`` (a log ratio of the
