@@ -1,7 +1,9 @@
-"""Blinn-Phong lighting math as plain functions, channel-last, batched over lights.
+"""Blinn-Phong lighting math as plain functions, batched over lights.
 
 Shapes use B batch, L lights, H, W image. Every function broadcasts its inputs
-with torch rules; the shapes below are the ones the renderer passes.
+with torch rules; the shapes below are the ones the renderer passes. The helpers take
+channel-last ``(..., 3)`` vectors; the renderer's transport and its Jacobian are written on
+planes, ``(..., 3, H, W)`` (:func:`planar_shading`).
 """
 
 from __future__ import annotations
@@ -149,10 +151,13 @@ class PlanarShading(NamedTuple):
 def planar_shading(points: Tensor, normals: Tensor, light_position: Tensor, falloff: Falloff | str) -> PlanarShading:
     """The shading's geometry of lights at ``light_position (B, L, 3)`` over a G-buffer's
     ``points`` and ``normals`` as ``(B, 3, H, W)`` planes (:meth:`render.GBuffer.planes`),
-    each vector component a contiguous ``(H, W)`` array: the renderer's transport and its Jacobian are written on these (on the CPU
-    3-8x faster than on interleaved ``(..., 3)`` vectors, whose components are read with
-    stride 3: ad hoc, 2026-12-07, one core, ``(B, L) = (1..21, 1..2)`` at 40x30-160x120).
-    The guards are :func:`light_geometry`'s."""
+    each vector component a contiguous ``(H, W)`` array. The renderer's transport and its
+    Jacobian are written on these: on the CPU, with masks as float products
+    (:func:`render.geometry.positive`), the Jacobian takes 0.3-0.6x and the transport 0.55-0.7x
+    the time they took on interleaved ``(..., 3)`` vectors, whose components are read with
+    stride 3 (one core, ``(B, L) = (1..21, 1..2)`` at 40x30-160x120:
+    ``benchmarks/results/planar_shading_cpu2_2026-12-07.md``). The guards are
+    :func:`light_geometry`'s."""
     point_planes, normal_planes = points[:, None], normals[:, None]
     offset, distance, depth, eps = light_offset(point_planes, light_position[..., None, None], -3)
     inverse = 1.0 / distance

@@ -164,3 +164,27 @@ def test_fit_intrinsics_recovers_K():
     K = K1.double().expand(2, 3, 3)
     g = GBuffer.from_depth(depth, K)
     torch.testing.assert_close(fit_intrinsics(g.points, g.mask), K)
+
+
+def test_planes_are_kept_made_again_after_an_in_place_change_and_carry_gradients():
+    from render import light_transport
+
+    depth = torch.rand(1, 6, 7, dtype=torch.float64) + 1.0
+    g = GBuffer.from_depth(depth, K1.double()[None])
+    points, normals = g.planes()
+    assert torch.equal(points, g.points.permute(0, 3, 1, 2)) and torch.equal(normals, g.normals.permute(0, 3, 1, 2))
+    assert g.planes()[0] is points  # kept: a solver renders one buffer hundreds of times
+    g.points.add_(0.5)
+    assert torch.equal(g.planes()[0], g.points.permute(0, 3, 1, 2))  # in place: made again
+    # Geometry that needs a gradient is never kept: the transport differentiates in it.
+    light = torch.tensor([[[0.3, -0.6, 0.4]]], dtype=torch.float64)
+    material = Material(kd=torch.full((1, 6, 7, 3), 0.5, dtype=torch.float64),
+                        ks=torch.full((1, 6, 7, 1), 0.3, dtype=torch.float64), shininess=torch.tensor(8.0, dtype=torch.float64))
+
+    def transport(p, n):
+        t = light_transport(GBuffer(p, n, g.mask), material, light, shadows="none")
+        return t.diffuse, t.specular
+
+    p = g.points.clone().requires_grad_(True)
+    n = g.normals.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(transport, (p, n))
