@@ -98,13 +98,18 @@ class GBuffer:
         """``points`` and ``normals`` as ``(B, 3, H, W)`` planes, each component contiguous
         (:func:`render.shading.planar_shading`); kept on the buffer between calls (a
         solver renders one buffer hundreds of times) and made again when either was
-        changed in place, or, untracked, where either needs a gradient."""
-        if torch.is_grad_enabled() and (self.points.requires_grad or self.normals.requires_grad):
+        changed in place; made afresh each call, untracked, where either needs a gradient or
+        under torch.compile."""
+        def made() -> tuple[Tensor, Tensor]:
             return self.points.permute(0, 3, 1, 2).contiguous(), self.normals.permute(0, 3, 1, 2).contiguous()
+
+        if ((torch.is_grad_enabled() and (self.points.requires_grad or self.normals.requires_grad))
+                or torch.compiler.is_compiling()):  # a graph's own: version counters are not traced
+            return made()
         key = (self.points._version, self.normals._version)
         kept = self.__dict__.get("_planes")
         if kept is None or kept[0] != key:
-            kept = (key, (self.points.permute(0, 3, 1, 2).contiguous(), self.normals.permute(0, 3, 1, 2).contiguous()))
+            kept = (key, made())
             object.__setattr__(self, "_planes", kept)
         return kept[1]
 
