@@ -181,3 +181,27 @@ def test_dot3_and_norm3_match_the_reductions_and_norm3_has_a_zero_gradient_at_ze
     v = torch.zeros(3, 3, dtype=torch.float64).index_fill_(0, torch.tensor([1]), 1.0).requires_grad_(True)
     norm3(v).sum().backward()
     assert torch.isfinite(v.grad).all() and v.grad[0].abs().sum() == 0
+
+
+def test_the_planar_transport_equals_the_channel_last_helpers_guards_included():
+    # The renderer's transport is written on planes (render.shading.planar_shading); the public
+    # channel-last helpers must give the same maps, also where a guard holds: a light on the
+    # surface (distance floored) and a light on the camera ray behind the point (l = -v).
+    from render import light_transport
+    from render.shading import light_geometry
+
+    depth = 2.0 + 0.3 * torch.rand(1, 16, 16, dtype=torch.float64)
+    g = GBuffer.from_depth(depth, K)
+    X = g.points[0, 5, 9]
+    lights = torch.stack([X, 2.0 * X, torch.tensor([0.4, -0.7, 0.9], dtype=torch.float64)])[None]  # (1, 3, 3)
+    material = Material(kd=torch.full((1, 16, 16, 3), 0.5, dtype=torch.float64),
+                        ks=torch.full((1, 16, 16, 1), 0.3, dtype=torch.float64), shininess=0.7)
+    for falloff in ("inverse_square", "none"):
+        t = light_transport(g, material, lights, falloff=falloff, shadows="none")
+        geometry = light_geometry(g.points[:, None], lights[:, :, None, None])
+        n_dot_l = (g.normals[:, None] * geometry.to_light).sum(-1)
+        f = falloff_factor(geometry.distance, falloff)
+        torch.testing.assert_close(t.diffuse, f * n_dot_l.clamp_min(0))
+        lobe = blinn_phong_lobe(g.normals[:, None], geometry.to_light, geometry.to_viewer, torch.tensor(0.7))
+        torch.testing.assert_close(t.specular, f * lobe)
+        assert torch.isfinite(t.diffuse).all() and torch.isfinite(t.specular).all()
