@@ -49,9 +49,10 @@ def dot3(a: Tensor, b: Tensor, axis: int = -1) -> Tensor:
 
 def positive(x: Tensor) -> Tensor:
     """1 where ``x > 0``, 0 elsewhere, in ``x``'s dtype (NaN stays NaN): a mask to multiply
-    by. On the CPU ``torch.where`` and bool masks cost 5-30x a float product (torch 2.13,
-    ad hoc 2026-12-07, one core, 38,400 floats: where 190 us, ``x > 0`` 30 us, this 12 us,
-    a product 5 us); a masked value ``v * positive(x)`` must be finite where ``x <= 0``."""
+    by. On the CPU ``torch.where`` and bool masks cost 5-30x a float product (torch 2.13, one
+    core, 38,400 floats: where 178 us, ``x > 0`` 30 us, this 12 us, a product 5 us;
+    ``benchmarks/results/planar_shading_cpu2_2026-12-07.md``); a masked value
+    ``v * positive(x)`` must be finite where ``x <= 0``."""
     return x.sign().clamp_min(0)
 
 
