@@ -158,6 +158,11 @@ def planar_shading(points: Tensor, normals: Tensor, light_position: Tensor, fall
     stride 3 (one core, ``(B, L) = (1..21, 1..2)`` at 40x30-160x120:
     ``benchmarks/results/planar_shading_cpu2_2026-12-07.md``). The guards are
     :func:`light_geometry`'s."""
+    if points.dim() != 4 or points.shape[1] != 3 or normals.shape != points.shape:
+        raise ValueError(f"points and normals must be (B, 3, H, W) planes of one shape (GBuffer.planes()), got "
+                         f"{tuple(points.shape)} and {tuple(normals.shape)}")
+    if light_position.dim() != 3 or light_position.shape[0] != points.shape[0] or light_position.shape[2] != 3:
+        raise ValueError(f"light_position must have shape ({points.shape[0]}, L, 3), got {tuple(light_position.shape)}")
     point_planes, normal_planes = points[:, None], normals[:, None]
     offset, distance, depth, eps = light_offset(point_planes, light_position[..., None, None], -3)
     inverse = 1.0 / distance

@@ -205,3 +205,16 @@ def test_the_planar_transport_equals_the_channel_last_helpers_guards_included():
         lobe = blinn_phong_lobe(g.normals[:, None], geometry.to_light, geometry.to_viewer, torch.tensor(0.7))
         torch.testing.assert_close(t.specular, f * lobe)
         assert torch.isfinite(t.diffuse).all() and torch.isfinite(t.specular).all()
+
+
+def test_planar_shading_names_channel_last_geometry_and_bad_lights():
+    from render.shading import planar_shading, shading_and_position_gradients
+
+    g = flat_wall()
+    points, normals = g.planes()
+    light = torch.tensor([[[0.3, -0.4, 0.5]]], dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"\(B, 3, H, W\) planes"):
+        planar_shading(g.points, g.normals, light, "inverse_square")  # channel-last, not planes
+    with pytest.raises(ValueError, match="light_position must have shape"):
+        shading_and_position_gradients(points, normals, light[0], 1.0, "none")
+    assert planar_shading(points, normals, light, "none").n_dot_l.shape == (1, 1, 16, 16)
