@@ -17,12 +17,11 @@ in the slots' positions, relative intensities and the ambient.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from render import Material, light_transport
 from render.shading import Falloff, shading_and_position_gradients
 from render.shadows import ShadowMethod, shadow_visibility
 from selfsup.network.grid import WorkGrid
