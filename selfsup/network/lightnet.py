@@ -18,7 +18,9 @@ of that step's update through its Gauss-Newton solve, not the steps before it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor, nn
@@ -55,14 +57,14 @@ class IterativePrediction:
 
     Attributes:
         position: ``(B, K, 3)`` metres, the last step's.
-        intensity: ``(B, K, 3)`` of a grey (0.5) albedo, the image's units, solved in
-            closed form on the grid with the last step's shadows.
         presence: ``(B, K)``: slot 0's is 1; the others' the probability that the room
             has that light.
-        ambient: ``(B, 3)``.
         steps: the init and every update's :class:`StepLights`.
-        grid: the working grid; votes: ``(direction (B, K, h, w, 3), weight (B, K, h, w))``
-            or None (``init="volume"``).
+        grid: the working grid.
+        closing: what :attr:`intensity` and :attr:`ambient` are solved by, on their first read
+            (a re-render with the last lights' shadows, 7% of a forward at batch 1 on the CPU;
+            the estimator reads positions and counts only).
+        votes: ``(direction (B, K, h, w, 3), weight (B, K, h, w))`` or None (``init="volume"``).
         count_threshold: a slot ``k >= 1`` counts where it and every slot before it reach it.
         confidence: ``(B,)`` in (0, 1): the calibrated probability that slot 0 lies within 0.05
             of the scene size of a light (:func:`confidence_features` through the network's
@@ -70,14 +72,28 @@ class IterativePrediction:
     """
 
     position: Tensor
-    intensity: Tensor
     presence: Tensor
-    ambient: Tensor
     steps: list[StepLights]
     grid: WorkGrid
+    closing: Callable[[], tuple[Tensor, Tensor]] = field(repr=False)
     votes: tuple[Tensor, Tensor] | None = None
     count_threshold: float = 0.5
     confidence: Tensor | None = None
+
+    @functools.cached_property
+    def _closed(self) -> tuple[Tensor, Tensor]:
+        return self.closing()
+
+    @property
+    def intensity(self) -> Tensor:
+        """``(B, K, 3)`` of a grey (0.5) albedo, the image's units, solved in closed form on the
+        grid with the last step's shadows (on first read)."""
+        return self._closed[0]
+
+    @property
+    def ambient(self) -> Tensor:
+        """``(B, 3)``, solved with :attr:`intensity`."""
+        return self._closed[1]
 
     @property
     def count(self) -> Tensor:
@@ -205,10 +221,10 @@ class IterativeLightNet(nn.Module):
             state, logits, weights, _ = self.update(grid, features, global_features, observed, usable, state, render,
                                                     logits.detach())
             history.append(StepLights(grid.metres(state.position), logits, state, weights))
-        intensity, ambient = self._intensities(grid, state)
         weights = torch.tensor(self.confidence_weights, dtype=position.dtype, device=position.device)
         confidence = torch.sigmoid(confidence_features(history) @ weights)
-        return IterativePrediction(history[-1].position, intensity, state.presence, ambient, history, grid, votes,
+        closing = functools.partial(self._intensities, grid, state.detach())
+        return IterativePrediction(history[-1].position, state.presence, history, grid, closing, votes,
                                    self.count_threshold, confidence)
 
     @torch.no_grad()
