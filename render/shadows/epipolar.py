@@ -119,6 +119,12 @@ def _angle_from_camera_ray(points: Tensor, light_position: Tensor) -> Tensor:
     Returns:
         ``(...)`` angles in ``[0, pi]``.
     """
+    return torch.atan2(*_sine_and_cosine_at_light(points, light_position))
+
+
+def _sine_and_cosine_at_light(points: Tensor, light_position: Tensor) -> tuple[Tensor, Tensor]:
+    """``|c x d|`` (floored) and ``c . d`` of ``c = L->O``, ``d = L->X`` (:func:`_angle_from_camera_ray`'s
+    ``atan2`` arguments), ``(...)`` each."""
     c = -light_position
     d = points - light_position
     # |c x d| by components: torch.linalg.cross over a last axis of 3 ran 3-5x slower
@@ -128,7 +134,7 @@ def _angle_from_camera_ray(points: Tensor, light_position: Tensor) -> Tensor:
     # sqrt guard: |c x d| is 0 for points on the line L-O; the floor keeps sqrt'
     # finite there (atan2 itself is smooth away from (0, 0)).
     sin_part = (x0 * x0 + x1 * x1 + x2 * x2).clamp_min(torch.finfo(points.dtype).tiny).sqrt()
-    return torch.atan2(sin_part, c0 * d0 + c1 * d1 + c2 * d2)
+    return sin_part, c0 * d0 + c1 * d1 + c2 * d2
 
 
 def _masked_angle(angle_image: Tensor, grid: Tensor) -> tuple[Tensor, Tensor]:
@@ -208,9 +214,11 @@ def _thickness(points: Tensor, mask: Tensor, options: EpipolarShadowOptions) -> 
         return points.new_full(points.shape[:1], options.thickness)
     if options.scene_thickness is None:
         return None
-    inside = mask[..., None]
-    lo = torch.where(inside, points, math.inf).flatten(1, 2).amin(1)
-    hi = torch.where(inside, points, -math.inf).flatten(1, 2).amax(1)
+    # The bounding box on (B, 3, H*W) planes: reduced along their contiguous last axis, 7x faster
+    # than along the pixels of (B, H*W, 3) (16 x 19200 points, 2 threads: 1.1 against 4.3 ms).
+    planes = points.permute(0, 3, 1, 2).contiguous().flatten(2)
+    outside = torch.where(mask, 0.0, math.inf).to(points.dtype).flatten(1)[:, None]  # (B, 1, H*W)
+    lo, hi = (planes + outside).amin(-1), (planes - outside).amax(-1)
     size = torch.where(mask.flatten(1).any(1), (hi - lo).norm(dim=-1), 0.0)  # no valid point: nothing to shadow
     return options.scene_thickness * size
 
@@ -324,11 +332,15 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     v = torch.arange(H, dtype=dtype, device=device).repeat_interleave(W)
 
     thick = thickness is not None
-    # The slab ends, found once: the sweep's table reads them, the gradient pass too (with the
-    # graph, when a gradient is asked for).
-    slab_end = _slab_end_angles(pts, valid, light, thickness, H, W) if thick else None
+    # The surface's angles (no gradient: the band's pass computes its own) and the slab ends,
+    # found once: the sweep's table reads them, the gradient pass too (with the graph, when a
+    # gradient is asked for).
+    if thick:
+        gamma, slab_end = _slab_end_angles(pts, valid, light, thickness, H, W)
+    else:
+        with torch.no_grad():
+            gamma, slab_end = _angle_from_camera_ray(pts, light[:, None]), None  # (N, H*W)
     with torch.no_grad():
-        gamma = _angle_from_camera_ray(pts, light[:, None])  # (N, H*W)
         # 1) The sweep: each node's running minimum of gamma along its line (_sweep_table).
         line_of_row = table_row_lines(lines, nl)  # (N, nl + 2)
         running, argmin, front_table, back_table = _sweep_table(pts, weight, gamma, slab_end, lines, line_of_row,
@@ -379,14 +391,20 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
                           focal, u, v, H, W, options, slab_end)
 
 
-def _slab_end_angles(pts: Tensor, valid: Tensor, light: Tensor, thickness: Tensor, H: int, W: int) -> Tensor:
-    """Each pixel's slab end as an angle at the light ``(N, H*W)``: the point ``thickness (N,)``
-    behind its surface along the camera ray, cut back at depth steps (:func:`_slab_ends`)."""
-    gamma = _angle_from_camera_ray(pts, light[:, None])
+def _slab_end_angles(pts: Tensor, valid: Tensor, light: Tensor, thickness: Tensor, H: int, W: int
+                     ) -> tuple[Tensor, Tensor]:
+    """Each pixel's surface angle at the light ``(N, H*W)`` (no gradient) and its slab end ``(N,
+    H*W)``: the angle of the point ``thickness (N,)`` behind its surface along the camera ray, cut
+    back at depth steps (:func:`_slab_ends`). That point is ``k X`` (``k >= 1``), so with ``c = -L``
+    its ``c x (k X - L) = k (c x d)`` and ``c . (k X - L) = k (c . d) + (1 - k) |L|^2``: one cross
+    product serves both angles."""
+    sine, cosine = _sine_and_cosine_at_light(pts, light[:, None])
     # Invalid pixels (points at the origin) keep their point: no 0 * inf there, in values or gradients.
     distance = torch.where(valid, norm3(pts), 1.0).clamp_min(torch.finfo(pts.dtype).tiny)
-    behind = pts * torch.where(valid, 1 + thickness[:, None] / distance, 1.0)[..., None]
-    return _slab_ends(gamma, _angle_from_camera_ray(behind, light[:, None]), valid, H, W)
+    k = torch.where(valid, 1 + thickness[:, None] / distance, 1.0)
+    back = torch.atan2(k * sine, k * cosine + (1 - k) * (light * light).sum(-1, keepdim=True))
+    gamma = torch.atan2(sine, cosine).detach()
+    return gamma, _slab_ends(gamma, back, valid, H, W)
 
 
 def _slab_ends(front: Tensor, back: Tensor, valid: Tensor, H: int, W: int) -> Tensor:

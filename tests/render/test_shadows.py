@@ -164,6 +164,22 @@ def test_the_bounded_solid_scans_only_where_the_unbounded_minimum_does_not_count
     assert torch.equal(fast[0], full[0]) and torch.equal(fast[1], full[1])
 
 
+def test_the_slab_end_is_the_angle_of_the_point_behind_the_surface(monkeypatch):
+    # One cross product serves the surface's angle and its slab end's (the point behind is k X):
+    # the same angles as building that point and taking its angle, before the cut at depth steps.
+    import render.shadows.epipolar as epipolar
+
+    g, lp, _, _ = _plate_before_wall([0.9, -0.5, 1.0], thickness=0.5)
+    pts, valid = g.points.flatten(1, 2), g.mask.flatten(1)
+    light = lp[None].to(pts)
+    monkeypatch.setattr(epipolar, "_slab_ends", lambda front, back, valid, H, W: back)
+    gamma, back = epipolar._slab_end_angles(pts, valid, light, torch.tensor([0.5], dtype=pts.dtype), *g.mask.shape[1:])
+    behind = pts * (1 + 0.5 / pts.norm(dim=-1, keepdim=True))
+    assert torch.allclose(gamma, epipolar._angle_from_camera_ray(pts, light[:, None]), atol=1e-12, rtol=0)
+    expected = epipolar._angle_from_camera_ray(behind, light[:, None])
+    assert torch.allclose(back[valid], expected[valid], atol=1e-12, rtol=0)
+
+
 def test_a_bounded_solid_that_shadows_nothing_still_has_a_zero_gradient():
     # A flat wall: no pixel shadowed, none in a soft edge; the visibility is all ones and
     # backward works (it raised "expected a non-empty list", then "does not require grad").
