@@ -62,6 +62,27 @@ def test_jacobian_matches_finite_differences(residuals):
         torch.testing.assert_close(jac[0, k], (moved - residual)[0] / h, atol=1e-5, rtol=1e-4)
 
 
+def test_levenberg_marquardt_builds_its_equations_again_only_after_a_step(monkeypatch):
+    # At the exact optimum every step is rejected (only the damping grows): one Jacobian,
+    # however many iterations; from a moved start, one more after each step taken.
+    scene, problem = _exact_problem()
+    obs = albedo_free.observe(problem)
+    truth = scene.light_pos[None].double()
+    log_weight = torch.tensor([[-1.5, 0.0]], dtype=torch.float64)
+    log_model, _ = albedo_fit._log_model(albedo_fit._transport(obs, truth), log_weight)
+    obs.log_shading, obs.observed = log_model, obs.differences(log_model)
+    calls, evaluations = [], []
+    jacobian, evaluate = albedo_fit._jacobian, albedo_fit._evaluate
+    monkeypatch.setattr(albedo_fit, "_jacobian", lambda *a, **k: calls.append(1) or jacobian(*a, **k))
+    monkeypatch.setattr(albedo_fit, "_evaluate", lambda *a, **k: evaluations.append(1) or evaluate(*a, **k))
+    fit = albedo_free.refine_positions(obs, truth, log_weight, iterations=12, tol=0.0)
+    torch.testing.assert_close(fit.position, truth)
+    assert len(calls) == 1 and len(evaluations) == 13
+    calls.clear()
+    albedo_free.refine_positions(obs, truth + 0.05 * float(scene.scene_scale), log_weight, iterations=12, tol=0.0)
+    assert 1 < len(calls) <= 12
+
+
 @pytest.mark.parametrize("residuals", ["segments", "pairs"])
 def test_ambient_block_scores_predict_how_more_ambient_over_a_block_moves_the_fit(residuals):
     # The image the model's own with an ambient; to first order, more ambient over one

@@ -207,17 +207,20 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
     loss, residual = _evaluate(obs, position, log_weight, log_bounce)
     damping = torch.full((B,), 1e-3, dtype=position.dtype, device=position.device)
     active = torch.ones(B, dtype=torch.bool, device=position.device)
+    normal = None  # the weighted normal equations at the current parameters, kept while no image takes a step
     for _ in range(iterations):
         if not bool(active.any()):
             break
-        residual, jac = _jacobian(obs, position, log_weight, residual=residual, log_bounce=log_bounce)
-        weights = _cauchy_weights(obs, residual)
-        weighted = jac * weights[:, None]
-        jtj = (weighted @ jac.transpose(1, 2)).double()
-        jtr = (weighted @ residual[..., None]).double()
-        diag = jtj.diagonal(dim1=-2, dim2=-1)
-        peak = diag.amax(-1, keepdim=True)
-        diag = torch.where(peak > 0, diag.clamp_min(1e-9 * peak), torch.ones_like(diag))
+        if normal is None:
+            residual, jac = _jacobian(obs, position, log_weight, residual=residual, log_bounce=log_bounce)
+            weights = _cauchy_weights(obs, residual)
+            weighted = jac * weights[:, None]
+            jtj = (weighted @ jac.transpose(1, 2)).double()
+            jtr = (weighted @ residual[..., None]).double()
+            diag = jtj.diagonal(dim1=-2, dim2=-1)
+            peak = diag.amax(-1, keepdim=True)
+            normal = jtj, jtr, torch.where(peak > 0, diag.clamp_min(1e-9 * peak), torch.ones_like(diag))
+        jtj, jtr, diag = normal
         system = jtj + damping.double()[:, None, None] * torch.diag_embed(diag)
         # residual r = observed - model, J = d r / d theta: the step solves (J W J^T) d = -J W r.
         step = -torch.linalg.solve_ex(system, jtr)[0].squeeze(-1).to(position.dtype)
@@ -242,6 +245,8 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
         residual = torch.where(better[:, None], trial_residual, residual)
         damping = torch.where(better, damping * 0.3, damping * 10).clamp(1e-9, 1e9)
         active &= ~((better & (rel < tol)) | (damping >= 1e9))
+        if bool(better.any()):  # where no image moved only the damping changed: the same equations
+            normal = None
     return AlbedoFreeFit(position, log_weight, loss, obs.pairs.sum(1), log_bounce)
 
 
