@@ -403,7 +403,8 @@ def _slab_end_angles(pts: Tensor, valid: Tensor, light: Tensor, thickness: Tenso
     distance = torch.where(valid, norm3(pts), 1.0).clamp_min(torch.finfo(pts.dtype).tiny)
     k = torch.where(valid, 1 + thickness[:, None] / distance, 1.0)
     back = torch.atan2(k * sine, k * cosine + (1 - k) * (light * light).sum(-1, keepdim=True))
-    gamma = torch.atan2(sine, cosine).detach()
+    with torch.no_grad():
+        gamma = torch.atan2(sine, cosine)
     return gamma, _slab_ends(gamma, back, valid, H, W)
 
 
