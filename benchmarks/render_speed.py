@@ -21,7 +21,7 @@ import time
 
 import torch
 
-from benchmarks.common import device_name, timed, write_results
+from benchmarks.common import device_name, machine_reference, timed, write_results
 from render import GBuffer, Material, PointLights, ShadowedBlinnPhong
 from selfsup.scenes.analytic import intrinsics_for, objects_on_floor, render_exact_view
 
@@ -76,6 +76,9 @@ def measure(height, width, batch, num_lights, method, device, compiled: bool = F
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         compile_s = round(time.perf_counter() - started, 1)
+    # The CPU's speed drifts by 20-40% between minutes: its reference, timed beside each row, lets
+    # rows of different days compare by their ratio to it.
+    reference = machine_reference(repeats=5)["elementwise_ns"] if device.type == "cpu" else None
     t_fwd = timed(forward, device)
     t_fb = timed(forward_backward, device)
     return {
@@ -84,6 +87,8 @@ def measure(height, width, batch, num_lights, method, device, compiled: bool = F
         "fwd_ms_per_image": round(1e3 * t_fwd / batch, 3),
         "fwd_bwd_ms_per_image": round(1e3 * t_fb / batch, 3),
         "fwd_bwd_images_per_s": round(batch / t_fb, 1), "compile_s": compile_s,
+        "reference_ns": reference,
+        "fwd_bwd_per_reference": None if reference is None else round(1e3 * t_fb / batch / reference, 1),
     }
 
 
@@ -128,10 +133,14 @@ def run(quick: bool = False, max_work: float | None = None, device: str | None =
                   "median of >= 3 runs after a warm-up. 'epipolar' is the layer's default (a solid 0.03 of the "
                   "scene deep behind each surface, soft at both ends). Targets: CPU 160x120 batch 16, 1 light, "
                   "shadows, fwd+bwd <= 4.8 ms/image; H100 256x256 batch 64, 1 light, default shadows, >= 10,000 "
-                  "images/s. mode: eager, or torch.compile(layer) (compile_s: its first two calls).")
+                  "images/s. mode: eager, or torch.compile(layer) (compile_s: its first two calls). On the CPU, "
+                  "reference_ns: benchmarks.common.machine_reference's elementwise time, timed before the row; "
+                  "fwd_bwd_per_reference: fwd+bwd ms over it, what rows of different days compare by (the CPU "
+                  "target's 4.8 ms on 2026-11-26's machine, at 0.135 ns: 35.6).")
         path = write_results("render_speed", dev, rows, header,
                              ["device", "resolution", "batch", "lights", "shadows", "mode", "fwd_ms_per_image",
-                              "fwd_bwd_ms_per_image", "fwd_bwd_images_per_s", "compile_s"])
+                              "fwd_bwd_ms_per_image", "fwd_bwd_images_per_s", "compile_s", "reference_ns",
+                              "fwd_bwd_per_reference"])
         print(f"wrote {path} ({device_name(dev)})")
         paths.append(path)
     return paths
