@@ -209,8 +209,6 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
     active = torch.ones(B, dtype=torch.bool, device=position.device)
     normal = None  # the weighted normal equations at the current parameters, kept while no image takes a step
     for _ in range(iterations):
-        if not bool(active.any()):
-            break
         if normal is None:
             residual, jac = _jacobian(obs, position, log_weight, residual=residual, log_bounce=log_bounce)
             weights = _cauchy_weights(obs, residual)
@@ -245,7 +243,10 @@ def refine_positions(obs: LogShading, position: Tensor, log_weight: Tensor, iter
         residual = torch.where(better[:, None], trial_residual, residual)
         damping = torch.where(better, damping * 0.3, damping * 10).clamp(1e-9, 1e9)
         active &= ~((better & (rel < tol)) | (damping >= 1e9))
-        if bool(better.any()):  # where no image moved only the damping changed: the same equations
+        moved, going = torch.stack([better.any(), active.any()]).tolist()  # one wait for the device
+        if not going:
+            break
+        if moved:  # where no image moved only the damping changed: the same equations
             normal = None
     return AlbedoFreeFit(position, log_weight, loss, obs.pairs.sum(1), log_bounce)
 
