@@ -84,7 +84,8 @@ def falloff_factor(distance: Tensor, falloff: Falloff | str) -> Tensor:
     falloff = Falloff(falloff)
     if falloff is Falloff.NONE:
         return torch.ones_like(distance)
-    return 1.0 / (distance * distance)
+    inverse = 1.0 / distance
+    return inverse * inverse
 
 
 def blinn_phong_lobe(normals: Tensor, to_light: Tensor, to_viewer: Tensor, shininess: Tensor) -> Tensor:
@@ -167,10 +168,8 @@ def planar_shading(points: Tensor, normals: Tensor, light_position: Tensor, fall
     offset, distance, depth, eps = light_offset(point_planes, light_position[..., None, None], -3)
     inverse = 1.0 / distance
     n_dot_l = dot3(normal_planes, offset, -3) * inverse
-    inverse_square = Falloff(falloff) is Falloff.INVERSE_SQUARE
-    f = inverse * inverse if inverse_square else torch.ones_like(distance)
-    return PlanarShading(point_planes, normal_planes, offset, depth, eps, distance, inverse, n_dot_l, f,
-                         inverse_square)
+    return PlanarShading(point_planes, normal_planes, offset, depth, eps, distance, inverse, n_dot_l,
+                         falloff_factor(distance, falloff), Falloff(falloff) is Falloff.INVERSE_SQUARE)
 
 
 def planar_lobe(shading: PlanarShading, shininess: Tensor | float) -> Tensor:

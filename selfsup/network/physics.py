@@ -105,12 +105,12 @@ def rerender(grid: WorkGrid, state: LightState, shadows: ShadowMethod | str = Sh
     """
     with torch.no_grad():
         g = grid.gbuffer
-        size = grid.frame.size[:, None, None, None]
-        points = (g.points - grid.frame.centre[:, None, None]) / size  # (B, h, w, 3)
+        point_planes, normal_planes = g.planes()
+        centre, size = grid.frame.centre[:, :, None, None], grid.frame.size[:, None, None, None]
+        points = (point_planes - centre) / size  # (B, 3, h, w) scene units
         position = state.position.detach()
-        diffuse, _, d_diffuse, _, _ = shading_and_position_gradients(
-            points.permute(0, 3, 1, 2).contiguous(), g.planes()[1], position, 1.0, Falloff.INVERSE_SQUARE,
-            with_specular=False)
+        diffuse, _, d_diffuse, _, _ = shading_and_position_gradients(points, normal_planes, position, 1.0,
+                                                                     Falloff.INVERSE_SQUARE, with_specular=False)
         method = ShadowMethod(shadows)
         if method is ShadowMethod.NONE:
             visibility = torch.ones_like(diffuse)
