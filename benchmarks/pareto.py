@@ -7,9 +7,10 @@ The one-light frames of capture folders made from Mitsuba 3 renders (8-bit sRGB 
 unknown exposure, millimetre depth, no albedo; ``benchmark.captures``: the direct,
 path-traced and sensor-noisy sets), each estimated by:
 
-- ``mode=estimate`` (``cnn+refine``, the default), ``estimate.method=refine`` (grid
-  search + LM), ``estimate.method=cnn`` (the network alone): the command's own pipeline,
-  every default, the light count its own choice;
+- ``mode=estimate`` (``cnn+refine``, the default), ``estimate=fast`` (the preset of
+  ``configs/estimate/fast.yaml``), ``estimate.method=refine`` (grid search + LM),
+  ``estimate.method=cnn`` (the network alone): the command's own pipeline, every other
+  setting its default, the light count its own choice;
 - ``paper gradient descent``: the paper's method (Blinn-Phong with its cube-map shadows,
   plain squared error, rate 0.02 in scene sizes, from above the middle of the scene, at
   most 300 steps) with the capture's albedo taken as 0.5;
@@ -37,6 +38,7 @@ from benchmarks.common import device_name, write_results
 from selfsup.metrics import SUCCESS_THRESHOLD
 
 log = logging.getLogger(__name__)
+PRESETS = Path(__file__).resolve().parents[1] / "configs" / "estimate"
 COLUMNS = ["method", "set", "frames", "success_rate", "median_worst_error", "median_seconds"]
 DEFAULT_CAPTURES = ("data/captures/mitsuba/direct", "data/captures/mitsuba/gi", "data/captures/mitsuba/noisy")
 
@@ -50,6 +52,13 @@ def _ours(**settings):
         record = estimate_scene(scene, options)
         return np.array([light["position"] for light in record["lights"]], dtype=np.float64).reshape(-1, 3)
     return run
+
+
+def _preset(name: str) -> dict:
+    # The tuned constants that configs/estimate/<name>.yaml changes: the preset's one source.
+    from omegaconf import OmegaConf
+
+    return OmegaConf.to_container(OmegaConf.load(PRESETS / f"{name}.yaml"))["tuning"]
 
 
 def _paper_gd(max_iters: int = 300):
@@ -78,7 +87,8 @@ def _mitsuba():
 
 def methods() -> dict:
     """name -> a function of a scene giving its light positions ``(L, 3)``."""
-    out = {"mode=estimate (cnn+refine)": _ours(), "estimate.method=refine": _ours(method="refine"),
+    out = {"mode=estimate (cnn+refine)": _ours(), "estimate=fast": _ours(tuning=_preset("fast")),
+           "estimate.method=refine": _ours(method="refine"),
            "estimate.method=cnn": _ours(method="cnn"), "paper gradient descent": _paper_gd()}
     import importlib.util
 

@@ -5,12 +5,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 from benchmarks.captures import read_truth
 from selfsup.estimation import EstimateOptions, estimate_files
 from selfsup.insert import insert_files
 
 EXAMPLE = Path(__file__).parents[1] / "examples" / "capture"
+CONFIGS = Path(__file__).parents[1] / "configs"
 
 
 def test_the_example_capture_is_estimated_and_an_object_inserted(tmp_path):
@@ -24,6 +27,25 @@ def test_the_example_capture_is_estimated_and_an_object_inserted(tmp_path):
     picture = insert_files(str(EXAMPLE / "color" / "room_00.png"), str(tmp_path / "insert.png"),
                            estimates=str(tmp_path / "lights.jsonl"))
     assert Path(picture).stat().st_size > 1000
+
+
+def test_the_fast_preset_changes_its_three_constants_and_places_the_example_rooms_lights(tmp_path):
+    # estimate=fast (configs/estimate/fast.yaml) is the default group with three tuned constants
+    # changed; run as the command reads it, it places the two one-light rooms as the default does.
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        settings = OmegaConf.to_container(compose(config_name="train", overrides=["estimate=fast"]).estimate)
+    command = {"input", "output", "batch", "device", "workers", "progress", "depth", "depth_scale", "intrinsics",
+               "overwrite", "shard"}
+    options = EstimateOptions(**{k: v for k, v in settings.items() if k not in command})
+    assert options.changed_settings() == {"cnn_start": "settled", "albedo_free_gloss": "never", "vignetting": "none"}
+    summary = estimate_files(EXAMPLE, tmp_path / "lights.jsonl", options, progress=False)
+    assert summary["done"] == 3 and summary["failed"] == 0
+    records = {r["id"]: r for r in map(json.loads, (tmp_path / "lights.jsonl").read_text().splitlines())}
+    for room in ("room_00", "room_01"):  # one light each
+        truth = read_truth(EXAMPLE / "truth" / f"{room}.npz")
+        assert len(records[room]["lights"]) == 1
+        error = (torch.tensor(records[room]["lights"][0]["position"]) - truth.light_pos[0]).norm() / truth.scene_scale
+        assert float(error) < 0.05, (room, float(error))
 
 
 def test_the_example_sequence_is_tracked_where_its_light_moves():
