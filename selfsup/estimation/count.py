@@ -68,19 +68,26 @@ def judged(sub: FitProblem, before: albedo_free.AlbedoFreeFit, more: albedo_free
                     for c, f, share in zip(more_value, fewer_value, shares)]
     taken = by_criterion
     if options.tuning.unlit_evidence:
-        taken = or_black_pixels_need(sub, options, before, more, by_criterion)
+        taken = or_black_pixels_need(sub, options, before, more, by_criterion,
+                                     [share >= options.tuning.weak_light_min_share for share in shares])
     return taken, [t and not c for t, c in zip(taken, by_criterion)], fewer_value, more_value
 
 
 def or_black_pixels_need(problem: FitProblem, options: EstimateOptions, fewer: albedo_free.AlbedoFreeFit,
-                         more: albedo_free.AlbedoFreeFit, taken: list[bool]) -> list[bool]:
+                         more: albedo_free.AlbedoFreeFit, taken: list[bool], lighting: list[bool] | None = None
+                         ) -> list[bool]:
     """``taken`` (one light more, per image of ``problem``) or, where the criterion did not
     take it, the capture's black pixels need it (:func:`selfsup.estimation.unlit.needs_another_light`
     under the criterion's cast shadows). Only the images not taken already are rendered, and
     only those of a diffuse model: where the fit has a specular lobe (metal, gloss), a black
-    pixel may be one the lobe does not reach as well as a shadow."""
+    pixel may be one the lobe does not reach as well as a shadow. ``lighting``: per image, whether
+    every light of ``more`` gives some light (``tuning.weak_light_min_share`` of it; None: all do);
+    where one does not, the black pixels cannot ask for it: a light 66 m behind the camera giving
+    0.12% of a procedural room's light took its count by lighting, as a faint fill above the model's
+    unlit level and below the capture's black one, the first light's shadows that the depth predicts wrongly."""
     diffuse_only = albedo_free.diffuse_images(problem).tolist()
-    rest = [j for j, t in enumerate(taken) if not t and diffuse_only[j]]
+    lighting = [True] * len(taken) if lighting is None else lighting
+    rest = [j for j, t in enumerate(taken) if not t and diffuse_only[j] and lighting[j]]
     if not rest:
         return taken
     rows = torch.tensor(rest, dtype=torch.long, device=problem.image.device)

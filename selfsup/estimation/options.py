@@ -115,7 +115,8 @@ class Tuning:
         min_light_share: an added light must carry this share of the rendered direct
             light, or, weaker but at least ``weak_light_min_share``, show its own cast
             shadows (``weak_light_shadow_gain``, 0: off) or pay for its parameters
-            ``weak_light_penalty`` times in the criterion (0: off).
+            ``weak_light_penalty`` times in the criterion (0: off); the black pixels
+            (``unlit_evidence``) take no light under ``weak_light_min_share`` either.
         block_width: one independent residual per square block of this x the image
             width (criterion and uncertainty).
         criterion_shadows, criterion_stride, criterion_thickness: every candidate is

@@ -1,6 +1,7 @@
 """Black pixels as evidence of the light count (selfsup/estimation/unlit.py)."""
 
 import dataclasses
+import math
 
 import torch
 
@@ -93,3 +94,35 @@ def test_a_second_light_the_criterion_misses_is_found_by_the_black_pixels():
     position = torch.tensor([light["position"] for light in found["lights"]])
     error = max(float((position - p).norm(dim=-1).min()) for p in scene.light_pos) / float(scene.scene_scale)
     assert error < 0.01
+
+
+def test_the_black_pixels_ask_for_no_light_that_gives_almost_none():
+    # Black pixels compare which pixels each model leaves unlit, not how bright it lights the
+    # others: a light with a thousandth of the light lights the first one's shadows above the
+    # model's unlit level and below the capture's black one. A procedural room took such a light
+    # 66 m behind its camera (0.12% of the light) as a fill for the shadows its depth predicts
+    # wrongly. Here the true second light, dimmed to under weak_light_min_share, is asked for by
+    # the black pixels as the true one is, and only the true one is taken.
+    from selfsup.estimation.albedo_free import AlbedoFreeFit, light_shares
+    from selfsup.estimation.count import judged
+
+    scene = _scene(MISSED_SEED, 2)
+    brighter = int(scene.light_intensity.mean(-1).argmax())
+    problem = problem_of(_capture_like(scene))
+    alone, both = _model(scene, [brighter]), _model(scene, [brighter, 1 - brighter])
+    options = EstimateOptions()
+    fewer = AlbedoFreeFit(alone[0], torch.zeros(1, 2), torch.zeros(1), torch.ones(1))
+
+    def with_second(log_ratio):
+        return AlbedoFreeFit(both[0], torch.tensor([[0.0, 0.0, log_ratio]]), torch.zeros(1), torch.ones(1))
+
+    def taken(more):  # the criterion never prefers it: only the black pixels can take it
+        return judged(problem, fewer, more, [0.0], None, options, lambda fit, extra=None: [0.0])[0][0]
+
+    true_ratio = float(both[1][0, 1].log())
+    faint = with_second(true_ratio + math.log(0.1))  # 0.16% of the light; the true one gives 1.5%
+    share = float(light_shares(problem, faint).amin())
+    assert share < options.tuning.weak_light_min_share, share
+    assert bool(unlit.needs_another_light(_judged(_capture_like(scene)), alone, (faint.position, faint.log_weight[:, 1:].exp())))
+    assert taken(with_second(true_ratio))
+    assert not taken(faint)
