@@ -1,5 +1,6 @@
 """The shipped examples (examples/capture, examples/sequence) run through the README's quick start and Tracker snippet."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -34,9 +35,8 @@ def test_the_fast_preset_changes_its_three_constants_and_places_the_example_room
     # changed; run as the command reads it, it places the two one-light rooms as the default does.
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         settings = OmegaConf.to_container(compose(config_name="train", overrides=["estimate=fast"]).estimate)
-    command = {"input", "output", "batch", "device", "workers", "progress", "depth", "depth_scale", "intrinsics",
-               "overwrite", "shard"}
-    options = EstimateOptions(**{k: v for k, v in settings.items() if k not in command})
+    fields = {f.name for f in dataclasses.fields(EstimateOptions)}  # the rest are the command's (input, workers, ...)
+    options = EstimateOptions(**{k: v for k, v in settings.items() if k in fields})
     assert options.changed_settings() == {"cnn_start": "settled", "albedo_free_gloss": "never", "vignetting": "none"}
     summary = estimate_files(EXAMPLE, tmp_path / "lights.jsonl", options, progress=False)
     assert summary["done"] == 3 and summary["failed"] == 0

@@ -60,7 +60,8 @@ def records(ids: list[str], problem: FitProblem, results: list[tuple[Candidate, 
         share, mean_diffuse = surface_shares(problem.select(at), stacked_fits(fits), options)
         for j, i in enumerate(group):
             shares[i] = (share[j].cpu(), mean_diffuse[j].cpu())
-    return [_record(scene_id, best, tried, cov, share, options.tuning.min_found_share, solved)
+    return [_record(scene_id, best, tried, cov, share, options.tuning.min_found_share, solved,
+                    options.tuning.weak_light_min_share)
             for scene_id, (best, tried), cov, share, solved in zip(ids, results, covariances, shares, lit)]
 
 
@@ -80,11 +81,11 @@ def surface_shares(problem: FitProblem, fit: Fit, options: EstimateOptions) -> t
 
 
 def _record(scene_id: str, best: Candidate, tried: list[Candidate], cov: Tensor, shares: tuple[Tensor, Tensor],
-            min_found_share: float, solved: tuple[Tensor, Tensor] | None = None) -> dict:
+            min_found_share: float, solved: tuple[Tensor, Tensor] | None = None, faint_share: float = 0.0) -> dict:
     # cov: (L, 3, 3) position covariance of the chosen model's lights; shares: (L,) each
     # light's share of the surfaces' light and (L,) its mean unit shading there
     # (surface_shares); solved: the intensities (1, L, 3) and ambient (1, 3) to report
-    # instead of the fit's.
+    # instead of the fit's; faint_share: a light under this share beside found ones is not presented.
     share, mean_diffuse = shares
     std = cov.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
     fit = best.fit if solved is None else replace(best.fit, intensity=solved[0], ambient=solved[1])
@@ -100,14 +101,20 @@ def _record(scene_id: str, best: Candidate, tried: list[Candidate], cov: Tensor,
     # A light that explains almost nothing is not presented as one: the brightest must give
     # min_found_share of the surfaces' light, and the lights must beat the ambient alone.
     found = bool(lights) and float(share.max()) >= min_found_share and (best.evidence is None or best.evidence > 0)
-    unsupported = []
-    if not found:
+    # Nor is a light beside them that gives the surfaces almost none of their light (under
+    # faint_share, with the cast shadows): a lamp the geometry hides from nearly every visible
+    # surface, placed there by a fit without shadows (a one-light procedural room's second light,
+    # 0.46% of the light; benchmarks/results/faint_lights_presented_cpu1_2026-12-08.md).
+    hidden = [k for k, i in enumerate(order) if not found or float(share[i]) < faint_share]
+    unsupported = [lights[k] for k in hidden]
+    if hidden:
         # Their light becomes the ambient's: as much light on the surfaces, without direction.
-        unsupported, lights = lights, []
-        ambient = (fit.ambient[0] + (fit.intensity[0] * mean_diffuse.to(fit.intensity)[:, None]).sum(0)).tolist()
+        rows = [order[k] for k in hidden]
+        ambient = (fit.ambient[0] + (fit.intensity[0, rows] * mean_diffuse.to(fit.intensity)[rows, None]).sum(0)).tolist()
+        lights = [light for k, light in enumerate(lights) if k not in hidden]
     return {
         "id": scene_id, "lights": lights, "ambient": ambient, "light_found": found,
-        "direct_share": round(float(share.sum()), 4) if found else 0.0,
+        "direct_share": round(sum(float(share[i]) for k, i in enumerate(order) if k not in hidden), 4) if found else 0.0,
         "evidence": None if best.evidence is None else round(best.evidence, 3),
         "unsupported_lights": unsupported, "vignetting": best.vignetting, "highlight_pixels": best.highlight_pixels,
         "bounce_share": best.bounce_share,

@@ -31,14 +31,16 @@ def _success(record, scene) -> bool:
     # Two lights under the sensor's noise: on segments one light (the second's effect absorbed by
     # the segments' levels); on classes both, 0.011 of the scene off (2026-12-06).
     (7031, 2, True, "capture_procedural_noisy_scene_031"),
-    # One light, exact depth: on segments a spurious pair; on classes the light, 0.0004 off.
+    # One light, exact depth: on segments a spurious pair (its second light, hidden from nearly
+    # every visible surface, gives 0.46% of their light: the record keeps it under
+    # unsupported_lights, not as a light); on classes the light, 0.0004 off.
     (7021, 1, False, "capture_procedural_direct_scene_021"),
 ])
 def test_a_count_on_albedo_classes_is_right_where_the_segments_levels_hide_it(tmp_path, seed, n_lights, sensor,
                                                                              frame_id):
     scene, capture = _capture(tmp_path, seed, n_lights, sensor, frame_id)
-    on_segments = estimate_scene(capture, EstimateOptions())  # the default
-    assert len(on_segments["lights"]) != n_lights
+    on_segments = estimate_scene(capture, EstimateOptions())  # the default: the model's count, presented or not
+    assert len(on_segments["lights"]) + len(on_segments["unsupported_lights"]) != n_lights
     record = estimate_scene(capture, EstimateOptions(tuning=Tuning(albedo_free_count="classes")))
     assert len(record["lights"]) == n_lights and _success(record, scene)
 

@@ -252,3 +252,31 @@ def test_intensities_under_unaccounted_light_are_solved_with_its_indirect_light(
     assert record["lights"][0]["position"] == best.fit.position[0, 0].tolist()
     never = records([scene.id], problem, [(best, [best])], options.tuned(indirect="never"))[0]
     assert never["lights"][0]["intensity"] == best.fit.intensity[0, 0].tolist()
+
+
+def test_a_light_giving_the_surfaces_almost_no_light_is_not_presented():
+    # Beside a found light, one that gives the visible surfaces under weak_light_min_share of
+    # their light (cast shadows counted) is not presented: it goes to unsupported_lights and its
+    # light to the ambient (a one-light procedural room's second light, which the geometry hid
+    # from nearly every visible surface, gave 0.46% of the light). At 1.5% it is presented.
+    scene = _scene(6, config=MEDIUM)
+    options = EstimateOptions(max_lights=1)
+    problem = prepare([scene], options)
+    best = estimate_batch(problem, options)[0][0]
+    found = records([scene.id], problem, [(best, [best])], options)[0]
+    assert found["light_found"] and len(found["lights"]) == 1
+    beside = scene.light_pos[0] + torch.tensor([0.3, 0.0, 0.0]) * scene.scene_scale
+
+    def with_second(ratio):
+        fit = dataclasses.replace(best.fit, position=torch.cat([best.fit.position, beside[None, None]], 1),
+                                  intensity=torch.cat([best.fit.intensity, ratio * best.fit.intensity], 1))
+        two = dataclasses.replace(best, fit=fit, n_lights=2, covariance=None)
+        return records([scene.id], problem, [(two, [two])], options.tuned(indirect="never"))[0]
+
+    faint, weak = with_second(0.003), with_second(0.02)
+    assert len(weak["lights"]) == 2 and 0.01 < min(light["share"] for light in weak["lights"]) < 0.05
+    assert faint["light_found"] and len(faint["lights"]) == 1 and len(faint["unsupported_lights"]) == 1
+    assert faint["unsupported_lights"][0]["share"] < options.tuning.weak_light_min_share
+    assert faint["lights"][0]["position"] == best.fit.position[0, 0].tolist()
+    assert sum(faint["ambient"]) > sum(found["ambient"])
+    assert faint["direct_share"] == faint["lights"][0]["share"]
