@@ -106,15 +106,17 @@ def _record(scene_id: str, best: Candidate, tried: list[Candidate], cov: Tensor,
     # surface, placed there by a fit without shadows (a one-light procedural room's second light,
     # 0.46% of the light; benchmarks/results/faint_lights_presented_cpu1_2026-12-08.md).
     hidden = [k for k, i in enumerate(order) if not found or float(share[i]) < faint_share]
+    shown = [k for k in range(len(order)) if k not in hidden]
     unsupported = [lights[k] for k in hidden]
     if hidden:
         # Their light becomes the ambient's: as much light on the surfaces, without direction.
         rows = [order[k] for k in hidden]
-        ambient = (fit.ambient[0] + (fit.intensity[0, rows] * mean_diffuse.to(fit.intensity)[rows, None]).sum(0)).tolist()
-        lights = [light for k, light in enumerate(lights) if k not in hidden]
+        given = fit.intensity[0, rows] * mean_diffuse.to(fit.intensity)[rows, None]  # (hidden, 3) on the surfaces
+        ambient = (fit.ambient[0] + given.sum(0)).tolist()
+        lights = [lights[k] for k in shown]
     return {
         "id": scene_id, "lights": lights, "ambient": ambient, "light_found": found,
-        "direct_share": round(sum(float(share[i]) for k, i in enumerate(order) if k not in hidden), 4) if found else 0.0,
+        "direct_share": round(float(share[sorted(order[k] for k in shown)].sum()), 4) if found else 0.0,
         "evidence": None if best.evidence is None else round(best.evidence, 3),
         "unsupported_lights": unsupported, "vignetting": best.vignetting, "highlight_pixels": best.highlight_pixels,
         "bounce_share": best.bounce_share,

@@ -123,6 +123,7 @@ def test_the_black_pixels_ask_for_no_light_that_gives_almost_none():
     faint = with_second(true_ratio + math.log(0.1))  # 0.16% of the light; the true one gives 1.5%
     share = float(light_shares(problem, faint).amin())
     assert share < options.tuning.weak_light_min_share, share
-    assert bool(unlit.needs_another_light(_judged(_capture_like(scene)), alone, (faint.position, faint.log_weight[:, 1:].exp())))
+    faint_model = (faint.position, faint.log_weight[:, 1:].exp())
+    assert bool(unlit.needs_another_light(_judged(_capture_like(scene)), alone, faint_model))
     assert taken(with_second(true_ratio))
     assert not taken(faint)
