@@ -335,12 +335,10 @@ def _sweep(pts: Tensor, valid: Tensor, K: Tensor, light: Tensor, H: int, W: int,
     # The surface's angles (no gradient: the band's pass computes its own) and the slab ends,
     # found once: the sweep's table reads them, the gradient pass too (with the graph, when a
     # gradient is asked for).
-    if thick:
-        gamma, slab_end = _slab_end_angles(pts, valid, light, thickness, H, W)
-    else:
-        with torch.no_grad():
-            gamma, slab_end = _angle_from_camera_ray(pts, light[:, None]), None  # (N, H*W)
+    gamma, slab_end = _slab_end_angles(pts, valid, light, thickness, H, W) if thick else (None, None)
     with torch.no_grad():
+        if gamma is None:
+            gamma = _angle_from_camera_ray(pts, light[:, None])  # (N, H*W)
         # 1) The sweep: each node's running minimum of gamma along its line (_sweep_table).
         line_of_row = table_row_lines(lines, nl)  # (N, nl + 2)
         running, argmin, front_table, back_table = _sweep_table(pts, weight, gamma, slab_end, lines, line_of_row,
