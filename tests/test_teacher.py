@@ -117,3 +117,35 @@ def test_a_run_may_start_from_a_checkpoints_weights_and_a_mismatch_is_named(tmp_
     with pytest.raises(ValueError, match="do not fit"):
         run(_smoke(tmp_path / "c", f"trainer.init={first['last']}", "model.hidden=32"))
 
+
+
+def test_the_search_takes_the_minimums_place_where_it_found_lights():
+    from selfsup.engine import taught_minima
+
+    minimum = torch.arange(18, dtype=torch.float32).reshape(3, 2, 3)
+    needed = torch.tensor([[True, True], [True, False], [True, True]])
+    searched = -torch.ones(3, 2, 3)
+    found = torch.tensor([[True, True], [True, False], [False, False]])  # a pair, one light, none
+    out = taught_minima({"target_pos": minimum, "target_needed": needed, "teacher_pos": searched,
+                         "teacher_mask": found})
+    assert torch.equal(out["target_pos"][0], searched[0]) and out["target_needed"][0].all()
+    assert torch.equal(out["target_pos"][1, 0], searched[1, 0]) and torch.equal(out["target_pos"][1, 1], minimum[1, 1])
+    assert out["target_needed"][1].tolist() == [True, False]  # the search's count, not the minimum's
+    assert torch.equal(out["target_pos"][2], minimum[2]) and out["target_needed"][2].all()  # no light: the minimum
+
+
+def test_the_taught_iterative_recipe_takes_the_searchs_lights_as_targets(tmp_path):
+    # experiment=iterative_taught in miniature: the pool's rooms searched once, their lights the slots' targets.
+    from tests.test_training import _cfg
+
+    cfg = _cfg("experiment=iterative_taught", f"trainer.out_dir={tmp_path}", "logger.tensorboard=false",
+               "data.pool.height=24", "data.pool.width=32", "data.pool.train_scenes=4", "data.pool.teacher_scenes=4",
+               "data.pool.teacher_scale=1", f"data.pool.teacher_cache={tmp_path / 'cache'}", "data.pool.val_scenes=2",
+               "data.pool.workers=0", "trainer.init=null", "trainer.progress=false", "model.long_side=32",
+               "model.widths=[8,16,16]", "model.global_width=16", "model.update_width=8")
+    pool = build_trainer(cfg)._pool(0, "train")
+    found = pool["teacher_mask"].any(1)
+    assert found.any()
+    assert torch.equal(pool["target_needed"][found], pool["teacher_mask"][found])
+    taught = pool["teacher_mask"]
+    assert torch.equal(pool["target_pos"][taught], pool["teacher_pos"][taught])
