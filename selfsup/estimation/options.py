@@ -109,7 +109,11 @@ class Tuning:
             refined instead (above 1: search everywhere).
         cnn_settle, cnn_settle_stride: ``cnn`` settles the network's counted slots by this many
             LM steps on every that-many-th pixel (albedo-free on the frame's albedo segments
-            where the albedo is unknown; 0: the slots as they are), no search.
+            where the albedo is unknown; 0: the slots as they are), no search. 15 steps, not 5:
+            the network's second slot often lies 0.2-0.5 of the scene from the second lamp, and a
+            pair settled further is counted in 55 of 126 two-light captures against 45 (method=cnn,
+            eight capture sets: 161 against 155 successes, about 1.1x the command's time;
+            docs/decisions.md, 2026-12-08).
         cnn_count: ``cnn``'s count where the albedo is unknown: ``criterion`` (the settled slots'
             albedo-free BIC, :func:`selfsup.estimation.network.counted`) or ``network`` (its presences).
         min_light_share: an added light must carry this share of the rendered direct
@@ -219,7 +223,7 @@ class Tuning:
     cnn_starts: int = 4
     cnn_start: str = "search"
     cnn_sure: float = 0.8
-    cnn_settle: int = 5
+    cnn_settle: int = 15
     cnn_count: str = "criterion"
     cnn_settle_stride: int = 2
     block_width: float = 0.1
