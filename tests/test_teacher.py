@@ -118,7 +118,6 @@ def test_a_run_may_start_from_a_checkpoints_weights_and_a_mismatch_is_named(tmp_
         run(_smoke(tmp_path / "c", f"trainer.init={first['last']}", "model.hidden=32"))
 
 
-
 def test_the_search_takes_the_minimums_place_where_it_found_lights():
     from selfsup.engine import taught_minima
 

@@ -110,7 +110,7 @@ class Tuning:
         cnn_settle, cnn_settle_stride: ``cnn`` settles the network's counted slots by this many
             LM steps on every that-many-th pixel (albedo-free on the frame's albedo segments
             where the albedo is unknown; 0: the slots as they are), no search. 15 steps, not 5:
-            the network's second slot often lies 0.2-0.5 of the scene from the second lamp, and a
+            the network's second slot often lies 0.2-0.6 of the scene from the second lamp, and a
             pair settled further is counted in 55 of 126 two-light captures against 45 (method=cnn,
             eight capture sets: 161 against 155 successes, about 1.1x the command's time;
             docs/decisions.md, 2026-12-08).
