@@ -131,6 +131,18 @@ def build_trainer(cfg: DictConfig):
                    config=OmegaConf.to_container(cfg, resolve=True))
 
 
+def estimate_settings(node) -> tuple:
+    """``(EstimateOptions, the command's own settings)`` of an ``estimate`` config node: the
+    estimator's choices and tuned constants, and where it reads and writes (input, output,
+    workers, ...), as ``mode=estimate`` passes them to :func:`selfsup.estimation.estimate_files`."""
+    from selfsup.estimation import EstimateOptions
+
+    est = _plain(node)
+    io = {k: est.pop(k) for k in ("input", "output", "progress", "batch", "device", "workers", "depth",
+                                  "depth_scale", "intrinsics", "overwrite", "shard")}
+    return EstimateOptions(**est), io
+
+
 def training_summary(result: dict) -> str:
     """One human line of a training run's end: validation error, angle, success, checkpoint."""
     v = result.get("validation") or {}
@@ -184,12 +196,10 @@ def run(cfg: DictConfig):
         sampler, degradations, samples = build_data(cfg)
         return generate_set(sampler=sampler, degradations=degradations, samples=samples, **_plain(cfg.generate))
     if cfg.mode == "estimate":
-        from selfsup.estimation import EstimateOptions, estimate_files
+        from selfsup.estimation import estimate_files
 
-        est = _plain(cfg.estimate)
-        io = {k: est.pop(k) for k in ("input", "output", "progress", "batch", "device", "workers", "depth",
-                                      "depth_scale", "intrinsics", "overwrite", "shard")}
-        return estimate_files(options=EstimateOptions(**est), **io)
+        options, io = estimate_settings(cfg.estimate)
+        return estimate_files(options=options, **io)
     if cfg.mode == "track":
         return _track(_plain(cfg.track))
     if cfg.mode == "scan":

@@ -1,13 +1,11 @@
 """The shipped examples (examples/capture, examples/sequence) run through the README's quick start and Tracker snippet."""
 
-import dataclasses
 import json
 from pathlib import Path
 
 import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
 from benchmarks.captures import read_truth
 from selfsup.estimation import EstimateOptions, estimate_files
@@ -33,12 +31,14 @@ def test_the_example_capture_is_estimated_and_an_object_inserted(tmp_path):
 def test_the_fast_preset_changes_its_three_constants_and_places_the_example_rooms_lights(tmp_path):
     # estimate=fast (configs/estimate/fast.yaml) is the default group with three tuned constants
     # changed; run as the command reads it, it places the two one-light rooms as the default does.
+    from train import estimate_settings
+
+    overrides = ["estimate=fast", f"estimate.input={EXAMPLE}", f"estimate.output={tmp_path / 'lights.jsonl'}",
+                 "estimate.progress=false"]
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
-        settings = OmegaConf.to_container(compose(config_name="train", overrides=["estimate=fast"]).estimate)
-    fields = {f.name for f in dataclasses.fields(EstimateOptions)}  # the rest are the command's (input, workers, ...)
-    options = EstimateOptions(**{k: v for k, v in settings.items() if k in fields})
+        options, io = estimate_settings(compose(config_name="train", overrides=overrides).estimate)
     assert options.changed_settings() == {"cnn_start": "settled", "albedo_free_gloss": "never", "vignetting": "none"}
-    summary = estimate_files(EXAMPLE, tmp_path / "lights.jsonl", options, progress=False)
+    summary = estimate_files(options=options, **io)  # as mode=estimate runs it
     assert summary["done"] == 3 and summary["failed"] == 0
     records = {r["id"]: r for r in map(json.loads, (tmp_path / "lights.jsonl").read_text().splitlines())}
     for room in ("room_00", "room_01"):  # one light each

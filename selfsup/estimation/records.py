@@ -116,7 +116,7 @@ def _record(scene_id: str, best: Candidate, tried: list[Candidate], cov: Tensor,
         lights = [lights[k] for k in shown]
     return {
         "id": scene_id, "lights": lights, "ambient": ambient, "light_found": found,
-        "direct_share": round(float(share[sorted(order[k] for k in shown)].sum()), 4) if found else 0.0,
+        "direct_share": round(float(share[[order[k] for k in shown]].sum()), 4) if found else 0.0,
         "evidence": None if best.evidence is None else round(best.evidence, 3),
         "unsupported_lights": unsupported, "vignetting": best.vignetting, "highlight_pixels": best.highlight_pixels,
         "bounce_share": best.bounce_share,
